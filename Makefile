@@ -1,0 +1,60 @@
+# Navi: one Makefile for the whole workspace.
+#   make run    set everything up, then run the main job (procedural corpus -> train -> promote -> evaluate)
+#   make test   set everything up, then run the whole test suite
+#   make check  lint (ruff), format check, types (mypy), tests
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip --disable-pip-version-check -q
+# Kept as a range so that an installed CPU or CUDA build of torch is reused, never replaced.
+TORCH_SPEC ?= torch>=2.5
+PACKAGES := shared/contracts services/compiler services/env services/learner services/auditor
+PYTEST_ARGS ?=
+STAMP := $(VENV)/.navi-setup
+SOURCES := $(wildcard pyproject.toml requirements-dev.txt */*/pyproject.toml */*/setup.py */*/*/csrc/*)
+
+.PHONY: help setup run test check lint format typecheck clean
+
+help:
+	@echo "make run        set up, then train on the procedural default corpus and evaluate"
+	@echo "make test       set up, then run the test suite (gpu tests skip without CUDA)"
+	@echo "make check      ruff lint + format check, mypy, pytest"
+	@echo "make format     apply ruff format"
+	@echo "make clean      remove the virtual environment and build outputs"
+
+setup: $(STAMP)
+
+# The venv sees the interpreter's site-packages, so a torch that is already installed is kept.
+$(STAMP): $(SOURCES)
+	@test -x $(PY) || $(PYTHON) -m venv --system-site-packages $(VENV)
+	@echo "[navi] installing build tools"
+	@$(PIP) install "setuptools>=68" "pybind11>=2.12" wheel
+	@$(PY) -c "import torch" 2>/dev/null || { echo "[navi] installing $(TORCH_SPEC)"; $(PIP) install "$(TORCH_SPEC)"; }
+	@echo "[navi] installing the workspace packages (builds the C++ extensions)"
+	@$(PIP) install --no-build-isolation $(foreach p,$(PACKAGES),-e $(p)) -e . -r requirements-dev.txt
+	@touch $(STAMP)
+
+run: setup
+	$(VENV)/bin/navi run
+
+test: setup
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+lint: setup
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
+format: setup
+	$(PY) -m ruff format .
+	$(PY) -m ruff check --fix .
+
+typecheck: setup
+	$(PY) -m mypy navi shared/contracts/navi_contracts services/compiler/navi_compiler \
+		services/env/navi_env services/learner/navi_learner services/auditor/navi_auditor
+
+check: lint typecheck test
+
+clean:
+	rm -rf $(VENV) build */*/build */*/*.egg-info *.egg-info .mypy_cache .ruff_cache .pytest_cache
+	find . -name '*.so' -path '*/navi_*' -delete

@@ -1,0 +1,1 @@
+"""Navi wire contracts."""
