@@ -45,8 +45,12 @@ def build_app() -> typer.Typer:
     def _root(
         version: Annotated[
             bool,
-            typer.Option("--version", help="Print the version and git commit, then exit.", callback=_version_callback,
-                         is_eager=True),
+            typer.Option(
+                "--version",
+                help="Print the version and git commit, then exit.",
+                callback=_version_callback,
+                is_eager=True,
+            ),
         ] = False,
     ) -> None:
         """Navi command line."""
