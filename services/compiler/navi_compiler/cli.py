@@ -1,9 +1,207 @@
-"""`navi` sub-commands of navi_compiler (registered by navi.cli)."""
+"""`navi` sub-commands of navi_compiler (registered by navi.cli): compile, check, bench compile,
+and the `scenes` group from cli_scenes."""
 
 from __future__ import annotations
 
+import json
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from enum import StrEnum
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
 import typer
+
+from navi_compiler import cli_scenes
+
+if TYPE_CHECKING:
+    from navi_compiler.scene import Scene
+
+PANEL = "Compiler"
+
+
+class EngineChoice(StrEnum):
+    """Which compiler runs."""
+
+    cpp = "cpp"
+    ref = "ref"
+
+
+def _parse_seed(raw: str) -> tuple[float, float, float]:
+    parts = raw.split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(v == v and abs(v) != float("inf") for v in values):
+        raise typer.BadParameter(f"--seed {raw!r} is not x,y,z (three finite numbers, meters)")
+    return (values[0], values[1], values[2])
+
+
+def _fail(msg: str) -> typer.Exit:
+    typer.echo(f"error: {msg}", err=True)
+    return typer.Exit(2)
+
+
+def _progress(enabled: bool) -> Callable[[str, float], None]:
+    def report(stage: str, frac: float) -> None:
+        if enabled:
+            end = "\n" if frac >= 1.0 else ""
+            sys.stderr.write(f"\r[navi compile] {frac * 100:5.1f}%  {stage:<28}{end}")
+            sys.stderr.flush()
+
+    return report
+
+
+def _load(
+    src: str, map_name: str | None, scale: float | None, repair: bool, seeds: list[str] | None
+) -> Scene:
+    from navi_compiler.ingest import IngestError, load_scene
+
+    points = [_parse_seed(s) for s in seeds or []]
+    try:
+        return load_scene(src, map_name=map_name, scale=scale, repair=repair, seeds=points)
+    except (IngestError, OSError) as exc:
+        raise _fail(str(exc)) from None
+
+
+def _summary(stats: dict[str, object], out: str | None, load_seconds: float) -> dict[str, object]:
+    return {"output": out, "load_seconds": load_seconds, **stats}
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
-    """Add this package's commands to the root app and the `bench` group."""
+    """Add compile and check to the root app, `compile` to the bench group, and the scenes group."""
+
+    @app.command("compile", rich_help_panel=PANEL)
+    def compile_cmd(
+        src: Annotated[
+            str, typer.Argument(help="Scene: .glb/.gltf/.obj/.ply/.stl, .bsp, .pk3 or maps.pk3:maps/x.bsp.")
+        ],
+        out: Annotated[Path, typer.Option("--out", "-o", help="Output .gmdag path (written atomically).")],
+        resolution: Annotated[
+            int, typer.Option(help="Cells per cube edge (rounded up to a power of two).")
+        ] = 512,
+        scale: Annotated[
+            float | None,
+            typer.Option(help="Meters per source unit (default 0.0254 for Quake 3, 1 for meshes)."),
+        ] = None,
+        seed: Annotated[
+            list[str] | None, typer.Option("--seed", help="Known-free point x,y,z in meters (repeatable).")
+        ] = None,
+        repair: Annotated[
+            bool, typer.Option(help="Repair meshes with trimesh (merge, fix normals, fill holes).")
+        ] = False,
+        map_name: Annotated[
+            str | None, typer.Option("--map", help="Map name inside a .pk3 (e.g. oa_dm1).")
+        ] = None,
+        engine: Annotated[
+            EngineChoice, typer.Option(help="cpp (fast) or ref (NumPy); same bytes.")
+        ] = EngineChoice.cpp,
+        threads: Annotated[int, typer.Option(help="C++ worker threads (0: all cores).", min=0)] = 0,
+        json_out: Annotated[
+            bool, typer.Option("--json", help="Print one JSON summary object on stdout.")
+        ] = False,
+    ) -> None:
+        """Compile a scene into a .gmdag signed-distance DAG."""
+        from navi_compiler.compile import compile_scene
+        from navi_compiler.gmdag import write_gmdag
+
+        t0 = time.perf_counter()
+        scene = _load(src, map_name, scale, repair, seed)
+        load_seconds = time.perf_counter() - t0
+        show = sys.stderr.isatty() and not json_out
+        try:
+            g, stats = compile_scene(
+                scene, resolution=resolution, engine=engine.value, threads=threads, progress=_progress(show)
+            )
+        except ValueError as exc:
+            raise _fail(str(exc)) from None
+        except MemoryError:
+            raise _fail(
+                f"not enough memory for resolution {resolution} (about 20 bytes per lattice point)"
+            ) from None
+        if not out.parent.exists():
+            raise _fail(f"output folder {out.parent} does not exist")
+        write_gmdag(g, out)
+        summary = _summary(asdict(stats), str(out), load_seconds)
+        if json_out:
+            typer.echo(json.dumps(summary))
+            return
+        leak = (
+            "LEAKED (fell back to outside seeding)"
+            if stats.leaked
+            else (
+                f"ok ({stats.seeds_used} inside seed(s))" if stats.seeds_used else "ok (filled from outside)"
+            )
+        )
+        typer.echo(
+            f"{out}: {stats.file_bytes / 1e6:.2f} MB, {stats.compression:.1f}x smaller than dense float32 "
+            f"({stats.dense_bytes / 1e6:.0f} MB)\n"
+            f"  resolution {stats.resolution}^3, voxel {stats.voxel_size:.4f} m, "
+            f"{stats.node_count} nodes, {stats.brick_count} bricks\n"
+            f"  leak check: {leak}\n"
+            f"  time: {stats.seconds_total + load_seconds:.1f} s (load {load_seconds:.1f}, "
+            f"sdf {stats.seconds_sdf:.1f}, dag {stats.seconds_dag:.1f}; engine {stats.engine})"
+        )
+
+    @app.command("check", rich_help_panel=PANEL)
+    def check_cmd(
+        files: Annotated[list[Path], typer.Argument(help=".gmdag files to validate.")],
+        json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    ) -> None:
+        """Validate .gmdag files and print their header, compression and degenerate-scene checks."""
+        from navi_compiler.check import check_file
+
+        reports = [check_file(f) for f in files]
+        if json_out:
+            typer.echo(
+                json.dumps({"files": [asdict(r) for r in reports], "valid": all(r.valid for r in reports)})
+            )
+        else:
+            for r in reports:
+                if not r.valid:
+                    typer.echo(f"{r.path}: INVALID: {r.error}")
+                    continue
+                note = f"  WARNING: degenerate scene ({r.degenerate})" if r.degenerate else ""
+                typer.echo(
+                    f"{r.path}: valid, resolution {r.resolution}, voxel_size {r.voxel_size:.6g} m, "
+                    f"origin {tuple(round(v, 4) for v in r.origin or ())}, {r.node_count} nodes, "
+                    f"{r.brick_count} bricks, {r.spawn_count} spawns, {r.compression:.1f}x vs dense float32, "
+                    f"non-finite values {r.non_finite}, leak fallback {r.leak_fallback}{note}"
+                )
+        if not all(r.valid for r in reports):
+            raise typer.Exit(1)
+
+    @bench.command("compile")
+    def bench_compile(
+        src: Annotated[str, typer.Argument(help="Scene source (as for `navi compile`).")],
+        resolution: Annotated[int, typer.Option(help="Cells per cube edge.")] = 512,
+        map_name: Annotated[str | None, typer.Option("--map", help="Map name inside a .pk3.")] = None,
+        scale: Annotated[float | None, typer.Option(help="Meters per source unit.")] = None,
+        engine: Annotated[EngineChoice, typer.Option(help="cpp or ref.")] = EngineChoice.cpp,
+        threads: Annotated[int, typer.Option(help="C++ worker threads (0: all cores).", min=0)] = 0,
+        json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object (always on).")] = True,
+    ) -> None:
+        """Time one compile (nothing written) and print the stats as one JSON object."""
+        import os
+
+        from navi_compiler.compile import compile_scene
+
+        t0 = time.perf_counter()
+        scene = _load(src, map_name, scale, False, None)
+        load_seconds = time.perf_counter() - t0
+        try:
+            _, stats = compile_scene(scene, resolution=resolution, engine=engine.value, threads=threads)
+        except ValueError as exc:
+            raise _fail(str(exc)) from None
+        except MemoryError:
+            raise _fail(
+                f"not enough memory for resolution {resolution} (about 20 bytes per lattice point)"
+            ) from None
+        result = _summary(asdict(stats), None, load_seconds)
+        result.update({"source": src, "map": map_name, "cpu_count": os.cpu_count(), "json": json_out})
+        typer.echo(json.dumps(result))
+
+    cli_scenes.register(app)

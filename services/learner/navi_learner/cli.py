@@ -1,9 +1,432 @@
-"""`navi` sub-commands of navi_learner (registered by navi.cli)."""
+"""`navi` sub-commands of navi_learner (registered by navi.cli): train, infer, evaluate, compare,
+models, export, run, and `bench train`. Module-level imports: typer and the standard library only."""
 
 from __future__ import annotations
 
+import json
+import math
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
 import typer
+
+if TYPE_CHECKING:
+    from navi_learner.config import TrainConfig
+    from navi_learner.evaluate import EvalMetrics, EvalPolicy
+
+PANEL = "Learner"
+MODELS_DIR = Path("artifacts/models")
+RUNS_DIR = Path("artifacts/runs")
+DEFAULT_CORPUS = Path("artifacts/corpus/default")
+
+EnvOpt = Annotated[str, typer.Option("--env", help="Environment: sdfdag (the drone env) or toy (tests).")]
+CorpusOpt = Annotated[Path | None, typer.Option("--corpus", help="Corpus folder of .gmdag scenes.")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="Torch device: auto, cpu, cuda, cuda:N.")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Seed for torch and the environment.")]
+CoreOpt = Annotated[str, typer.Option("--temporal-core", help="Temporal core: mamba2, gru or mambapy.")]
+
+
+def fail(message: str) -> typer.Exit:
+    """Print a one-line error to stderr; the caller raises the returned Exit(2)."""
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(2)
+
+
+def pick_device(device: str) -> str:
+    """'auto' -> cuda when available, else cpu; anything else is checked."""
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise fail(f"device {device} requested but CUDA is not available")
+    if not (device == "cpu" or device.startswith("cuda")):
+        raise fail(f"unknown device {device!r}; use auto, cpu, cuda or cuda:N")
+    return device
+
+
+def check_choice(value: str, choices: tuple[str, ...], what: str) -> str:
+    """Validate an enumerated option."""
+    if value not in choices:
+        raise typer.BadParameter(f"{what} must be one of {', '.join(choices)}, got {value!r}")
+    return value
+
+
+def build_env(env_kind: str, corpus: Path | None, n_actors: int, device: str, seed: int) -> Any:
+    """The environment for a command, or exit 2 with the reason."""
+    from navi_learner.envs import EnvUnavailable, make_env
+
+    kind: Literal["sdfdag", "toy"] = (
+        "toy" if check_choice(env_kind, ("sdfdag", "toy"), "--env") == "toy" else "sdfdag"
+    )
+    try:
+        return make_env(
+            corpus if corpus is not None or kind == "toy" else DEFAULT_CORPUS, n_actors, device, seed, kind
+        )
+    except EnvUnavailable as err:
+        raise fail(str(err)) from err
+
+
+def train_config(
+    actors: int,
+    core: str,
+    rollout: int,
+    epochs: int,
+    lr: float,
+    total: int,
+    every: int,
+    device: str,
+    seed: int,
+) -> TrainConfig:
+    """TrainConfig from CLI options (0 keeps a default)."""
+    from navi_learner.config import TEMPORAL_CORES, EngineConfig, PPOConfig, TrainConfig
+
+    name = check_choice(core, TEMPORAL_CORES, "--temporal-core")
+    engine = EngineConfig(
+        temporal_core="gru" if name == "gru" else "mambapy" if name == "mambapy" else "mamba2"
+    )
+    return TrainConfig(
+        n_actors=actors,
+        rollout_length=rollout,
+        total_steps=total,
+        checkpoint_every=every,
+        device=device,
+        seed=seed,
+        engine=engine,
+        ppo=PPOConfig(lr=lr, ppo_epochs=epochs),
+    )
+
+
+def resume_choice(checkpoint: Path | None, fresh: bool, cfg: TrainConfig) -> tuple[Path | None, TrainConfig]:
+    """Explicit --checkpoint, else artifacts/models/latest.pt when compatible; the engine comes from it."""
+    from dataclasses import replace
+
+    from navi_learner.checkpoint import CheckpointError, read_meta
+    from navi_learner.config import EngineConfig
+
+    path = checkpoint if checkpoint is not None else (None if fresh else MODELS_DIR / "latest.pt")
+    if path is None or (checkpoint is None and not path.is_file()):
+        return None, cfg
+    try:
+        meta = read_meta(path)
+    except CheckpointError as err:
+        raise fail(str(err)) from err
+    if meta.temporal_core != cfg.engine.temporal_core:
+        if checkpoint is not None:
+            raise fail(f"{path} was trained with --temporal-core {meta.temporal_core}")
+        typer.echo(
+            f"note: {path} uses {meta.temporal_core}; starting a fresh {cfg.engine.temporal_core} run",
+            err=True,
+        )
+        return None, cfg
+    typer.echo(f"resuming from {path} (step {meta.step_id:,})", err=True)
+    return path, replace(cfg, engine=EngineConfig(**meta.config["engine"]))
+
+
+def print_metrics(rows: list[EvalMetrics], as_json: bool) -> None:
+    """One JSON object, or a markdown table."""
+    from navi_learner.evaluate import comparison_table
+
+    if as_json:
+        clean = [{k: None if isinstance(v, float) and math.isnan(v) else v for k, v in asdict(r).items()} for r in rows]
+        typer.echo(json.dumps({"results": clean}))
+    else:
+        typer.echo(comparison_table(rows))
+
+
+def eval_policy(spec: str, device: str, seed: int, deterministic: bool) -> EvalPolicy:
+    """'random', 'reactive', or a checkpoint path / registry version."""
+    import torch
+
+    from navi_learner.checkpoint import CheckpointError
+    from navi_learner.evaluate import CheckpointPolicy, RandomPolicy, ReactivePolicy
+    from navi_learner.registry import ModelRegistry, RegistryError
+
+    if spec == "random":
+        return RandomPolicy(seed)
+    if spec == "reactive":
+        return ReactivePolicy()
+    path = Path(spec)
+    if not path.is_file():
+        try:
+            path = ModelRegistry(MODELS_DIR).path(spec)
+        except RegistryError as err:
+            raise fail(
+                f"{spec} is neither random, reactive, a checkpoint file nor a registry version"
+            ) from err
+    try:
+        return CheckpointPolicy(path, torch.device(device), deterministic)
+    except CheckpointError as err:
+        raise fail(str(err)) from err
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
     """Add this package's commands to the root app and the `bench` group."""
+    models = typer.Typer(help="The model registry (artifacts/models).", no_args_is_help=True)
+
+    @app.command(rich_help_panel=PANEL)
+    def train(
+        corpus: CorpusOpt = None,
+        actors: Annotated[
+            int, typer.Option("--actors", help="Parallel actors (0: 4 on CPU, 4096 on CUDA).")
+        ] = 0,
+        temporal_core: CoreOpt = "mamba2",
+        rollout_length: Annotated[
+            int, typer.Option("--rollout-length", help="Steps per rollout (0: 512, capped by memory).")
+        ] = 0,
+        ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", help="PPO epochs per rollout.")] = 1,
+        lr: Annotated[float, typer.Option("--lr", help="Learning rate.")] = 5e-4,
+        total_steps: Annotated[int, typer.Option("--total-steps", help="Env-step budget.")] = 1_000_000,
+        checkpoint_every: Annotated[
+            int, typer.Option("--checkpoint-every", help="Env steps between checkpoints.")
+        ] = 25_000,
+        checkpoint: Annotated[
+            Path | None, typer.Option("--checkpoint", help="Resume from this checkpoint.")
+        ] = None,
+        fresh: Annotated[
+            bool, typer.Option("--fresh", help="Do not resume from artifacts/models/latest.pt.")
+        ] = False,
+        device: DeviceOpt = "auto",
+        seed: SeedOpt = 0,
+        env: EnvOpt = "sdfdag",
+        compile_encoder: Annotated[
+            bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
+        ] = True,
+    ) -> None:
+        """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first."""
+        from dataclasses import replace
+
+        import torch
+
+        from navi_learner.config import default_actors
+        from navi_learner.envs import corpus_summary
+        from navi_learner.registry import ModelRegistry
+        from navi_learner.train import train as run_train
+
+        dev = pick_device(device)
+        cfg = train_config(
+            actors, temporal_core, rollout_length, ppo_epochs, lr, total_steps, checkpoint_every, dev, seed
+        )
+        resume, cfg = resume_choice(checkpoint, fresh, replace(cfg, compile=compile_encoder))
+        n = cfg.n_actors or default_actors(torch.device(dev))
+        environment = build_env(env, corpus, n, dev, seed)
+        summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
+        result = run_train(
+            environment, cfg, resume_from=resume, registry=ModelRegistry(MODELS_DIR), corpus_summary=summary
+        )
+        typer.echo(
+            json.dumps(
+                {
+                    "run_id": result.run_id,
+                    "checkpoint": str(result.final_checkpoint),
+                    "report": str(result.report),
+                    "steps": result.step_id,
+                    "reward_ema": result.reward_ema,
+                    "sps": round(result.sps, 1),
+                    "promoted": result.promoted,
+                    "interrupted": result.interrupted,
+                }
+            )
+        )
+        if result.interrupted:
+            raise typer.Exit(130)
+
+    @app.command(rich_help_panel=PANEL)
+    def infer(
+        checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Checkpoint to run.")],
+        deterministic: Annotated[bool, typer.Option("--deterministic", help="Use the mean action.")] = False,
+        total_steps: Annotated[int, typer.Option("--total-steps", help="Batched steps to run.")] = 1000,
+        corpus: CorpusOpt = None,
+        actors: Annotated[int, typer.Option("--actors", help="Parallel actors.")] = 4,
+        device: DeviceOpt = "auto",
+        seed: SeedOpt = 0,
+        env: EnvOpt = "sdfdag",
+        as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    ) -> None:
+        """Run a checkpoint in-process (no PPO) and report its metrics."""
+        from navi_learner.evaluate import evaluate
+
+        dev = pick_device(device)
+        policy = eval_policy(str(checkpoint), dev, seed, deterministic)
+        environment = build_env(env, corpus, actors, dev, seed)
+        print_metrics([evaluate(environment, policy, total_steps, seed, progress=True)], as_json)
+
+    @app.command(name="evaluate", rich_help_panel=PANEL)
+    def evaluate_cmd(
+        checkpoint: Annotated[str | None, typer.Argument(help="Checkpoint file or registry version.")] = None,
+        policy: Annotated[
+            str | None, typer.Option("--policy", help="Baseline instead: random or reactive.")
+        ] = None,
+        corpus: CorpusOpt = None,
+        steps: Annotated[int, typer.Option("--steps", help="Batched steps.")] = 1000,
+        actors: Annotated[int, typer.Option("--actors", help="Parallel actors.")] = 4,
+        device: DeviceOpt = "auto",
+        seed: SeedOpt = 0,
+        env: EnvOpt = "sdfdag",
+        as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    ) -> None:
+        """Evaluate a checkpoint or a baseline: return, collisions, clearance, coverage, distance, starvation."""
+        from navi_learner.evaluate import evaluate
+
+        if (checkpoint is None) == (policy is None):
+            raise typer.BadParameter("give exactly one of CHECKPOINT or --policy random|reactive")
+        if policy is not None:
+            check_choice(policy, ("random", "reactive"), "--policy")
+        dev = pick_device(device)
+        chosen = eval_policy(policy or str(checkpoint), dev, seed, True)
+        environment = build_env(env, corpus, actors, dev, seed)
+        print_metrics([evaluate(environment, chosen, steps, seed, progress=True)], as_json)
+
+    @app.command(rich_help_panel=PANEL)
+    def compare(
+        policies: Annotated[
+            list[str], typer.Argument(help="Checkpoints, registry versions, random or reactive.")
+        ],
+        corpus: CorpusOpt = None,
+        steps: Annotated[int, typer.Option("--steps", help="Batched steps per policy.")] = 1000,
+        actors: Annotated[int, typer.Option("--actors", help="Parallel actors.")] = 4,
+        device: DeviceOpt = "auto",
+        seed: SeedOpt = 0,
+        env: EnvOpt = "sdfdag",
+        as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    ) -> None:
+        """Evaluate several policies on the same scenes, spawns and seeds."""
+        from navi_learner.evaluate import evaluate
+
+        dev = pick_device(device)
+        rows = []
+        for spec in policies:
+            chosen = eval_policy(spec, dev, seed, True)
+            rows.append(
+                evaluate(build_env(env, corpus, actors, dev, seed), chosen, steps, seed, progress=True)
+            )
+        print_metrics(rows, as_json)
+
+    @models.command(name="list")
+    def models_list(
+        as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    ) -> None:
+        """List registered versions and aliases."""
+        from navi_learner.registry import ModelRegistry
+
+        reg = ModelRegistry(MODELS_DIR)
+        entries, aliases = reg.list(), reg.aliases()
+        if as_json:
+            typer.echo(json.dumps({"versions": [asdict(e) for e in entries], "aliases": aliases}))
+            return
+        by_version: dict[str, list[str]] = {}
+        for alias, version in aliases.items():
+            by_version.setdefault(version, []).append(alias)
+        for e in entries:
+            tags = ",".join(e.tags)
+            typer.echo(
+                f"{e.version}  step {e.step_id:>12,}  reward_ema {e.reward_ema:+.4f}  {e.temporal_core:8} "
+                f"{e.training_source:3} [{tags}] {' '.join(by_version.get(e.version, []))}  {e.notes}"
+            )
+
+    @models.command(name="promote")
+    def models_promote(
+        checkpoint: Annotated[str, typer.Argument(help="Checkpoint file or an existing version.")],
+        alias: Annotated[
+            str, typer.Option("--alias", help="Alias to move (latest follows the best).")
+        ] = "latest",
+        notes: Annotated[str, typer.Option("--notes", help="Free text stored with the version.")] = "",
+        tags: Annotated[str, typer.Option("--tags", help="Comma-separated tags.")] = "",
+    ) -> None:
+        """Copy a checkpoint into the registry as a new immutable version and move an alias."""
+        from navi_learner.registry import ModelRegistry, RegistryError
+
+        try:
+            entry = ModelRegistry(MODELS_DIR).promote(
+                checkpoint, alias, notes, [t for t in tags.split(",") if t]
+            )
+        except RegistryError as err:
+            raise fail(str(err)) from err
+        typer.echo(json.dumps(asdict(entry)))
+
+    @models.command(name="rollback")
+    def models_rollback(alias: Annotated[str, typer.Argument(help="Alias to move back.")] = "latest") -> None:
+        """Point an alias back at its previous version."""
+        from navi_learner.registry import ModelRegistry, RegistryError
+
+        try:
+            entry = ModelRegistry(MODELS_DIR).rollback(alias)
+        except RegistryError as err:
+            raise fail(str(err)) from err
+        typer.echo(json.dumps(asdict(entry)))
+
+    app.add_typer(models, name="models", rich_help_panel=PANEL)
+
+    @app.command(rich_help_panel=PANEL)
+    def export(
+        checkpoint: Annotated[Path, typer.Argument(help="Checkpoint to export.")],
+        onnx: Annotated[Path, typer.Option("--onnx", help="Output .onnx file.")],
+    ) -> None:
+        """Export the step-mode policy (obs + recurrent state in; action, value, state out) to ONNX."""
+        from navi_learner.checkpoint import CheckpointError
+        from navi_learner.export import ExportUnavailable, export_onnx
+
+        try:
+            typer.echo(str(export_onnx(checkpoint, onnx)))
+        except (ExportUnavailable, CheckpointError) as err:
+            raise fail(str(err)) from err
+
+    @app.command(name="run", rich_help_panel=PANEL)
+    def run_cmd(
+        corpus: Annotated[
+            Path, typer.Option("--corpus", help="Corpus folder (built when missing).")
+        ] = DEFAULT_CORPUS,
+        total_steps: Annotated[
+            int, typer.Option("--total-steps", help="Budget (0: 1,024 on CPU, 2M on CUDA).")
+        ] = 0,
+        eval_steps: Annotated[
+            int, typer.Option("--eval-steps", help="Batched steps per evaluated policy.")
+        ] = 300,
+        device: DeviceOpt = "auto",
+        seed: SeedOpt = 0,
+    ) -> None:
+        """The main job: build the default corpus, train a bounded budget, promote, evaluate vs baselines."""
+        from navi_learner.main_job import MainJobError, main_job
+
+        dev = pick_device(device)
+        try:
+            report = main_job(corpus, total_steps, eval_steps, dev, seed, MODELS_DIR)
+        except MainJobError as err:
+            raise fail(str(err)) from err
+        typer.echo(f"report: {report}")
+
+    @bench.command(name="train")
+    def bench_train_cmd(
+        actors: Annotated[int, typer.Option("--actors", help="Parallel actors (0: device default).")] = 0,
+        temporal_core: CoreOpt = "mamba2",
+        device: DeviceOpt = "auto",
+        corpus: CorpusOpt = None,
+        env: EnvOpt = "sdfdag",
+        updates: Annotated[
+            int, typer.Option("--updates", help="Measured PPO updates (after 2 warm-up).")
+        ] = 5,
+        rollout_length: Annotated[
+            int, typer.Option("--rollout-length", help="Steps per rollout (0: default).")
+        ] = 0,
+        compile_encoder: Annotated[
+            bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
+        ] = True,
+        as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    ) -> None:
+        """Env only / env + inference / env + training SPS and ms per stage."""
+        from dataclasses import replace
+
+        import torch
+
+        from navi_learner.bench import bench_train
+        from navi_learner.config import default_actors
+
+        dev = pick_device(device)
+        cfg = train_config(actors, temporal_core, rollout_length, 1, 5e-4, 0, 10**12, dev, 0)
+        cfg = replace(cfg, compile=compile_encoder)
+        n = actors or default_actors(torch.device(dev))
+        result = bench_train(build_env(env, corpus, n, dev, 0), replace(cfg, n_actors=n), updates=updates)
+        typer.echo(json.dumps(result) if as_json else "\n".join(f"{k}: {v}" for k, v in result.items()))
+        sys.stdout.flush()

@@ -1,0 +1,167 @@
+"""The compiler: Scene -> Gmdag. Placement (grid.py), signed field (sdf.py / the C++ core), DAG (dag.py).
+
+`engine="cpp"` runs the C++17 core (navi_compiler._core), `engine="ref"` the NumPy reference; both
+produce byte-identical files for the same scene and options.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from navi_compiler.dag import DagArrays, build_dag, make_gmdag
+from navi_compiler.gmdag import FLAG_LEAK_FALLBACK, Gmdag, encode_gmdag, quant_step_for
+from navi_compiler.grid import place, to_voxels
+from navi_compiler.scene import Scene
+from navi_compiler.sdf import SdfInput, SdfResult, signed_field_ref
+
+log = logging.getLogger(__name__)
+
+Engine = Literal["cpp", "ref"]
+Progress = Callable[[str, float], None]  # (stage name, fraction of the whole compile done)
+
+
+@dataclass(frozen=True)
+class CompileStats:
+    """What a compile did and produced."""
+
+    resolution: int  # R
+    voxel_size: float  # meters
+    origin: tuple[float, float, float]  # cube min corner, meters
+    triangles: int  # drawn triangles
+    barrier_triangles: int  # barrier triangles
+    seeds_given: int  # scene seeds + extra seeds
+    seeds_used: int  # seeds that started the fill (0: filled from the border)
+    leaked: bool  # seeded from inside, the fill reached the border and fell back to the border
+    wall_points: int  # lattice points within 1/2 voxel of a surface
+    free_fraction: float  # share of lattice points with a positive sign
+    node_count: int
+    brick_count: int
+    file_bytes: int  # size of the encoded .gmdag
+    dense_bytes: int  # R^3 * 4, a dense float32 grid
+    compression: float  # dense_bytes / file_bytes
+    seconds_sdf: float  # signed field stage
+    seconds_dag: float  # DAG stage
+    seconds_total: float
+    stage_seconds: dict[str, float]  # signed-field stages (distance, barrier, fill, sign, ..., classes)
+    engine: str  # "cpp" or "ref"
+
+
+def _corners(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(vertices[faces])  # (F, 3, 3) float64
+
+
+def _signed_field_cpp(inp: SdfInput, threads: int) -> SdfResult:
+    from navi_compiler import _core  # type: ignore[attr-defined]
+
+    lattice, brick_class, flags, seeds_used, wall_points, free_points, seconds = _core.signed_field(
+        inp.drawn, inp.face_class, inp.barrier, inp.seeds, inp.resolution, float(inp.band), threads
+    )
+    log.debug("C++ signed-field stages (s): %s", seconds)
+    return SdfResult(lattice, brick_class, flags, seeds_used, wall_points, free_points, seconds)
+
+
+def _dag_cpp(sdf: SdfResult, band: float, threads: int) -> DagArrays:
+    from navi_compiler import _core  # type: ignore[attr-defined]
+
+    root, levels, nodes, bricks, brick_class = _core.build_dag(
+        sdf.lattice, sdf.brick_class, float(band), quant_step_for(band), threads
+    )
+    return DagArrays(root, levels, nodes, bricks, brick_class)
+
+
+def compile_scene(
+    scene: Scene,
+    *,
+    resolution: int = 512,
+    padding: int = 2,
+    band: float = 4.0,
+    seeds: Sequence[Sequence[float]] = (),
+    engine: Engine = "cpp",
+    threads: int = 0,
+    progress: Progress | None = None,
+) -> tuple[Gmdag, CompileStats]:
+    """Compile a scene into a validated Gmdag.
+
+    resolution: cells per cube edge, rounded up to a power of two. padding: free cells kept on each
+    side of the scene's longest axis. band: voxels of quantised distance kept around the surface.
+    seeds: extra known-free points (meters) added to scene.seeds. engine: "cpp" or "ref".
+    threads: C++ worker threads (0: all cores; the output does not depend on it).
+    progress: called with (stage, fraction done).
+    """
+    report = progress or (lambda stage, frac: None)
+    t0 = time.perf_counter()
+    lo, hi = scene.bounds
+    placement = place(lo, hi, resolution, padding)
+    all_seeds = np.concatenate([scene.seeds, np.asarray(seeds, np.float64).reshape(-1, 3)])  # (S, 3) meters
+    inp = SdfInput(
+        resolution=placement.resolution,
+        drawn=to_voxels(_corners(scene.vertices, scene.faces), placement),
+        face_class=np.ascontiguousarray(scene.face_class),
+        barrier=to_voxels(_corners(scene.vertices, scene.barrier_faces), placement),
+        seeds=to_voxels(all_seeds, placement),
+        band=band,
+    )
+    report("signed distance field", 0.0)
+    sdf = _signed_field_cpp(inp, threads) if engine == "cpp" else signed_field_ref(inp)
+    if sdf.flags & FLAG_LEAK_FALLBACK:
+        log.warning(
+            "scene %r: the fill from %d inside seed(s) reached the cube border (the scene leaks); "
+            "fell back to filling from outside the cube",
+            scene.name,
+            sdf.seeds_used,
+        )
+    elif len(all_seeds) and not sdf.seeds_used:
+        log.warning("scene %r: no seed lies in free space inside the cube; filled from outside", scene.name)
+    t1 = time.perf_counter()
+    report("DAG compression", 0.8)
+    cube_lo = np.array(placement.origin)  # (3,)
+    cube_hi = cube_lo + placement.resolution * placement.voxel_size  # (3,)
+    inside = ((all_seeds >= cube_lo) & (all_seeds <= cube_hi)).all(axis=1)  # (S,)
+    if engine == "cpp":
+        arrays = _dag_cpp(sdf, band, threads)
+    else:
+        arrays = build_dag(sdf.lattice, band, sdf.brick_class)
+    g = make_gmdag(
+        arrays,
+        origin=placement.origin,
+        voxel_size=placement.voxel_size,
+        band=band,
+        spawns=all_seeds[inside],
+        class_names=scene.class_names,
+        bounds=(tuple(lo.tolist()), tuple(hi.tolist())),
+        flags=sdf.flags,
+    )
+    t2 = time.perf_counter()
+    file_bytes = len(encode_gmdag(g))
+    dense = placement.resolution**3 * 4
+    report("done", 1.0)
+    n_lattice = (placement.resolution + 1) ** 3
+    stats = CompileStats(
+        resolution=placement.resolution,
+        voxel_size=placement.voxel_size,
+        origin=placement.origin,
+        triangles=len(scene.faces),
+        barrier_triangles=len(scene.barrier_faces),
+        seeds_given=len(all_seeds),
+        seeds_used=sdf.seeds_used,
+        leaked=bool(sdf.flags & FLAG_LEAK_FALLBACK),
+        wall_points=sdf.wall_points,
+        free_fraction=sdf.free_points / n_lattice,
+        node_count=len(g.nodes),
+        brick_count=len(g.bricks),
+        file_bytes=file_bytes,
+        dense_bytes=dense,
+        compression=dense / file_bytes,
+        seconds_sdf=t1 - t0,
+        seconds_dag=t2 - t1,
+        seconds_total=time.perf_counter() - t0,
+        stage_seconds=dict(sdf.stage_seconds),
+        engine=engine,
+    )
+    return g, stats

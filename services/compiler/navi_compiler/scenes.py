@@ -1,0 +1,797 @@
+"""Procedural scenes: the embedded default corpus (no download), built from boxes and cylinders.
+
+Every scene is a `Layout`: the interior is the union of axis-aligned *air* boxes carved out of
+solid rock (its boundary becomes floor / wall / ceiling faces), plus solid obstacles standing in
+that air (pillars, trunks, crates, stairs). Open families (forest, yard) have no drawn roof: the
+top of the interior becomes an undrawn barrier, like a Quake 3 sky. World meters, +Z up, the
+floor at z = 0. Passages are sized for a drone of radius 0.3 m (doorways ≥ 1.2 m wide, corridors
+and tunnels ≥ 1.6 m wide, obstacles ≥ 1.4 m apart).
+
+Shapes: V vertices, F faces, Fb barrier faces, S seeds, Q quads, Nx/Ny/Nz grid cells.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from enum import StrEnum
+from pathlib import Path
+
+import numpy as np
+
+from navi_compiler.ingest.sidecar import Sidecar, write_sidecar
+from navi_compiler.scene import Scene
+
+
+class Family(StrEnum):
+    """The procedural scene families (see docs/SCENES.md)."""
+
+    ROOMS = "rooms"
+    CORRIDORS = "corridors"
+    HALL = "hall"
+    MAZE = "maze"
+    CAVES = "caves"
+    FOREST = "forest"
+    BUILDING = "building"
+    YARD = "yard"
+
+
+FAMILIES: tuple[Family, ...] = tuple(Family)
+
+CLASS_NAMES = ("unknown", "floor", "wall", "ceiling", "pillar", "trunk", "obstacle", "stairs")
+FLOOR, WALL, CEILING, PILLAR, TRUNK, OBSTACLE, STAIRS = 1, 2, 3, 4, 5, 6, 7
+
+DRONE_RADIUS = 0.3  # meters
+SEED_CLEARANCE = 0.5  # meters of free space around every seed (drone radius plus a margin)
+SEED_COUNT = 12  # seeds per scene (fewer when the free space is small)
+CYLINDER_SEGMENTS = 16
+
+
+@dataclass(frozen=True)
+class Box:
+    """Axis-aligned box, meters."""
+
+    lo: tuple[float, float, float]  # min corner (x, y, z)
+    hi: tuple[float, float, float]  # max corner (x, y, z)
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """Vertical cylinder, meters."""
+
+    x: float  # axis position
+    y: float
+    radius: float
+    z0: float  # bottom
+    z1: float  # top
+
+
+@dataclass(frozen=True)
+class Solid:
+    """An obstacle standing in the air: its shape and its face class id."""
+
+    shape: Box | Cylinder
+    cls: int  # index into CLASS_NAMES
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The primitives of one scene, before meshing."""
+
+    family: Family
+    seed: int
+    air: tuple[Box, ...]
+    """Carved boxes; their union is the interior (free space before obstacles)."""
+    solids: tuple[Solid, ...]
+    """Obstacles inside the interior."""
+    open_top: float | None
+    """Z of the undrawn lid of an open family (its ceiling faces become barriers); None: closed."""
+    seeds: np.ndarray  # (S, 3) float64 meters, free points with SEED_CLEARANCE around them
+
+
+# ---------------------------------------------------------------------------------------------
+# Free-space tests (used for seeds, and by the tests to check them)
+
+
+@dataclass(frozen=True)
+class AirGrid:
+    """The union of air boxes on the grid of their own coordinates (exact, no resampling)."""
+
+    xs: np.ndarray  # (Nx + 1,) float64 sorted cell bounds
+    ys: np.ndarray  # (Ny + 1,)
+    zs: np.ndarray  # (Nz + 1,)
+    air: np.ndarray  # (Nx, Ny, Nz) bool, True where the cell is inside some air box
+
+
+def air_grid(boxes: Sequence[Box]) -> AirGrid:
+    """Rasterise air boxes onto the grid of their distinct coordinates."""
+    lo = np.array([b.lo for b in boxes], dtype=np.float64)  # (K, 3)
+    hi = np.array([b.hi for b in boxes], dtype=np.float64)  # (K, 3)
+    axes = [np.unique(np.concatenate([lo[:, a], hi[:, a]])) for a in range(3)]  # 3 × (N_a + 1,)
+    air = np.zeros(tuple(len(x) - 1 for x in axes), dtype=bool)  # (Nx, Ny, Nz)
+    start = [np.searchsorted(axes[a], lo[:, a]) for a in range(3)]  # 3 × (K,)
+    stop = [np.searchsorted(axes[a], hi[:, a]) for a in range(3)]  # 3 × (K,)
+    for k in range(len(boxes)):
+        air[start[0][k] : stop[0][k], start[1][k] : stop[1][k], start[2][k] : stop[2][k]] = True
+    return AirGrid(xs=axes[0], ys=axes[1], zs=axes[2], air=air)
+
+
+def cubes_in_air(grid: AirGrid, points: np.ndarray, radius: float) -> np.ndarray:
+    """Whether the cube of half-size radius about each point lies inside the air union: (S,) bool.
+
+    Counts the air cells the cube overlaps with a summed-volume table and compares with the
+    number of cells it overlaps.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)  # (S, 3)
+    table = np.zeros(tuple(n + 1 for n in grid.air.shape), dtype=np.int64)  # (Nx + 1, Ny + 1, Nz + 1)
+    table[1:, 1:, 1:] = grid.air.astype(np.int64).cumsum(0).cumsum(1).cumsum(2)
+    inside = np.ones(len(points), dtype=bool)  # (S,)
+    first, last = [], []
+    for axis, bounds in enumerate((grid.xs, grid.ys, grid.zs)):
+        lo, hi = points[:, axis] - radius, points[:, axis] + radius  # (S,) each
+        inside &= (lo >= bounds[0]) & (hi <= bounds[-1])
+        first.append(np.clip(np.searchsorted(bounds, lo, side="right") - 1, 0, len(bounds) - 1))  # (S,)
+        last.append(np.clip(np.searchsorted(bounds, hi, side="left"), 0, len(bounds) - 1))  # (S,) exclusive
+    (x0, y0, z0), (x1, y1, z1) = first, last
+    count = (
+        table[x1, y1, z1]
+        - table[x0, y1, z1]
+        - table[x1, y0, z1]
+        - table[x1, y1, z0]
+        + table[x0, y0, z1]
+        + table[x0, y1, z0]
+        + table[x1, y0, z0]
+        - table[x0, y0, z0]
+    )  # (S,) air cells overlapped
+    return inside & (count == (x1 - x0) * (y1 - y0) * (z1 - z0))
+
+
+def solid_distance(solid: Solid, points: np.ndarray) -> np.ndarray:
+    """Euclidean distance from points (S, 3) to a solid (0 inside): (S,) float64."""
+    shape = solid.shape
+    if isinstance(shape, Box):
+        gap = np.maximum(np.maximum(np.array(shape.lo) - points, points - np.array(shape.hi)), 0.0)  # (S, 3)
+        return np.linalg.norm(gap, axis=1)
+    radial = np.maximum(np.hypot(points[:, 0] - shape.x, points[:, 1] - shape.y) - shape.radius, 0.0)  # (S,)
+    vertical = np.maximum(np.maximum(shape.z0 - points[:, 2], points[:, 2] - shape.z1), 0.0)  # (S,)
+    return np.hypot(radial, vertical)
+
+
+def is_clear(grid: AirGrid, solids: Sequence[Solid], points: np.ndarray, radius: float) -> np.ndarray:
+    """Whether each point has `radius` of free space around it (inside the air, off every solid): (S,) bool."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)  # (S, 3)
+    clear = cubes_in_air(grid, points, radius)  # (S,) bool
+    for solid in solids:
+        clear &= solid_distance(solid, points) > radius
+    return clear
+
+
+def _pick_seeds(
+    rng: np.random.Generator,
+    air: Sequence[Box],
+    solids: Sequence[Solid],
+    preferred: Sequence[Sequence[float]],
+) -> np.ndarray:
+    """Up to SEED_COUNT clear points: the preferred ones first, then random points in the air boxes."""
+    grid = air_grid(air)
+    chosen: list[np.ndarray] = []
+    candidates = np.round(np.array(preferred, dtype=np.float64).reshape(-1, 3), 4)  # (P, 3)
+    for point in candidates[is_clear(grid, solids, candidates, SEED_CLEARANCE)]:
+        if len(chosen) < SEED_COUNT:
+            chosen.append(point)
+    lo = np.array([b.lo for b in air])  # (K, 3)
+    hi = np.array([b.hi for b in air])  # (K, 3)
+    volume = np.prod(hi - lo, axis=1)  # (K,)
+    for _ in range(20):
+        if len(chosen) >= SEED_COUNT:
+            break
+        pick = rng.choice(len(air), size=64, p=volume / volume.sum())  # (64,)
+        z_top = np.minimum(hi[pick, 2], lo[pick, 2] + 2.5)  # (64,) keep seeds near flying height
+        upper = np.column_stack([hi[pick, :2], z_top])  # (64, 3)
+        points = np.round(rng.uniform(lo[pick], np.maximum(upper, lo[pick])), 4)  # (64, 3)
+        for point in points[is_clear(grid, solids, points, SEED_CLEARANCE)]:
+            if len(chosen) < SEED_COUNT:
+                chosen.append(point)
+    if not chosen:
+        raise RuntimeError("procedural layout has no free point for a seed")
+    return np.array(chosen, dtype=np.float64)  # (S, 3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Families. Each returns (air boxes, solids, open_top, preferred seed points).
+
+_Parts = tuple[list[Box], list[Solid], float | None, list[tuple[float, float, float]]]
+
+
+def _box(x0: float, y0: float, z0: float, x1: float, y1: float, z1: float) -> Box:
+    return Box((round(x0, 4), round(y0, 4), round(z0, 4)), (round(x1, 4), round(y1, 4), round(z1, 4)))
+
+
+def _spanning_edges(
+    rng: np.random.Generator, nx: int, ny: int, extra: float
+) -> list[tuple[int, int, int, int]]:
+    """Edges ((i, j), (i', j')) of a random spanning tree of an nx × ny grid, plus a fraction of extra edges."""
+    edges = [(i, j, i + 1, j) for i in range(nx - 1) for j in range(ny)]
+    edges += [(i, j, i, j + 1) for i in range(nx) for j in range(ny - 1)]
+    order = rng.permutation(len(edges))
+    parent = list(range(nx * ny))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    chosen = []
+    for e in order:
+        i, j, i2, j2 = edges[e]
+        a, b = root(i * ny + j), root(i2 * ny + j2)
+        if a != b:
+            parent[a] = b
+            chosen.append(edges[e])
+        elif rng.random() < extra:
+            chosen.append(edges[e])
+    return sorted(chosen)
+
+
+def _rooms(rng: np.random.Generator) -> _Parts:
+    """A grid of rooms of varied sizes, separated by walls with doorways."""
+    nx, ny = int(rng.integers(2, 5)), int(rng.integers(2, 4))
+    wall = 0.3
+    height = float(rng.uniform(2.8, 4.0))
+    widths = rng.uniform(4.0, 9.0, nx)  # (nx,)
+    depths = rng.uniform(4.0, 9.0, ny)  # (ny,)
+    x0 = np.concatenate([[0.0], np.cumsum(widths + wall)])  # (nx + 1,) room starts
+    y0 = np.concatenate([[0.0], np.cumsum(depths + wall)])  # (ny + 1,)
+    air = [
+        _box(x0[i], y0[j], 0.0, x0[i] + widths[i], y0[j] + depths[j], height)
+        for i in range(nx)
+        for j in range(ny)
+    ]
+    door_h = min(height - 0.3, float(rng.uniform(2.1, 2.6)))
+    for i, j, i2, j2 in _spanning_edges(rng, nx, ny, 0.3):
+        door_w = float(rng.uniform(1.2, 2.0))
+        if i2 > i:  # door in the wall at x = x0[i] + widths[i], along y within room (i, j)
+            c = float(rng.uniform(y0[j] + 0.3 + door_w / 2, y0[j] + depths[j] - 0.3 - door_w / 2))
+            air.append(_box(x0[i] + widths[i], c - door_w / 2, 0.0, x0[i2], c + door_w / 2, door_h))
+        else:
+            c = float(rng.uniform(x0[i] + 0.3 + door_w / 2, x0[i] + widths[i] - 0.3 - door_w / 2))
+            air.append(_box(c - door_w / 2, y0[j] + depths[j], 0.0, c + door_w / 2, y0[j2], door_h))
+    solids: list[Solid] = []
+    for i, j in itertools.product(range(nx), range(ny)):
+        sx, sy, sz = rng.uniform(0.6, 1.2), rng.uniform(0.5, 1.2), rng.uniform(0.5, 1.2)
+        if rng.random() < 0.6:  # a table or crate, 1.4 m or more from every wall (doorways stay clear)
+            ax = float(rng.uniform(x0[i] + 1.4, x0[i] + widths[i] - 1.4 - sx))
+            ay = float(rng.uniform(y0[j] + 1.4, y0[j] + depths[j] - 1.4 - sy))
+            solids.append(Solid(_box(ax, ay, 0.0, ax + sx, ay + sy, sz), OBSTACLE))
+    seed_z = min(2.0, height - 0.6)
+    preferred = [(x0[i] + widths[i] / 2, y0[j] + depths[j] / 2, seed_z) for i in range(nx) for j in range(ny)]
+    return air, solids, None, preferred
+
+
+def _corridors(rng: np.random.Generator) -> _Parts:
+    """A network of corridors on a grid of junctions, some junctions widened into small rooms."""
+    nx, ny = int(rng.integers(3, 6)), int(rng.integers(3, 5))
+    spacing = float(rng.uniform(6.0, 10.0))
+    width = float(rng.uniform(1.6, 3.0))
+    height = float(rng.uniform(2.5, 3.5))
+    half = width / 2
+    air: list[Box] = []
+    preferred: list[tuple[float, float, float]] = []
+    used = set()
+    for i, j, i2, j2 in _spanning_edges(rng, nx, ny, 0.2):
+        ax, ay, bx, by = i * spacing, j * spacing, i2 * spacing, j2 * spacing
+        air.append(_box(ax - half, ay - half, 0.0, bx + half, by + half, height))
+        preferred.append(((ax + bx) / 2, (ay + by) / 2, 1.4))
+        used.update({(i, j), (i2, j2)})
+    for i, j in sorted(used):
+        if rng.random() < 0.3:
+            r = float(rng.uniform(2.0, 3.5))
+            h = float(rng.uniform(height, height + 2.0))
+            air.append(_box(i * spacing - r, j * spacing - r, 0.0, i * spacing + r, j * spacing + r, h))
+            preferred.insert(0, (i * spacing, j * spacing, 1.5))
+    return air, [], None, preferred
+
+
+def _hall(rng: np.random.Generator) -> _Parts:
+    """A large hall with rows of pillars (round or square) and alcoves along its long walls."""
+    length, width = float(rng.uniform(20.0, 45.0)), float(rng.uniform(12.0, 28.0))
+    height = float(rng.uniform(6.0, 12.0))
+    air = [_box(0.0, 0.0, 0.0, length, width, height)]
+    for _ in range(int(rng.integers(0, 5))):
+        w = float(rng.uniform(2.0, 5.0))
+        x = float(rng.uniform(1.0, length - w - 1.0))
+        depth = float(rng.uniform(1.5, 4.0))
+        h = float(rng.uniform(3.0, height))
+        air.append(
+            _box(x, -depth, 0.0, x + w, 0.0, h)
+            if rng.random() < 0.5
+            else _box(x, width, 0.0, x + w, width + depth, h)
+        )
+    pitch = float(rng.uniform(4.0, 7.0))
+    radius = float(rng.uniform(0.3, 0.8))
+    round_pillars = rng.random() < 0.6
+    xs = np.arange(pitch, length - pitch / 2, pitch)  # pillar columns
+    ys = np.arange(pitch, width - pitch / 2, pitch)  # pillar rows
+    solids = []
+    for x, y in itertools.product(xs, ys):
+        if round_pillars:
+            solids.append(Solid(Cylinder(float(x), float(y), radius, 0.0, height), PILLAR))
+        else:
+            solids.append(Solid(_box(x - radius, y - radius, 0.0, x + radius, y + radius, height), PILLAR))
+    centres = [(float(x + pitch / 2), float(y + pitch / 2)) for x, y in itertools.product(xs[:-1], ys[:-1])]
+    preferred = [(x, y, z) for (x, y), z in itertools.product(centres, (1.5, height / 2))]
+    preferred = [preferred[k] for k in rng.permutation(len(preferred))]
+    return air, solids, None, preferred
+
+
+def _maze(rng: np.random.Generator) -> _Parts:
+    """A perfect maze (randomised depth-first search) on a grid of cells, with a few loops."""
+    nx, ny = int(rng.integers(6, 13)), int(rng.integers(6, 13))
+    cell = float(rng.uniform(2.0, 3.0))
+    wall = 0.25
+    height = float(rng.uniform(2.5, 3.5))
+    inner = cell - wall
+    air = [
+        _box(i * cell, j * cell, 0.0, i * cell + inner, j * cell + inner, height)
+        for i in range(nx)
+        for j in range(ny)
+    ]
+    visited = np.zeros((nx, ny), dtype=bool)
+    stack = [(0, 0)]
+    visited[0, 0] = True
+    links: list[tuple[int, int, int, int]] = []
+    while stack:
+        i, j = stack[-1]
+        options = [(i + di, j + dj) for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+        options = [(a, b) for a, b in options if 0 <= a < nx and 0 <= b < ny and not visited[a, b]]
+        if not options:
+            stack.pop()
+            continue
+        a, b = options[int(rng.integers(len(options)))]
+        visited[a, b] = True
+        links.append((min(i, a), min(j, b), max(i, a), max(j, b)))
+        stack.append((a, b))
+    extra = [(i, j, i + 1, j) for i in range(nx - 1) for j in range(ny)] + [
+        (i, j, i, j + 1) for i in range(nx) for j in range(ny - 1)
+    ]
+    links += [e for e in extra if e not in links and rng.random() < 0.08]
+    for i, j, i2, j2 in links:
+        if i2 > i:
+            air.append(_box(i * cell + inner, j * cell, 0.0, i2 * cell, j * cell + inner, height))
+        else:
+            air.append(_box(i * cell, j * cell + inner, 0.0, i * cell + inner, j2 * cell, height))
+    order = rng.permutation(nx * ny)
+    preferred = [((k // ny) * cell + inner / 2, (k % ny) * cell + inner / 2, 1.4) for k in order]
+    return air, [], None, preferred
+
+
+def _snap(value: float) -> float:
+    return round(value * 4.0) / 4.0
+
+
+def _caves(rng: np.random.Generator) -> _Parts:
+    """Irregular chambers (clusters of overlapping boxes) joined by winding tunnels, on a 0.25 m grid."""
+    count = int(rng.integers(3, 7))
+    extent = float(rng.uniform(25.0, 45.0))
+    centres: list[np.ndarray] = []
+    while len(centres) < count:
+        c = np.array([rng.uniform(0, extent), rng.uniform(0, extent), rng.uniform(0.0, 2.0)])
+        if all(np.linalg.norm(c[:2] - o[:2]) > 8.0 for o in centres) or rng.random() < 0.02:
+            centres.append(c)
+    air: list[Box] = []
+    preferred: list[tuple[float, float, float]] = []
+    for c in centres:
+        sx, sy, sz = rng.uniform(4.0, 9.0), rng.uniform(4.0, 9.0), rng.uniform(3.0, 6.0)
+        air.append(
+            _box(
+                _snap(c[0] - sx / 2),
+                _snap(c[1] - sy / 2),
+                _snap(c[2]),
+                _snap(c[0] + sx / 2),
+                _snap(c[1] + sy / 2),
+                _snap(c[2] + sz),
+            )
+        )
+        for _ in range(int(rng.integers(2, 5))):
+            off = rng.uniform(-0.5, 0.5, 3) * np.array([sx, sy, 0.0])
+            bx, by, bz = rng.uniform(2.0, 5.0), rng.uniform(2.0, 5.0), rng.uniform(2.0, sz)
+            lo = c + off - np.array([bx / 2, by / 2, -rng.uniform(-0.5, 1.0)])
+            air.append(
+                _box(
+                    _snap(lo[0]),
+                    _snap(lo[1]),
+                    _snap(lo[2]),
+                    _snap(lo[0] + bx),
+                    _snap(lo[1] + by),
+                    _snap(lo[2] + bz),
+                )
+            )
+        preferred.append((_snap(c[0]) + 0.125, _snap(c[1]) + 0.125, _snap(c[2]) + 1.5))
+    for k in range(1, count):
+        target = centres[k]
+        source = centres[int(np.argmin([np.linalg.norm(target[:2] - o[:2]) for o in centres[:k]]))]
+        air += _tunnel(rng, source, target)
+    return air, [], None, preferred
+
+
+def _tunnel(rng: np.random.Generator, start: np.ndarray, end: np.ndarray) -> list[Box]:
+    """Overlapping boxes along an L-shaped path (x first, then y) with lateral and vertical wander.
+
+    Segments are at most 2 m long and overlap their neighbours by the tunnel width along the path;
+    the wander per segment is small enough that consecutive cross-sections overlap by at least
+    two thirds of the width and half of the height.
+    """
+    width, height = float(rng.uniform(1.6, 3.0)), float(rng.uniform(2.0, 3.0))
+    legs = (
+        (0, float(start[0]), float(end[0]), float(start[1])),
+        (1, float(start[1]), float(end[1]), float(end[0])),
+    )
+    pieces = []
+    for axis, a, b, base in legs:
+        steps = max(1, int(np.ceil(abs(b - a) / 2.0)))
+        pieces += [(axis, a + (b - a) * k / steps, a + (b - a) * (k + 1) / steps, base) for k in range(steps)]
+    boxes: list[Box] = []
+    lateral = 0.0
+    rise = 0.0
+    for k, (axis, t0, t1, base) in enumerate(pieces):
+        if k and pieces[k - 1][0] != axis:
+            lateral = 0.0
+        lateral = float(np.clip(lateral + rng.uniform(-width / 6, width / 6), -width / 3, width / 3))
+        rise = float(np.clip(rise + rng.uniform(-height / 8, height / 8), -height / 4, height / 4))
+        floor = float(start[2] + (end[2] - start[2]) * (k + 1) / len(pieces)) + rise
+        lo, hi = [0.0, 0.0, floor], [0.0, 0.0, floor + height]
+        lo[axis], hi[axis] = min(t0, t1) - width / 2, max(t0, t1) + width / 2
+        lo[1 - axis], hi[1 - axis] = base + lateral - width / 2, base + lateral + width / 2
+        boxes.append(_box(*(_snap(v) for v in lo), *(_snap(v) for v in hi)))
+    return boxes
+
+
+def _forest(rng: np.random.Generator) -> _Parts:
+    """A fenced clearing of tree trunks and boulders under an open (undrawn) sky."""
+    length, width = float(rng.uniform(20.0, 50.0)), float(rng.uniform(20.0, 50.0))
+    height = float(rng.uniform(8.0, 14.0))
+    spacing = float(rng.uniform(2.2, 3.5))
+    solids: list[Solid] = []
+    placed: list[tuple[float, float, float]] = []
+    for _ in range(int(length * width / spacing**2) * 2):
+        x, y, r = (
+            float(rng.uniform(0.6, length - 0.6)),
+            float(rng.uniform(0.6, width - 0.6)),
+            float(rng.uniform(0.15, 0.5)),
+        )
+        if all(np.hypot(x - px, y - py) > spacing + r + pr for px, py, pr in placed):
+            placed.append((x, y, r))
+            solids.append(Solid(Cylinder(x, y, r, 0.0, height), TRUNK))
+    for _ in range(int(rng.integers(2, 8))):
+        x, y, s = (
+            float(rng.uniform(1.0, length - 2.0)),
+            float(rng.uniform(1.0, width - 2.0)),
+            float(rng.uniform(0.5, 1.5)),
+        )
+        if all(np.hypot(x - px, y - py) > s + pr + 1.4 for px, py, pr in placed):
+            placed.append((x, y, s))
+            solids.append(
+                Solid(
+                    _box(x - s / 2, y - s / 2, 0.0, x + s / 2, y + s / 2, float(rng.uniform(0.4, 1.2))),
+                    OBSTACLE,
+                )
+            )
+    return [_box(0.0, 0.0, 0.0, length, width, height)], solids, height, []
+
+
+def _building(rng: np.random.Generator) -> _Parts:
+    """A multi-storey building: rooms per floor, slabs with stairwell openings and steps."""
+    floors = int(rng.integers(2, 5))
+    length, width = float(rng.uniform(12.0, 28.0)), float(rng.uniform(10.0, 20.0))
+    storey, slab, wall = float(rng.uniform(3.0, 3.6)), 0.3, 0.25
+    air: list[Box] = []
+    solids: list[Solid] = []
+    preferred: list[tuple[float, float, float]] = []
+    for f in range(floors):
+        z0 = f * (storey + slab)
+        rooms = int(rng.integers(1, 4))
+        spans = 3.0 + rng.dirichlet(np.ones(rooms)) * (length - 3.0 * rooms)  # (rooms,) each >= 3 m
+        cuts = np.cumsum(spans)[:-1]  # (rooms - 1,) wall centre lines
+        starts = np.concatenate([[0.0], cuts + wall / 2])  # (rooms,)
+        ends = np.concatenate([cuts - wall / 2, [length]])  # (rooms,)
+        for a, b in zip(starts, ends, strict=True):
+            air.append(_box(a, 0.0, z0, b, width, z0 + storey))
+            preferred.append(((a + b) / 2, width / 2, z0 + 1.5))
+        for cut in cuts:
+            door_w = float(rng.uniform(1.2, 2.2))
+            c = float(rng.uniform(0.4 + door_w / 2, width - 0.4 - door_w / 2))
+            air.append(
+                _box(
+                    cut - wall / 2,
+                    c - door_w / 2,
+                    z0,
+                    cut + wall / 2,
+                    c + door_w / 2,
+                    z0 + min(2.4, storey - 0.2),
+                )
+            )
+        if f + 1 < floors:  # stairwell: an opening through the slab above, steps along half of it
+            hole_l, hole_w = float(rng.uniform(3.5, 5.0)), float(rng.uniform(2.4, 3.2))
+            hx = float(rng.uniform(0.5, length - hole_l - 0.5))
+            hy = 0.0 if rng.random() < 0.5 else width - hole_w
+            air.append(_box(hx, hy, z0 + storey, hx + hole_l, hy + hole_w, (f + 1) * (storey + slab)))
+            steps = int(np.ceil(storey / 0.4))
+            for s in range(steps - 3):
+                run = hole_l / steps
+                solids.append(
+                    Solid(
+                        _box(
+                            hx + s * run,
+                            hy,
+                            z0,
+                            hx + (s + 1) * run,
+                            hy + hole_w / 2,
+                            z0 + (s + 1) * storey / steps,
+                        ),
+                        STAIRS,
+                    )
+                )
+    return air, solids, None, preferred
+
+
+def _yard(rng: np.random.Generator) -> _Parts:
+    """A walled yard under an open sky with crates, containers, barrels and low walls."""
+    length, width = float(rng.uniform(20.0, 55.0)), float(rng.uniform(20.0, 55.0))
+    height = float(rng.uniform(5.0, 9.0))
+    solids: list[Solid] = []
+    footprints: list[tuple[float, float, float, float]] = []
+    for _ in range(int(length * width / 25)):
+        kind = rng.random()
+        if kind < 0.45:
+            sx, sy, sz = rng.uniform(1.0, 6.0), rng.uniform(1.0, 3.0), rng.uniform(1.0, 4.0)
+        elif kind < 0.7:
+            sx, sy, sz = rng.uniform(0.3, 0.4), rng.uniform(3.0, 8.0), rng.uniform(1.0, 2.5)
+        else:
+            r = float(rng.uniform(0.3, 2.0))
+            sx = sy = 2 * r
+            sz = float(rng.uniform(1.0, 4.0))
+        if rng.random() < 0.5:
+            sx, sy = sy, sx
+        x, y = float(rng.uniform(0.0, length - sx)), float(rng.uniform(0.0, width - sy))
+        gap = 1.4
+        if any(
+            x < fx1 + gap and fx0 < x + sx + gap and y < fy1 + gap and fy0 < y + sy + gap
+            for fx0, fy0, fx1, fy1 in footprints
+        ):
+            continue
+        footprints.append((x, y, x + sx, y + sy))
+        if kind >= 0.7:
+            solids.append(Solid(Cylinder(x + sx / 2, y + sy / 2, sx / 2, 0.0, float(sz)), OBSTACLE))
+        else:
+            solids.append(Solid(_box(x, y, 0.0, x + sx, y + sy, sz), OBSTACLE))
+    return [_box(0.0, 0.0, 0.0, length, width, height)], solids, height, []
+
+
+def build_layout(family: Family | str, seed: int) -> Layout:
+    """The primitives of one scene of a family; the same (family, seed) always gives the same layout."""
+    fam = Family(family)
+    rng = np.random.default_rng(np.random.SeedSequence([FAMILIES.index(fam), seed]))
+    match fam:
+        case Family.ROOMS:
+            parts = _rooms(rng)
+        case Family.CORRIDORS:
+            parts = _corridors(rng)
+        case Family.HALL:
+            parts = _hall(rng)
+        case Family.MAZE:
+            parts = _maze(rng)
+        case Family.CAVES:
+            parts = _caves(rng)
+        case Family.FOREST:
+            parts = _forest(rng)
+        case Family.BUILDING:
+            parts = _building(rng)
+        case Family.YARD:
+            parts = _yard(rng)
+    air, solids, open_top, preferred = parts
+    seeds = _pick_seeds(rng, air, solids, preferred)
+    return Layout(family=fam, seed=seed, air=tuple(air), solids=tuple(solids), open_top=open_top, seeds=seeds)
+
+
+# ---------------------------------------------------------------------------------------------
+# Meshing
+
+
+def _air_quads(grid: AirGrid) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary of the air union as quads facing into the air, merged into runs along one axis.
+
+    Returns (corners (Q, 4, 3) float64 counter-clockwise seen from the air, normal axis × sign (Q,) int64
+    in {±1, ±2, ±3}).
+    """
+    bounds = (grid.xs, grid.ys, grid.zs)
+    quads: list[np.ndarray] = []
+    normals: list[np.ndarray] = []
+    for axis in range(3):
+        b_axis, c_axis = (axis + 1) % 3, (axis + 2) % 3
+        occ = np.moveaxis(grid.air, (axis, b_axis, c_axis), (0, 1, 2))  # (Na, Nb, Nc)
+        padded = np.pad(occ, ((1, 1), (0, 0), (0, 0)))  # (Na + 2, Nb, Nc)
+        below, above = padded[:-1], padded[1:]  # (Na + 1, Nb, Nc) cells on either side of each plane
+        for sign, mask in ((+1, ~below & above), (-1, below & ~above)):
+            prev = np.pad(mask, ((0, 0), (0, 0), (1, 0)))[:, :, :-1]  # (Na + 1, Nb, Nc)
+            nxt = np.pad(mask, ((0, 0), (0, 0), (0, 1)))[:, :, 1:]  # (Na + 1, Nb, Nc)
+            t, j, k0 = np.nonzero(mask & ~prev)  # (Q,) run starts
+            _, _, k1 = np.nonzero(mask & ~nxt)  # (Q,) run ends (same order)
+            a = bounds[axis][t]  # (Q,)
+            b0, b1 = bounds[b_axis][j], bounds[b_axis][j + 1]  # (Q,)
+            c0, c1 = bounds[c_axis][k0], bounds[c_axis][k1 + 1]  # (Q,)
+            corner = np.zeros((len(t), 4, 3))  # (Q, 4, 3)
+            corner[:, :, axis] = a[:, None]
+            corner[:, :, b_axis] = np.stack([b0, b1, b1, b0], axis=1)
+            corner[:, :, c_axis] = np.stack([c0, c0, c1, c1], axis=1)
+            if sign < 0:
+                corner = corner[:, ::-1]
+            quads.append(corner)
+            normals.append(np.full(len(t), sign * (axis + 1), dtype=np.int64))
+    return np.concatenate(quads), np.concatenate(normals)
+
+
+def _box_quads(box: Box) -> np.ndarray:
+    """The 6 faces of a box, counter-clockwise seen from outside: (6, 4, 3)."""
+    lo, hi = np.array(box.lo), np.array(box.hi)
+    corner = np.array(list(itertools.product((0, 1), repeat=3)))  # (8, 3) bits (x, y, z)
+    pts = lo + corner * (hi - lo)  # (8, 3)
+    faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    return pts[np.array(faces)]  # (6, 4, 3)
+
+
+def _cylinder_triangles(c: Cylinder) -> np.ndarray:
+    """Side and caps of a vertical cylinder, counter-clockwise seen from outside: (4·segments, 3, 3)."""
+    angle = np.linspace(0.0, 2 * np.pi, CYLINDER_SEGMENTS, endpoint=False)  # (n,)
+    ring = np.column_stack([c.x + c.radius * np.cos(angle), c.y + c.radius * np.sin(angle)])  # (n, 2)
+    nxt = np.roll(ring, -1, axis=0)  # (n, 2)
+
+    def lo(p: np.ndarray) -> np.ndarray:
+        return np.column_stack([p, np.full(len(p), c.z0)])  # (n, 3)
+
+    def hi(p: np.ndarray) -> np.ndarray:
+        return np.column_stack([p, np.full(len(p), c.z1)])  # (n, 3)
+
+    bottom_centre = np.tile([c.x, c.y, c.z0], (len(ring), 1))  # (n, 3)
+    top_centre = np.tile([c.x, c.y, c.z1], (len(ring), 1))  # (n, 3)
+    side_a = np.stack([lo(ring), lo(nxt), hi(nxt)], axis=1)  # (n, 3, 3)
+    side_b = np.stack([lo(ring), hi(nxt), hi(ring)], axis=1)  # (n, 3, 3)
+    top = np.stack([top_centre, hi(ring), hi(nxt)], axis=1)  # (n, 3, 3)
+    bottom = np.stack([bottom_centre, lo(nxt), lo(ring)], axis=1)  # (n, 3, 3)
+    return np.concatenate([side_a, side_b, top, bottom])
+
+
+def _split_quads(quads: np.ndarray) -> np.ndarray:
+    """(Q, 4, 3) quads -> (2Q, 3, 3) triangles with the same winding."""
+    return np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+
+
+def mesh_layout(layout: Layout) -> Scene:
+    """Triangulate a layout: air boundary (floor/wall/ceiling), solids, and the open-top barrier."""
+    quads, normal = _air_quads(air_grid(layout.air))  # (Q, 4, 3), (Q,)
+    quad_class = np.full(len(quads), WALL, dtype=np.uint8)  # (Q,) uint8
+    quad_class[normal == 3] = FLOOR
+    quad_class[normal == -3] = CEILING
+    lid = np.zeros(len(quads), dtype=bool)  # (Q,) bool
+    if layout.open_top is not None:
+        lid = (normal == -3) & np.isclose(quads[:, 0, 2], layout.open_top)
+    tris = [_split_quads(quads[~lid])]  # list of (T, 3, 3)
+    classes = [np.tile(quad_class[~lid], 2)]  # list of (T,)
+    for solid in layout.solids:
+        shape_tris = (
+            _split_quads(_box_quads(solid.shape))
+            if isinstance(solid.shape, Box)
+            else _cylinder_triangles(solid.shape)
+        )
+        tris.append(shape_tris)
+        classes.append(np.full(len(shape_tris), solid.cls, dtype=np.uint8))
+    drawn = np.concatenate(tris)  # (F, 3, 3)
+    barrier = _split_quads(quads[lid])  # (Fb, 3, 3)
+    corners = np.concatenate([drawn, barrier]).reshape(-1, 3)  # ((F + Fb)·3, 3)
+    vertices, index = np.unique(np.round(corners, 6), axis=0, return_inverse=True)  # (V, 3), ((F + Fb)·3,)
+    index = index.reshape(-1, 3).astype(np.int64)  # (F + Fb, 3)
+    return Scene(
+        name=f"{layout.family.value}_{layout.seed}",
+        vertices=vertices.astype(np.float64),
+        faces=index[: len(drawn)],
+        face_class=np.concatenate(classes),
+        class_names=CLASS_NAMES,
+        barrier_faces=index[len(drawn) :],
+        seeds=layout.seeds.astype(np.float64),
+    )
+
+
+def generate_scene(family: Family | str, seed: int) -> Scene:
+    """One procedural scene of a family, deterministic in (family, seed)."""
+    return mesh_layout(build_layout(family, seed))
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing
+
+
+def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    lines = [f"# navi procedural scene: {len(vertices)} vertices, {len(faces)} faces, meters, +Z up"]
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
+    lines += [f"f {a} {b} {c}" for a, b, c in faces + 1]
+    path.write_text("\n".join(lines) + "\n", encoding="ascii")
+
+
+def _write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment navi procedural scene, meters, +Z up\n"
+        f"element vertex {len(vertices)}\nproperty double x\nproperty double y\nproperty double z\n"
+        f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    face_records = np.zeros(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])  # (F,) packed records
+    face_records["n"] = 3
+    face_records["v"] = faces
+    with path.open("wb") as out:
+        out.write(header.encode("ascii"))
+        out.write(np.ascontiguousarray(vertices, dtype="<f8").tobytes())
+        out.write(face_records.tobytes())
+
+
+def write_scene_mesh(scene: Scene, path: str | os.PathLike[str]) -> Path:
+    """Write the drawn triangles as .obj or .ply plus the `<stem>.scene.json` sidecar (classes, seeds, barriers).
+
+    `load_scene(path)` reads both back: same drawn triangles in the same order, same classes,
+    seeds and barrier triangles. Returns the mesh path.
+    """
+    out = Path(path)
+    suffix = out.suffix.lower()
+    if suffix not in (".obj", ".ply"):
+        raise ValueError(f"write_scene_mesh writes .obj or .ply, not {suffix or '(none)'!r}")
+    used = np.unique(scene.faces)  # (U,)
+    remap = np.full(len(scene.vertices), -1, dtype=np.int64)  # (V,)
+    remap[used] = np.arange(len(used))
+    vertices, faces = scene.vertices[used], remap[scene.faces]  # (U, 3), (F, 3)
+    barrier_used = np.unique(scene.barrier_faces)  # (Ub,)
+    barrier_remap = np.full(len(scene.vertices), -1, dtype=np.int64)  # (V,)
+    barrier_remap[barrier_used] = np.arange(len(barrier_used))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".obj":
+        _write_obj(out, vertices, faces)
+    else:
+        _write_ply(out, vertices, faces)
+    write_sidecar(
+        out,
+        Sidecar(
+            face_class=scene.face_class,
+            class_names=scene.class_names,
+            seeds=scene.seeds,
+            barrier_vertices=scene.vertices[barrier_used],
+            barrier_faces=barrier_remap[scene.barrier_faces],
+        ),
+    )
+    return out
+
+
+def generate_corpus(
+    out_dir: str | os.PathLike[str],
+    count: int,
+    seed: int,
+    families: Sequence[Family | str] | None = None,
+    progress: Callable[[int, int, Path], None] | None = None,
+) -> list[Path]:
+    """Write `count` scenes into out_dir as `<family>_<index>.obj` (+ sidecars), cycling the families.
+
+    Scene i uses family families[i % len(families)] and a seed derived from (seed, i): the same
+    arguments always write the same files. Returns the mesh paths in order.
+    """
+    chosen = [Family(f) for f in families] if families else list(FAMILIES)
+    if count < 0:
+        raise ValueError(f"count must be >= 0, got {count}")
+    root = Path(out_dir)
+    root.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    for i in range(count):
+        family = chosen[i % len(chosen)]
+        scene_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+        path = write_scene_mesh(generate_scene(family, scene_seed), root / f"{family.value}_{i:04d}.obj")
+        paths.append(path)
+        if progress is not None:
+            progress(i + 1, count, path)
+    return paths

@@ -1,0 +1,157 @@
+"""Every knob of the drone environment in one typed dataclass (docs/SIMULATION.md explains each).
+
+Units: meters, seconds, radians. World frame: right-handed, +Z up. Body frame: +X forward, +Y left,
++Z up; yaw turns the body about +Z (counter-clockwise seen from above is positive).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+RESOLUTIONS: tuple[tuple[int, int], ...] = ((256, 48), (384, 72), (512, 96), (768, 144))
+"""Observation resolutions (Az, El) the environment accepts."""
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Optional sensor model; with the defaults the observation is the exact traced depth."""
+
+    range_noise_std: float = 0.0
+    """Standard deviation of additive Gaussian range noise, meters (0 = off)."""
+    range_noise_relative: float = 0.0
+    """Extra noise standard deviation per meter of range (0 = off): std = abs + relative * depth."""
+    dropout: float = 0.0
+    """Probability that a ray returns nothing (reported as a miss at the horizon), per ray and step."""
+    elevation_min_deg: float = -90.0
+    """Lowest elevation of the ray pattern, degrees (-90 = straight down)."""
+    elevation_max_deg: float = 90.0
+    """Highest elevation of the ray pattern, degrees (+90 = straight up)."""
+
+    @property
+    def enabled(self) -> bool:
+        """True when noise or dropout changes the observation."""
+        return self.range_noise_std > 0.0 or self.range_noise_relative > 0.0 or self.dropout > 0.0
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Weights and shapes of every reward term; the reward is the sum of the weighted terms."""
+
+    collision_weight: float = 1.0
+    """Weight of the collision penalty: -(collision_base + speed / max_speed) on a contact step."""
+    collision_base: float = 0.5
+    """Part of the collision penalty paid even at zero speed (grazing)."""
+    progress_weight: float = 0.0
+    """Forward-velocity weight: forward speed / max_speed times the proximity ratio (0 = no approach bias)."""
+    proximity_weight: float = 0.2
+    """Proximity shaping: -(1 - clearance / proximity_distance)^2 inside proximity_distance."""
+    proximity_distance: float = 2.0
+    """Clearance (m) under which proximity shaping, the progress discount and escape apply."""
+    escape_weight: float = 0.5
+    """Escape incentive: clearance gained this step / (max_speed * dt), paid only when starting near geometry."""
+    exploration_weight: float = 0.1
+    """Bonus for entering a cell not visited this episode (1 per novel cell)."""
+    exploration_min_clearance: float = 1.0
+    """A novel cell pays only when the clearance there is at least this (m): wall hugging earns nothing."""
+    exploration_cell: float = 1.0
+    """Edge of an exploration cell, meters."""
+    exploration_table_bits: int = 15
+    """log2 of the visited-cell bitmap size per actor (2^15 bits = 4 KiB)."""
+    blind_weight: float = 0.05
+    """Information foraging: -(void fraction above blind_threshold, rescaled to [0, 1])."""
+    blind_threshold: float = 0.5
+    """Fraction of horizon-saturated rays tolerated before the blind penalty starts."""
+    near_weight: float = 0.05
+    """Information foraging: -(fraction of rays closer than near_distance) (near-field wall hugging)."""
+    near_distance: float = 1.0
+    """Range (m) under which a ray counts as near field."""
+    structure_weight: float = 0.05
+    """Structure seeking: stable mid-range fraction of the view (1 - its change since the last step)."""
+    structure_turn_weight: float = 0.05
+    """Structure seeking: yaw rate toward the side with more mid-range structure."""
+    mid_range_min: float = 2.0
+    """Lower edge (m) of the mid-range band of structure seeking."""
+    mid_range_max: float = 20.0
+    """Upper edge (m) of the mid-range band of structure seeking."""
+    existential_tax: float = -0.02
+    """Constant reward every step (negative: idling costs)."""
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """The drone environment: kinematics, observation, episodes and rewards."""
+
+    azimuth_bins: int = 256
+    """Az: azimuth bins over 360 degrees; bin 0 is straight ahead."""
+    elevation_bins: int = 48
+    """El: elevation bins from the pattern's lowest to its highest elevation."""
+    horizon: float = 100.0
+    """Ray range (m); a miss reads as the horizon and depth is normalised by it."""
+    trace_max_steps: int = 256
+    """Sphere-tracing iteration cap per ray."""
+    hit_epsilon: float = 0.01
+    """Sphere-tracing hit threshold, meters."""
+    dt: float = 0.1
+    """Seconds of simulated time per step."""
+    max_speed: float = 5.0
+    """Cap on the translational speed (m/s), applied to the norm of the velocity vector."""
+    max_vertical_speed: float = 2.0
+    """Vertical speed at action[1] = +-1, m/s."""
+    max_lateral_speed: float = 3.0
+    """Lateral speed at action[2] = +-1, m/s (positive: to the left)."""
+    max_yaw_rate: float = 1.5
+    """Yaw rate at action[3] = +-1, rad/s (positive: counter-clockwise seen from above)."""
+    drone_radius: float = 0.3
+    """Contact when the clearance at the commanded position is below this, meters."""
+    limiter_distance: float = 3.0
+    """The proximity speed limiter starts slowing the drone below this clearance, meters."""
+    limiter_min_fraction: float = 0.2
+    """Speed fraction that the limiter always leaves, so a drone can fly away from a wall."""
+    path_clearance_fraction: float = 0.5
+    """Along a move the certified clearance may dip to this fraction of the radius (never to 0)."""
+    collision_iterations: int = 8
+    """Bisection steps that find the farthest safe point of a blocked move."""
+    bounds_margin: float = 0.5
+    """The drone is kept inside the scene's geometry bounds grown by this margin, meters."""
+    max_steps_per_episode: int = 2000
+    """Hard truncation: an episode ends after this many steps."""
+    episodes_per_scene: int = 16
+    """An actor flies this many episodes in a scene, then moves to another scene."""
+    void_grace_steps: int = 10
+    """Starvation truncation is suppressed for this many steps after a reset."""
+    starvation_threshold: float = 0.9
+    """A view is starving when at least this fraction of its rays miss (see the horizon)."""
+    cuda_graph: bool = True
+    """On CUDA, record one step as a CUDA graph after two eager steps and replay it (same results,
+    far less launch overhead). Steps with a StageTimer attached always run eagerly."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    """Optional noise, dropout and ray pattern; off by default."""
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    """Reward weights."""
+
+    def __post_init__(self) -> None:
+        if self.azimuth_bins < 4 or self.elevation_bins < 2:
+            raise ValueError("need at least 4 azimuth and 2 elevation bins")
+        if self.horizon <= 0 or self.dt <= 0 or self.max_speed <= 0 or self.drone_radius <= 0:
+            raise ValueError("horizon, dt, max_speed and drone_radius must be positive")
+        if not 0.0 <= self.limiter_min_fraction <= 1.0:
+            raise ValueError("limiter_min_fraction must be in [0, 1]")
+        if not 0.0 < self.path_clearance_fraction <= 1.0:
+            raise ValueError("path_clearance_fraction must be in (0, 1]")
+        if self.limiter_distance <= self.drone_radius:
+            raise ValueError("limiter_distance must exceed drone_radius")
+        if self.max_steps_per_episode < 1 or self.episodes_per_scene < 1 or self.void_grace_steps < 0:
+            raise ValueError("episode limits must be positive")
+        if not 0.0 < self.starvation_threshold <= 1.0:
+            raise ValueError("starvation_threshold must be in (0, 1]")
+        if not 0.0 <= self.sensor.dropout < 1.0:
+            raise ValueError("sensor dropout must be in [0, 1)")
+        if self.reward.mid_range_max >= self.horizon or self.reward.near_distance >= self.horizon:
+            raise ValueError("the near and mid-range bands must end before the horizon")
+        if not 4 <= self.reward.exploration_table_bits <= 24:
+            raise ValueError("exploration_table_bits must be in [4, 24]")
+
+    @property
+    def rays(self) -> int:
+        """R = Az * El rays per actor."""
+        return self.azimuth_bins * self.elevation_bins

@@ -1,0 +1,56 @@
+// CPU launchers: the traversal of gmdag_trace.h over worker threads. Same C signatures as the CUDA
+// launchers in trace_cuda.cu (one argument struct each).
+#include <algorithm>
+#include <atomic>
+#include <cstdint>
+#include <exception>
+#include <thread>
+#include <vector>
+
+#include "gmdag_trace.h"
+#include "trace_launch.h"
+
+namespace {
+
+constexpr int64_t kChunk = 1024;  // rays (or points) per unit of work handed to a thread
+
+// Runs body(i) for i in [0, count) on up to `threads` threads, chunk by chunk.
+template <typename Body>
+int parallel_for(int64_t count, int32_t threads, const Body& body) {
+  const int64_t chunks = (count + kChunk - 1) / kChunk;
+  int64_t workers = threads > 0 ? threads : static_cast<int64_t>(std::thread::hardware_concurrency());
+  workers = std::max<int64_t>(1, std::min(workers, chunks));
+  std::atomic<int64_t> next{0};
+  auto run = [&]() {
+    for (int64_t c = next.fetch_add(1); c < chunks; c = next.fetch_add(1)) {
+      const int64_t end = std::min(count, (c + 1) * kChunk);
+      for (int64_t i = c * kChunk; i < end; ++i) body(i);
+    }
+  };
+  try {
+    std::vector<std::thread> pool;
+    pool.reserve(static_cast<size_t>(workers - 1));
+    for (int64_t k = 1; k < workers; ++k) pool.emplace_back(run);
+    run();
+    for (std::thread& th : pool) th.join();
+  } catch (const std::exception&) {
+    return 1;
+  }
+  return 0;
+}
+
+}  // namespace
+
+extern "C" int navi_trace_cpu(const navi::TraceArgs* args) {
+  const navi::TraceArgs a = *args;
+  return parallel_for(a.num_actors * a.num_rays, a.cpu_threads, [&a](int64_t i) { navi::trace_ray(a, i); });
+}
+
+extern "C" int navi_sample_cpu(const navi::SampleArgs* args) {
+  const navi::SampleArgs a = *args;
+  return parallel_for(a.num_points, a.cpu_threads, [&a](int64_t i) { navi::sample_point(a, i); });
+}
+
+extern "C" int navi_trace_args_size() { return static_cast<int>(sizeof(navi::TraceArgs)); }
+
+extern "C" int navi_sample_args_size() { return static_cast<int>(sizeof(navi::SampleArgs)); }

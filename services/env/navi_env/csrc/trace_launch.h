@@ -1,0 +1,21 @@
+// The C ABI of the launchers. trace_cpu.cpp and trace_cuda.cu implement the same four functions with
+// the same signatures (suffix _cpu / _cuda); each returns 0 on success or an error code.
+#pragma once
+
+#include "gmdag_trace.h"
+
+#ifdef _WIN32
+#define NAVI_EXPORT __declspec(dllexport)
+#else
+#define NAVI_EXPORT __attribute__((visibility("default")))
+#endif
+
+extern "C" {
+NAVI_EXPORT int navi_trace_cpu(const navi::TraceArgs* args);
+NAVI_EXPORT int navi_sample_cpu(const navi::SampleArgs* args);
+NAVI_EXPORT int navi_trace_cuda(const navi::TraceArgs* args);
+NAVI_EXPORT int navi_sample_cuda(const navi::SampleArgs* args);
+NAVI_EXPORT int navi_trace_args_size();
+NAVI_EXPORT int navi_sample_args_size();
+NAVI_EXPORT const char* navi_cuda_error_string(int code);
+}

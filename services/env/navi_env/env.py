@@ -1,0 +1,389 @@
+"""SdfDagEnv: N drones flying in .gmdag scenes, stepped together on one device.
+
+One step, in order (docs/SIMULATION.md):
+  physics      actions -> limited body velocity -> contact-safe move, yaw, visited cells
+  reward       every term from this move and the view the action was chosen on
+  episode      step counts, truncation (time limit, starvation after the void grace), auto-reset
+               (scene rotation, spawn) of the actors whose episode ended
+  trace        one sphere trace of every actor's rays from its (new or spawn) pose
+  observation  sensor model, DistanceMatrix v2 in place, view statistics for the next step
+
+All state lives in buffers allocated once on the device and written in place. The tensors that
+`reset` and `step` return are those buffers: copy them before the next step if you keep them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import torch
+
+from navi_env import episodes, physics, rewards
+from navi_env.config import EnvConfig
+from navi_env.observation import CHANNELS, view_stats, write_observation
+from navi_env.scene import SceneCorpus
+from navi_env.sensor import apply_sensor, ray_pattern
+from navi_env.trace import sample_distance, trace
+
+STAGES: tuple[str, ...] = ("physics", "reward", "episode", "trace", "observation")
+"""Stage names of one step, in order."""
+
+INFO_KEYS: tuple[str, ...] = (
+    "clearance",
+    "collision",
+    "position",
+    "novel_cell",
+    "speed",
+    "episode_return",
+    "episode_length",
+    "starved",
+    "scene_id",
+)
+"""Keys of StepOut.info; every value is a tensor with leading dimension N."""
+
+
+@dataclass(frozen=True)
+class StepOut:
+    """One step of N actors. `obs` of an actor whose episode ended is the first of its next episode."""
+
+    obs: torch.Tensor  # (N, 3, Az, El) float32
+    reward: torch.Tensor  # (N,) float32, the sum of reward_terms
+    done: torch.Tensor  # (N,) bool terminated: always False (contact never ends an episode)
+    truncated: torch.Tensor  # (N,) bool ended by the time limit or starvation; auto-reset
+    reward_terms: dict[str, torch.Tensor]  # name -> (N,) float32 weighted term
+    info: dict[str, torch.Tensor]  # INFO_KEYS -> (N,) or (N, 3); values of the step that just ended
+
+
+class StageTimer:
+    """Accumulates wall time per stage; on CUDA with events, so timing adds no sync until `totals`."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.cuda = device.type == "cuda"
+        self.host_s: dict[str, float] = {name: 0.0 for name in STAGES}
+        self.events: dict[str, list[tuple[torch.cuda.Event, torch.cuda.Event]]] = {
+            name: [] for name in STAGES
+        }
+
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        if self.cuda:
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            yield
+            end.record()
+            self.events[name].append((start, end))
+        else:
+            t0 = time.perf_counter()
+            yield
+            self.host_s[name] += time.perf_counter() - t0
+
+    def totals_ms(self) -> dict[str, float]:
+        """Milliseconds spent per stage so far (synchronises the device once)."""
+        if self.cuda:
+            torch.cuda.synchronize()
+            return {k: sum(s.elapsed_time(e) for s, e in v) for k, v in self.events.items()}
+        return {k: v * 1000.0 for k, v in self.host_s.items()}
+
+
+class SdfDagEnv:
+    """Batched drone environment over a SceneCorpus (see the module docstring)."""
+
+    def __init__(
+        self,
+        corpus: SceneCorpus,
+        n_actors: int,
+        device: torch.device | str = "cpu",
+        config: EnvConfig | None = None,
+        spawns: Sequence[torch.Tensor] | None = None,
+        seed: int = 0,
+    ) -> None:
+        """`spawns`: per scene (K_s, 3) quality-gated positions (default: qualify every scene now)."""
+        from navi_env.qualify import scene_spawns
+
+        if n_actors < 1:
+            raise ValueError("n_actors must be >= 1")
+        want = torch.device(device)
+        if want.type != corpus.device.type or (want.index is not None and want != corpus.device):
+            raise ValueError(f"the corpus lives on {corpus.device}, the environment was asked for {want}")
+        self.config = cfg = config or EnvConfig()
+        self.corpus = corpus
+        self.device = dev = corpus.device
+        self.n = self.n_actors = n = n_actors
+        self.timer: StageTimer | None = None
+        self._graph: torch.cuda.CUDAGraph | None = None
+        self._eager_steps = 0
+        n_scenes = len(corpus)
+        spawn_lists = (
+            list(spawns) if spawns is not None else [scene_spawns(corpus, s) for s in range(n_scenes)]
+        )
+        if len(spawn_lists) != n_scenes:
+            raise ValueError(f"got spawns for {len(spawn_lists)} scenes, the corpus has {n_scenes}")
+        clearances = [self._clearance_at(s, p) for s, p in enumerate(spawn_lists)]
+        self.spawns = episodes.spawn_table(spawn_lists, clearances, dev)
+        lo = torch.tensor([info.bounds_min for info in corpus.infos], dtype=torch.float32)  # (S, 3)
+        hi = torch.tensor([info.bounds_max for info in corpus.infos], dtype=torch.float32)  # (S, 3)
+        self._lo = (lo - cfg.bounds_margin).to(dev)  # (S, 3)
+        self._hi = (hi + cfg.bounds_margin).to(dev)  # (S, 3)
+        self.directions = ray_pattern(cfg.azimuth_bins, cfg.elevation_bins, cfg.sensor, dev)  # (R, 3)
+
+        def f32(*shape: int) -> torch.Tensor:
+            return torch.zeros(*shape, dtype=torch.float32, device=dev)
+
+        def i64(*shape: int) -> torch.Tensor:
+            return torch.zeros(*shape, dtype=torch.int64, device=dev)
+
+        def flag(*shape: int) -> torch.Tensor:
+            return torch.zeros(*shape, dtype=torch.bool, device=dev)
+
+        r = cfg.rays
+        table_bytes = (1 << cfg.reward.exploration_table_bits) // 8
+        self.seed = torch.full((), seed, dtype=torch.int64, device=dev)  # () seed of the random numbers
+        self.tick = torch.zeros(
+            (), dtype=torch.int64, device=dev
+        )  # () step counter keying the random numbers
+        self.actor = torch.arange(n, dtype=torch.int64, device=dev)  # (N,)
+        self.actions = f32(n, 4)  # (N, 4) this step's actions (a fixed address for the CUDA graph)
+        self.scene = i64(n)  # (N,) scene index per actor
+        self.position = f32(n, 3)  # (N, 3) world meters
+        self.yaw = f32(n)  # (N,) radians
+        self.clearance = f32(n)  # (N,) meters
+        self.steps = i64(n)  # (N,) steps in this episode
+        self.episodes_on_scene = i64(n)  # (N,) ended episodes on the current scene
+        self.episode_return = f32(n)  # (N,)
+        self.visited = torch.zeros(n, table_bytes, dtype=torch.uint8, device=dev)  # (N, M/8) cell bitmap
+        self.fresh = torch.ones(
+            n, dtype=torch.bool, device=dev
+        )  # (N,) previous frame is from another episode
+        self.depth = f32(n, r)  # (N, R) traced distance, meters
+        self.semantic = torch.zeros(n, r, dtype=torch.uint8, device=dev)  # (N, R) 0 miss, 1 + class on a hit
+        self.obs = f32(n, CHANNELS, cfg.azimuth_bins, cfg.elevation_bins)  # (N, 3, Az, El)
+        self.void = f32(n)  # (N,) view statistics of the current observation
+        self.near = f32(n)  # (N,)
+        self.mid = f32(n)  # (N,)
+        self.mid_prev = f32(n)  # (N,) mid of the observation before
+        self.mid_balance = f32(n)  # (N,)
+        self.reward = f32(n)  # (N,)
+        self.terms = {name: f32(n) for name in rewards.TERMS}  # name -> (N,)
+        self.done = flag(n)  # (N,) always False: there is no terminal state
+        self.truncated = flag(n)  # (N,)
+        self.info = {
+            "clearance": f32(n),  # (N,) meters after the move
+            "collision": flag(n),  # (N,)
+            "position": f32(n, 3),  # (N, 3) world meters after the move
+            "novel_cell": flag(n),  # (N,)
+            "speed": f32(n),  # (N,) m/s actually flown
+            "episode_return": f32(n),  # (N,) return so far (final where truncated)
+            "episode_length": i64(n),  # (N,) steps so far (final where truncated)
+            "starved": flag(n),  # (N,) ended by starvation
+            "scene_id": i64(n),  # (N,)
+        }
+        self.out = StepOut(
+            obs=self.obs,
+            reward=self.reward,
+            done=self.done,
+            truncated=self.truncated,
+            reward_terms=self.terms,
+            info=self.info,
+        )
+
+    @property
+    def obs_shape(self) -> tuple[int, int, int]:
+        """(3, Az, El) of one actor's observation."""
+        return (CHANNELS, self.config.azimuth_bins, self.config.elevation_bins)
+
+    def bytes_per_actor(self) -> int:
+        """Device bytes of per-actor state and buffers, divided by N."""
+        tensors = [
+            v for v in vars(self).values() if isinstance(v, torch.Tensor) and v.ndim and v.shape[0] == self.n
+        ]
+        tensors += list(self.terms.values()) + list(self.info.values())
+        return sum(t.numel() * t.element_size() for t in tensors) // self.n
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        """Start every actor's first episode (scenes spread round-robin); returns obs (N, 3, Az, El)."""
+        if seed is not None:
+            self.seed.fill_(seed)
+        self.tick.zero_()
+        self.scene.copy_(self.actor % self.spawns.scenes)
+        self.episodes_on_scene.zero_()
+        self.episode_return.zero_()
+        self.steps.zero_()
+        self._spawn(torch.ones(self.n, dtype=torch.bool, device=self.device))
+        self._trace()
+        self._observe_from_trace()
+        return self.obs
+
+    def step(self, actions: torch.Tensor) -> StepOut:
+        """Advance every actor by one step with actions (N, 4) in [-1, 1] (clipped).
+
+        Returns the same StepOut (the environment's buffers) every time.
+        """
+        if actions.shape != (self.n, 4):
+            raise ValueError(f"actions must be ({self.n}, 4), got {tuple(actions.shape)}")
+        self.actions.copy_(actions)
+        if self._graph is not None and self.timer is None:
+            self._graph.replay()
+        elif self._graph_ready():
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                self._step()
+            graph.replay()
+            self._graph = graph
+        else:
+            self._step()
+            self._eager_steps += 1
+        return self.out
+
+    def _graph_ready(self) -> bool:
+        """Record the step as a CUDA graph now? (CUDA, enabled, no timer, after two eager steps)."""
+        return (
+            self.device.type == "cuda"
+            and self.config.cuda_graph
+            and self.timer is None
+            and self._eager_steps >= 2
+        )
+
+    def _step(self) -> None:
+        """One step of every actor: reads self.actions, writes the buffers (see the module docstring)."""
+        cfg = self.config
+        stage = self.timer.stage if self.timer is not None else _no_stage
+        self.tick.add_(1)
+        with stage("physics"):
+            vel, yaw_rate = physics.body_velocity(self.actions, cfg)  # (N, 3), (N,)
+            vel = vel * physics.limiter_scale(self.clearance, cfg)[:, None]  # (N, 3) body m/s
+            move = physics.safe_move(
+                self.position,
+                self.clearance,
+                physics.body_to_world(vel, self.yaw) * cfg.dt,
+                self._lo[self.scene],
+                self._hi[self.scene],
+                self._distance,
+                cfg.drone_radius,
+                cfg.drone_radius * cfg.path_clearance_fraction,
+                cfg.collision_iterations,
+            )
+            heading = torch.stack((torch.cos(self.yaw), torch.sin(self.yaw)), dim=1)  # (N, 2)
+            forward_speed = (move.displacement[:, :2] * heading).sum(dim=1) / cfg.dt  # (N,)
+            cells = rewards.cell_index(
+                move.position, cfg.reward.exploration_cell, cfg.reward.exploration_table_bits
+            )
+            novel = rewards.visit_cells(self.visited, cells)  # (N,) bool
+        with stage("reward"):
+            inputs = rewards.RewardInputs(
+                contact=move.contact,
+                speed=vel.norm(dim=1),
+                forward_speed=forward_speed,
+                clearance=move.clearance,
+                prev_clearance=self.clearance,
+                novel=novel,
+                void=self.void,
+                near=self.near,
+                mid=self.mid,
+                mid_prev=self.mid_prev,
+                mid_balance=self.mid_balance,
+                yaw_rate=yaw_rate,
+            )
+            self.reward.zero_()
+            for name, value in rewards.reward_terms(inputs, cfg).items():
+                self.terms[name].copy_(value)
+                self.reward.add_(value)
+            self.episode_return.add_(self.reward)
+        with stage("episode"):
+            self.steps.add_(1)
+            time_limit, starved = episodes.truncation(self.steps, self.void, cfg)  # (N,), (N,) bool
+            torch.logical_or(time_limit, starved, out=self.truncated)
+            self._record_info(move, novel, starved)
+            self.position.copy_(move.position)
+            self.clearance.copy_(move.clearance)
+            self.yaw.copy_(physics.wrap_angle(self.yaw + yaw_rate * cfg.dt))
+            self._end_episodes(self.truncated)
+        with stage("trace"):
+            self._trace()
+        with stage("observation"):
+            self._observe_from_trace()
+
+    def _record_info(self, move: physics.Move, novel: torch.Tensor, starved: torch.Tensor) -> None:
+        self.info["clearance"].copy_(move.clearance)
+        self.info["collision"].copy_(move.contact)
+        self.info["position"].copy_(move.position)
+        self.info["novel_cell"].copy_(novel)
+        self.info["speed"].copy_(move.displacement.norm(dim=1) / self.config.dt)
+        self.info["episode_return"].copy_(self.episode_return)
+        self.info["episode_length"].copy_(self.steps)
+        self.info["starved"].copy_(starved)
+        self.info["scene_id"].copy_(self.scene)
+
+    def _end_episodes(self, ended: torch.Tensor) -> None:
+        """Auto-reset actors with `ended` (N,) bool: count, maybe rotate scene, spawn, clear state."""
+        count, rotate = episodes.rotation(self.episodes_on_scene, ended, self.config)
+        self.episodes_on_scene.copy_(count)
+        other = episodes.next_scene(self.scene, self.spawns.scenes, self.seed, self.tick, self.actor)  # (N,)
+        self.scene.copy_(torch.where(rotate, other, self.scene))
+        self.steps.masked_fill_(ended, 0)
+        self.episode_return.masked_fill_(ended, 0.0)
+        self._spawn(ended)
+
+    def _spawn(self, mask: torch.Tensor) -> None:
+        """Place actors with `mask` (N,) bool at a fresh spawn of their scene; clear their visited cells."""
+        pos, clr, yaw = episodes.draw_spawns(self.spawns, self.scene, self.seed, self.tick, self.actor)
+        self.position.copy_(torch.where(mask[:, None], pos, self.position))
+        self.clearance.copy_(torch.where(mask, clr, self.clearance))
+        self.yaw.copy_(torch.where(mask, yaw, self.yaw))
+        self.visited.masked_fill_(mask[:, None], 0)
+        cfg = self.config.reward
+        cells = rewards.cell_index(self.position, cfg.exploration_cell, cfg.exploration_table_bits)  # (N,)
+        rewards.visit_cells(self.visited, cells)
+        self.fresh.copy_(mask)
+
+    def _trace(self) -> None:
+        cfg = self.config
+        trace(
+            self.corpus,
+            self.scene,
+            self.position,
+            self.directions,
+            yaw=self.yaw,
+            out_depth=self.depth,
+            out_semantic=self.semantic,
+            max_steps=cfg.trace_max_steps,
+            horizon=cfg.horizon,
+            hit_epsilon=cfg.hit_epsilon,
+            skip_direction_validation=True,
+        )
+
+    def _observe_from_trace(self) -> None:
+        cfg = self.config
+        hit = self.semantic > 0  # (N, R) bool
+        if cfg.sensor.enabled:
+            depth, semantic = apply_sensor(
+                self.depth, self.semantic, cfg.sensor, cfg.horizon, self.seed, self.tick
+            )
+            write_observation(self.obs, depth, semantic, semantic > 0, self.fresh, cfg.horizon)
+        else:
+            write_observation(self.obs, self.depth, self.semantic, hit, self.fresh, cfg.horizon)
+        stats = view_stats(self.depth, hit, cfg.azimuth_bins, cfg.reward)
+        self.mid_prev.copy_(torch.where(self.fresh, stats.mid, self.mid))
+        self.mid.copy_(stats.mid)
+        self.void.copy_(stats.void)
+        self.near.copy_(stats.near)
+        self.mid_balance.copy_(stats.mid_balance)
+        self.fresh.zero_()
+
+    def _distance(self, points: torch.Tensor) -> torch.Tensor:
+        """Clearance (M,) at points (M, 3), M a multiple of N in actor-major order."""
+        scene = self.scene.repeat_interleave(points.shape[0] // self.n)  # (M,)
+        return sample_distance(self.corpus, scene, points)
+
+    def _clearance_at(self, scene: int, points: torch.Tensor) -> torch.Tensor:
+        """Clearance (K,) at a scene's points (K, 3), on the host (construction only)."""
+        dev = self.corpus.device
+        ids = torch.full((points.shape[0],), scene, dtype=torch.int64, device=dev)  # (K,)
+        return sample_distance(self.corpus, ids, points.to(dev, torch.float32).contiguous()).cpu()
+
+
+@contextlib.contextmanager
+def _no_stage(name: str) -> Iterator[None]:
+    yield

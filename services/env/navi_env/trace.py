@@ -1,0 +1,313 @@
+"""Batched sphere tracing of a SceneCorpus: validation, then one launch (CPU threads or CUDA).
+
+`trace` reads and writes the tensors in place through their data pointers: no staging, no copies.
+With `skip_direction_validation=True` it never synchronises with the device; otherwise one
+device-to-host read checks direction norms and scene ids together. Contract in docs/SDFDAG_RUNTIME.md.
+
+Shapes: B actors (batch), R rays per actor, N query points.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import importlib
+from dataclasses import dataclass
+from types import ModuleType
+
+import numpy as np
+import torch
+
+from navi_env.abi import SampleArgs, TraceArgs, check_layout
+from navi_env.scene import SceneCorpus
+
+DEFAULT_MAX_STEPS = 256  # main-loop samples per ray
+DEFAULT_HORIZON = 100.0  # meters
+DEFAULT_HIT_EPSILON_VOXELS = 0.1  # used per scene when hit_epsilon is None (kDefaultHitEpsilonVoxels)
+NORM_TOLERANCE = 1e-3  # | |direction| - 1 | allowed
+
+
+@dataclass(frozen=True)
+class TraceParams:
+    """Validated scalar parameters of one trace call."""
+
+    batch: int  # B
+    rays: int  # R
+    shared: bool  # directions (R, 3) shared by all actors
+    max_steps: int
+    horizon: float  # meters
+    hit_epsilon: float  # meters, or -1.0 for the per-scene default
+
+
+def _fail_type(name: str, want: str, t: torch.Tensor) -> TypeError:
+    return TypeError(f"{name} must be {want}, got {t.dtype}")
+
+
+def _check_tensor(name: str, t: object, device: torch.device) -> torch.Tensor:
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if t.device != device:
+        raise ValueError(f"{name} is on {t.device} but the scenes are on {device}")
+    if not t.is_contiguous():
+        raise ValueError(f"{name} must be contiguous")
+    return t
+
+
+def _check_float(name: str, t: torch.Tensor, shape: tuple[int, ...]) -> None:
+    if t.dtype != torch.float32:
+        raise _fail_type(name, "float32", t)
+    if tuple(t.shape) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+
+
+def validate_trace(
+    scenes: SceneCorpus,
+    scene_ids: torch.Tensor,
+    origins: torch.Tensor,
+    directions: torch.Tensor,
+    out_depth: torch.Tensor,
+    out_semantic: torch.Tensor | None,
+    yaw: torch.Tensor | None,
+    out_steps: torch.Tensor | None,
+    max_steps: int,
+    horizon: float,
+    hit_epsilon: float | None,
+    skip_direction_validation: bool,
+) -> TraceParams:
+    """Check every argument of `trace`; raise TypeError/ValueError with the reason. Returns the shape."""
+    if not isinstance(scenes, SceneCorpus):
+        raise TypeError(f"scenes must be a SceneCorpus, got {type(scenes).__name__}")
+    dev = scenes.device
+    scene_ids = _check_tensor("scene_ids", scene_ids, dev)
+    origins = _check_tensor("origins", origins, dev)
+    directions = _check_tensor("directions", directions, dev)
+    out_depth = _check_tensor("out_depth", out_depth, dev)
+    if scene_ids.dtype not in (torch.int32, torch.int64):
+        raise _fail_type("scene_ids", "int32 or int64", scene_ids)
+    if scene_ids.dim() != 1:
+        raise ValueError(f"scene_ids must be (B,), got shape {tuple(scene_ids.shape)}")
+    b = scene_ids.shape[0]
+    _check_float("origins", origins, (b, 3))
+    if directions.dim() == 2:
+        r, shared = directions.shape[0], True
+        _check_float("directions", directions, (r, 3))
+    elif directions.dim() == 3:
+        r, shared = directions.shape[1], False
+        _check_float("directions", directions, (b, r, 3))
+    else:
+        raise ValueError(f"directions must be (R, 3) or (B, R, 3), got shape {tuple(directions.shape)}")
+    _check_float("out_depth", out_depth, (b, r))
+    if yaw is not None:
+        _check_float("yaw", _check_tensor("yaw", yaw, dev), (b,))
+    if out_semantic is not None:
+        out_semantic = _check_tensor("out_semantic", out_semantic, dev)
+        if out_semantic.dtype not in (torch.int32, torch.uint8):
+            raise _fail_type("out_semantic", "int32 or uint8", out_semantic)
+        if tuple(out_semantic.shape) != (b, r):
+            raise ValueError(f"out_semantic must have shape {(b, r)}, got {tuple(out_semantic.shape)}")
+    if out_steps is not None:
+        out_steps = _check_tensor("out_steps", out_steps, dev)
+        if out_steps.dtype != torch.int32:
+            raise _fail_type("out_steps", "int32", out_steps)
+        if tuple(out_steps.shape) != (b, r):
+            raise ValueError(f"out_steps must have shape {(b, r)}, got {tuple(out_steps.shape)}")
+    if not 1 <= max_steps <= 2**31 - 1:
+        raise ValueError(f"max_steps must be in [1, 2^31 - 1], got {max_steps}")
+    if not (0.0 < horizon < float("inf")):
+        raise ValueError(f"horizon must be a positive finite number of meters, got {horizon}")
+    if hit_epsilon is not None and not (0.0 < hit_epsilon < float("inf")):
+        raise ValueError(f"hit_epsilon must be positive and finite (meters) or None, got {hit_epsilon}")
+    if not skip_direction_validation:
+        _check_values(scenes, scene_ids, directions)
+    return TraceParams(
+        batch=b,
+        rays=r,
+        shared=shared,
+        max_steps=int(max_steps),
+        horizon=float(horizon),
+        hit_epsilon=-1.0 if hit_epsilon is None else float(hit_epsilon),
+    )
+
+
+def _check_values(scenes: SceneCorpus, scene_ids: torch.Tensor, directions: torch.Tensor) -> None:
+    """Direction norms and scene-id range: numpy on the CPU, one device-to-host read on CUDA."""
+    lo, hi = (1.0 - NORM_TOLERANCE) ** 2, (1.0 + NORM_TOLERANCE) ** 2  # bounds of |d|^2
+    if directions.device.type == "cpu":
+        x = directions.reshape(-1, 3).numpy()  # (R or B*R, 3) float32, shares memory
+        norm2 = np.einsum("ij,ij->i", x, x)  # (R or B*R,) float32
+        dirs_ok = bool(((norm2 >= lo) & (norm2 <= hi)).all())
+        ids = scene_ids.numpy()  # (B,)
+        ids_ok = bool(((ids >= 0) & (ids < len(scenes))).all())
+    else:
+        dirs = directions.reshape(-1, 3)  # (R or B*R, 3)
+        norm2 = (dirs * dirs).sum(dim=1)  # (R or B*R,)
+        flags = torch.stack(
+            [((norm2 >= lo) & (norm2 <= hi)).all(), ((scene_ids >= 0) & (scene_ids < len(scenes))).all()]
+        ).cpu()  # (2,) bool, the one sync
+        dirs_ok, ids_ok = bool(flags[0]), bool(flags[1])
+    if not ids_ok:
+        raise ValueError(f"scene_ids must lie in [0, {len(scenes)})")
+    if not dirs_ok:
+        raise ValueError(
+            f"directions must be unit vectors (| |d| - 1 | <= {NORM_TOLERANCE}); "
+            "found a zero-length, NaN, infinite or unnormalised direction"
+        )
+
+
+def _ptr(t: torch.Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
+
+
+@functools.cache
+def cpu_launcher() -> ModuleType:
+    """The CPU extension built at install (navi_env._trace_cpu), layout-checked once."""
+    _trace_cpu = importlib.import_module("navi_env._trace_cpu")
+    check_layout(_trace_cpu.trace_args_size, _trace_cpu.sample_args_size, "navi_env._trace_cpu")
+    return _trace_cpu
+
+
+def _stream(device: torch.device) -> int:
+    return int(torch.cuda.current_stream(device).cuda_stream)
+
+
+def _device_index(device: torch.device) -> int:
+    return device.index if device.index is not None else torch.cuda.current_device()
+
+
+def _cuda_check(code: int) -> None:
+    if code != 0:
+        from navi_env.cuda_build import cuda_library
+
+        message = cuda_library().navi_cuda_error_string(code).decode()
+        raise RuntimeError(f"CUDA tracer launch failed: {message} (code {code})")
+
+
+def launch_trace(args: TraceArgs, device: torch.device) -> None:
+    """Run one filled TraceArgs on the CPU launcher or the CUDA launcher."""
+    if device.type == "cpu":
+        args.cpu_threads = torch.get_num_threads()
+        if cpu_launcher().trace(ctypes.addressof(args)) != 0:
+            raise RuntimeError("CPU tracer failed to start its worker threads")
+    elif device.type == "cuda":
+        from navi_env.cuda_build import cuda_library
+
+        args.stream = _stream(device)
+        args.device = _device_index(device)
+        _cuda_check(cuda_library().navi_trace_cuda(ctypes.addressof(args)))
+    else:
+        raise ValueError(f"tracing runs on cpu or cuda devices, not {device}")
+
+
+def trace(
+    scenes: SceneCorpus,
+    scene_ids: torch.Tensor,
+    origins: torch.Tensor,
+    directions: torch.Tensor,
+    *,
+    out_depth: torch.Tensor,
+    out_semantic: torch.Tensor | None = None,
+    yaw: torch.Tensor | None = None,
+    out_steps: torch.Tensor | None = None,
+    max_steps: int = DEFAULT_MAX_STEPS,
+    horizon: float = DEFAULT_HORIZON,
+    hit_epsilon: float | None = None,
+    skip_direction_validation: bool = False,
+) -> None:
+    """Sphere-trace B actors x R rays; write depth (meters), semantic and step counts in place.
+
+    scenes: the resident corpus; scene_ids: (B,) int32/int64 scene of each actor.
+    origins: (B, 3) float32 world meters. directions: (R, 3) shared or (B, R, 3) per actor, float32
+    unit vectors, rotated about +Z by yaw (B,) float32 radians when given.
+    out_depth: (B, R) float32 meters, `horizon` on a miss. out_semantic: (B, R) int32 or uint8,
+    0 = miss, 1 + class id on a hit (uint8 saturates at 255). out_steps: (B, R) int32 main-loop steps.
+    max_steps: bound per ray; a ray out of steps reports the distance reached and semantic 0.
+    hit_epsilon: meters; None uses 0.1 voxel of each scene. skip_direction_validation: skip the
+    norm and scene-id checks (and their device sync); an out-of-range id then yields NaN depth.
+    """
+    p = validate_trace(
+        scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps,
+        max_steps, horizon, hit_epsilon, skip_direction_validation,
+    )  # fmt: skip
+    args = TraceArgs(
+        nodes=scenes.nodes.data_ptr(),
+        bricks=scenes.bricks.data_ptr(),
+        brick_class=scenes.brick_class.data_ptr(),
+        scenes=scenes.table.data_ptr(),
+        scene_ids=scene_ids.data_ptr(),
+        origins=origins.data_ptr(),
+        directions=directions.data_ptr(),
+        yaw=_ptr(yaw),
+        out_depth=out_depth.data_ptr(),
+        out_semantic=_ptr(out_semantic),
+        out_steps=_ptr(out_steps),
+        num_actors=p.batch,
+        num_rays=p.rays,
+        num_scenes=len(scenes),
+        scene_id_bytes=scene_ids.element_size(),
+        semantic_bytes=0 if out_semantic is None else out_semantic.element_size(),
+        directions_shared=int(p.shared),
+        max_steps=p.max_steps,
+        horizon=p.horizon,
+        hit_epsilon=p.hit_epsilon,
+    )
+    if p.batch * p.rays > 0:
+        launch_trace(args, scenes.device)
+
+
+def validate_sample(
+    scenes: SceneCorpus, scene_ids: torch.Tensor, points: torch.Tensor, out: torch.Tensor | None
+) -> int:
+    """Check the arguments of `sample_distance`; returns N."""
+    if not isinstance(scenes, SceneCorpus):
+        raise TypeError(f"scenes must be a SceneCorpus, got {type(scenes).__name__}")
+    dev = scenes.device
+    scene_ids = _check_tensor("scene_ids", scene_ids, dev)
+    points = _check_tensor("points", points, dev)
+    if scene_ids.dtype not in (torch.int32, torch.int64):
+        raise _fail_type("scene_ids", "int32 or int64", scene_ids)
+    if scene_ids.dim() != 1:
+        raise ValueError(f"scene_ids must be (N,), got shape {tuple(scene_ids.shape)}")
+    n = scene_ids.shape[0]
+    _check_float("points", points, (n, 3))
+    if out is not None:
+        _check_float("out", _check_tensor("out", out, dev), (n,))
+    return n
+
+
+def sample_distance(
+    scenes: SceneCorpus, scene_ids: torch.Tensor, points: torch.Tensor, out: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Signed distance in meters at N points: (N,) float32 (written into `out` when given).
+
+    Trilinear inside bricks, the signed lower bound inside far cubes, the (positive) distance to the
+    cube outside it; NaN for an out-of-range scene id (not checked here: no device sync).
+    """
+    n = validate_sample(scenes, scene_ids, points, out)
+    result = torch.empty(n, dtype=torch.float32, device=scenes.device) if out is None else out  # (N,) float32
+    if n == 0:
+        return result
+    args = SampleArgs(
+        nodes=scenes.nodes.data_ptr(),
+        bricks=scenes.bricks.data_ptr(),
+        scenes=scenes.table.data_ptr(),
+        scene_ids=scene_ids.data_ptr(),
+        points=points.data_ptr(),
+        out_distance=result.data_ptr(),
+        num_points=n,
+        num_scenes=len(scenes),
+        scene_id_bytes=scene_ids.element_size(),
+    )
+    dev = scenes.device
+    if dev.type == "cpu":
+        args.cpu_threads = torch.get_num_threads()
+        if cpu_launcher().sample(ctypes.addressof(args)) != 0:
+            raise RuntimeError("CPU sampler failed to start its worker threads")
+    elif dev.type == "cuda":
+        from navi_env.cuda_build import cuda_library
+
+        args.stream = _stream(dev)
+        args.device = _device_index(dev)
+        _cuda_check(cuda_library().navi_sample_cuda(ctypes.addressof(args)))
+    else:
+        raise ValueError(f"sampling runs on cpu or cuda devices, not {dev}")
+    return result

@@ -1,0 +1,186 @@
+"""Checkpoint format v3: weights, optimizer, counters, lineage and the full config in one file.
+
+Written atomically (temporary file in the same folder, fsync, os.replace, fsync of the folder) and
+loadable with torch.load(weights_only=True): it holds only tensors, dicts, lists, str, int, float,
+bool and None. Any other format_version fails fast with CheckpointError.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import struct
+import subprocess
+import tempfile
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import torch
+
+FORMAT_VERSION = 3
+
+
+class CheckpointError(ValueError):
+    """A file that is not a loadable v3 checkpoint."""
+
+
+@dataclass
+class CheckpointMeta:
+    """Everything in a checkpoint except the weights and optimizer state."""
+
+    step_id: int
+    """Env steps (actor-steps) trained so far, across resumes."""
+    episode_count: int
+    """Finished episodes so far, across resumes."""
+    reward_ema: float
+    """EMA of the mean extrinsic reward per actor-step (higher is better; the registry ranks by it)."""
+    wall_time_hours: float
+    """Training wall time so far, across resumes."""
+    temporal_core: str
+    """mamba2, gru or mambapy."""
+    run_id: str
+    """The run that wrote this checkpoint."""
+    config: dict[str, Any]
+    """TrainConfig.to_dict() of that run."""
+    obs_shape: list[int]
+    """(3, Az, El) the policy was built for."""
+    parent_checkpoint: str | None = None
+    """The checkpoint this run resumed from (lineage), or None."""
+    training_source: str = "rl"
+    """rl or bc."""
+    corpus_summary: dict[str, Any] = field(default_factory=dict)
+    """What the run trained on (paths, scene count, ...), plain values only."""
+    code_version: str = ""
+    """navi-learner version and git commit."""
+    created_at: str = ""
+    """UTC ISO-8601 time of writing."""
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint."""
+
+    model: dict[str, torch.Tensor]
+    optimizer: dict[str, Any] | None
+    meta: CheckpointMeta
+
+
+def code_version() -> str:
+    """'navi-learner <version> (<commit>)'; the commit is 'unknown' outside a git checkout."""
+    try:
+        version = metadata.version("navi-learner")
+    except metadata.PackageNotFoundError:
+        version = "0+local"
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short=12", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=True,
+        )
+        commit = out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        commit = "unknown"
+    return f"navi-learner {version} ({commit})"
+
+
+def utc_now() -> str:
+    """Current UTC time, ISO-8601 with seconds."""
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def fsync_dir(folder: Path) -> None:
+    """Make a rename in folder durable."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: Path, write: Any) -> None:
+    """Call write(file) on a temporary file next to path, fsync it, then os.replace it onto path.
+
+    A crash at any point leaves either the old file or the new one, never a half-written file; the
+    temporary file is removed when writing fails.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    fsync_dir(path.parent)
+
+
+def save_checkpoint(
+    path: Path, model: dict[str, torch.Tensor], optimizer: dict[str, Any] | None, meta: CheckpointMeta
+) -> Path:
+    """Write a v3 checkpoint atomically; returns path."""
+    meta = CheckpointMeta(
+        **{
+            **asdict(meta),
+            "created_at": meta.created_at or utc_now(),
+            "code_version": meta.code_version or code_version(),
+        }
+    )
+    payload = {
+        "format_version": FORMAT_VERSION,
+        "model": {k: v.detach().cpu() for k, v in model.items()},
+        "optimizer": optimizer,
+        "meta": asdict(meta),
+    }
+    atomic_write(path, lambda f: torch.save(payload, f))
+    return path
+
+
+def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> Checkpoint:
+    """Load a v3 checkpoint with weights_only=True; CheckpointError for anything else."""
+    if not Path(path).is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError, struct.error) as err:
+        raise CheckpointError(f"{path} is not a loadable checkpoint: {err}") from err
+    if not isinstance(payload, dict) or "format_version" not in payload:
+        raise CheckpointError(
+            f"{path} has no format_version; only v{FORMAT_VERSION} checkpoints are accepted"
+        )
+    if payload["format_version"] != FORMAT_VERSION:
+        raise CheckpointError(
+            f"{path} is checkpoint format v{payload['format_version']}; only v{FORMAT_VERSION} is accepted"
+        )
+    try:
+        meta = CheckpointMeta(**payload["meta"])
+    except TypeError as err:
+        raise CheckpointError(f"{path} has malformed metadata: {err}") from err
+    return Checkpoint(model=payload["model"], optimizer=payload["optimizer"], meta=meta)
+
+
+def read_meta(path: Path) -> CheckpointMeta:
+    """The metadata of a checkpoint (loads the file on the CPU)."""
+    return load_checkpoint(path).meta
+
+
+def checkpoint_name(step_id: int) -> str:
+    """File name of the checkpoint at a step: ckpt_step_0000123456.pt."""
+    return f"ckpt_step_{step_id:010d}.pt"
+
+
+def prune_checkpoints(folder: Path, keep: int) -> list[Path]:
+    """Delete all but the newest `keep` ckpt_step_*.pt in folder (by step); returns the deleted paths."""
+    found = sorted(folder.glob("ckpt_step_*.pt"))
+    doomed = found[: max(0, len(found) - keep)]
+    for p in doomed:
+        p.unlink(missing_ok=True)
+    return doomed

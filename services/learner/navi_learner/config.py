@@ -1,0 +1,177 @@
+"""Typed configuration of the learner: the engine, PPO, and a training run.
+
+Every field is documented; the CLI maps its options onto these dataclasses, and the whole
+`TrainConfig` is stored (as plain dicts) inside every checkpoint.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Literal
+
+import torch
+
+TemporalCoreName = Literal["mamba2", "gru", "mambapy"]
+TEMPORAL_CORES: tuple[TemporalCoreName, ...] = ("mamba2", "gru", "mambapy")
+
+
+@dataclass
+class EngineConfig:
+    """Shape of the cognitive engine (CognitiveMambaPolicy)."""
+
+    embed_dim: int = 128
+    """D: width of the encoder tokens and of the embedding handed to the temporal core."""
+    patch_size: int = 8
+    """Square patch side in rays; Az and El must be divisible by it (8 → 192 tokens at 256×48)."""
+    encoder_layers: int = 2
+    """Number of pre-norm transformer blocks in the RayViT encoder."""
+    encoder_heads: int = 4
+    """Attention heads per encoder block (fused scaled_dot_product_attention)."""
+    mlp_ratio: int = 2
+    """Hidden width of each encoder MLP as a multiple of D (2 keeps the encoder lean)."""
+    temporal_core: TemporalCoreName = "mamba2"
+    """Sequence engine: mamba2 (chunked SSD scan), gru (cuDNN), mambapy (plain sequential reference)."""
+    ssm_state: int = 16
+    """Mamba-2 state size per head (d_state)."""
+    ssm_expand: int = 2
+    """Mamba-2 inner width as a multiple of D."""
+    ssm_head_dim: int = 64
+    """Mamba-2 head width P; the inner width must be divisible by it."""
+    ssm_conv: int = 4
+    """Mamba-2 causal depthwise convolution width (kernel size along time)."""
+    ssm_chunk: int = 32
+    """Chunk length of the Mamba-2 SSD scan."""
+    gru_hidden: int = 128
+    """Hidden width of the GRU core (its output is projected back to D)."""
+    head_hidden: int = 128
+    """Hidden width of the policy and value MLP heads."""
+    init_log_std: float = -0.5
+    """Initial log standard deviation of the state-independent Gaussian policy."""
+    rnd_dim: int = 64
+    """Output width of the RND target and predictor networks."""
+    memory_slots: int = 64
+    """K: episodic-memory ring-buffer length per actor."""
+    memory_threshold: float = 0.9
+    """Cosine similarity above which a revisit is penalised (penalty ramps linearly from it to 1)."""
+
+
+@dataclass
+class PPOConfig:
+    """PPO hyper-parameters and the weights of the intrinsic rewards."""
+
+    lr: float = 5e-4
+    """Adam learning rate (policy and RND predictor)."""
+    gamma: float = 0.99
+    """Discount factor."""
+    gae_lambda: float = 0.95
+    """GAE λ."""
+    ppo_epochs: int = 1
+    """Passes over each rollout."""
+    num_minibatches: int = 4
+    """Minibatches per epoch; each holds whole BPTT sequences of a subset of (chunk, actor) pairs."""
+    max_minibatch: int = 16_384
+    """Upper bound on samples (steps) per minibatch; large rollouts get more minibatches (GPU memory)."""
+    bptt_chunk: int = 32
+    """Truncated-BPTT sequence length; the recurrent state is stored at every chunk start."""
+    clip_coef: float = 0.2
+    """Policy ratio clip ε."""
+    value_clip_coef: float = 0.2
+    """Value clip around the rollout value estimate (≤ 0 disables value clipping)."""
+    ent_coef: float = 0.003
+    """Entropy bonus weight."""
+    vf_coef: float = 0.5
+    """Value loss weight."""
+    rnd_coef: float = 1.0
+    """Weight of the RND predictor loss in the total loss."""
+    max_grad_norm: float = 0.5
+    """Global gradient-norm clip."""
+    norm_adv: bool = True
+    """Normalise advantages per minibatch."""
+    intrinsic_rnd_weight: float = 0.01
+    """Weight of the normalised RND novelty added to the extrinsic reward."""
+    intrinsic_episodic_weight: float = 0.01
+    """Weight of the episodic-memory loop penalty subtracted from the extrinsic reward."""
+    reward_ema_decay: float = 0.9
+    """Decay of reward_ema (EMA of the mean extrinsic reward per actor-step, one update per rollout)."""
+
+
+@dataclass
+class TrainConfig:
+    """A training run: environment size, budget, checkpoints, device and the two configs above."""
+
+    n_actors: int = 0
+    """N parallel actors; 0 picks the device default (4 on CPU, 4096 on CUDA)."""
+    rollout_length: int = 0
+    """T steps per actor per update; 0 picks 512, capped so the rollout fits `rollout_memory_gb`."""
+    total_steps: int = 100_000
+    """Budget in env steps (actor-steps); the run ends with a final checkpoint."""
+    checkpoint_every: int = 25_000
+    """Env steps between periodic checkpoints."""
+    keep_checkpoints: int = 5
+    """Newest K checkpoints kept in the run folder."""
+    log_every: int = 1
+    """Updates between log lines (metrics JSONL, TensorBoard, on_log callback)."""
+    seed: int = 0
+    """Seed for torch and the environment."""
+    device: str = "cpu"
+    """Torch device string (cpu, cuda, cuda:1)."""
+    amp: bool = True
+    """bf16 autocast for the encoder on CUDA (ignored on CPU)."""
+    compile: bool = True
+    """torch.compile the encoder (CUDA only; about a minute of compile time, ~1.7x the SPS)."""
+    obs_dtype: str = "auto"
+    """Rollout observation storage dtype: float32, bfloat16, or auto (bfloat16 on CUDA, float32 on CPU)."""
+    rollout_memory_gb: float = 12.0
+    """Memory budget for stored observations when rollout_length is 0."""
+    sync_timers: bool = False
+    """Synchronise CUDA at stage boundaries so the per-stage timers are exact (benchmarks)."""
+    engine: EngineConfig = field(default_factory=EngineConfig)
+    """The cognitive engine."""
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    """PPO and intrinsic-reward settings."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (str, int, float, bool only) for checkpoints and manifests."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
+        """Inverse of to_dict; unknown keys are rejected by the dataclass constructors."""
+        flat = {k: v for k, v in data.items() if k not in ("engine", "ppo")}
+        return cls(
+            **flat, engine=EngineConfig(**data.get("engine", {})), ppo=PPOConfig(**data.get("ppo", {}))
+        )
+
+
+def default_actors(device: torch.device) -> int:
+    """Actor count that fits the device: 4 on CPU, 4096 on a GPU."""
+    return 4096 if device.type == "cuda" else 4
+
+
+def storage_dtype(cfg: TrainConfig, device: torch.device) -> torch.dtype:
+    """The observation storage dtype for this run."""
+    if cfg.obs_dtype == "auto":
+        return torch.bfloat16 if device.type == "cuda" else torch.float32
+    return {"float32": torch.float32, "bfloat16": torch.bfloat16}[cfg.obs_dtype]
+
+
+def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int]) -> TrainConfig:
+    """Fill the derived defaults (actor count, rollout length) once, right after parsing.
+
+    The rollout length defaults to 512 (the original system's value) but is capped, to a multiple of
+    the BPTT chunk, so that N·T stored observations fit in `rollout_memory_gb`: at 256×48 and 8,192
+    actors in bf16 that is 16 steps. The minibatch count grows so no minibatch exceeds max_minibatch.
+    """
+    device = torch.device(cfg.device)
+    n_actors = cfg.n_actors or default_actors(device)
+    rollout = cfg.rollout_length
+    if rollout == 0:
+        c, az, el = obs_shape
+        bytes_per_step = n_actors * c * az * el * storage_dtype(cfg, device).itemsize
+        fit = int(cfg.rollout_memory_gb * 2**30 // bytes_per_step)
+        rollout = max(8, min(512, fit // 8 * 8))
+    bptt = min(cfg.ppo.bptt_chunk, rollout)
+    rollout = max(bptt, rollout // bptt * bptt)
+    minibatches = max(cfg.ppo.num_minibatches, -(-n_actors * rollout // cfg.ppo.max_minibatch))
+    ppo = replace(cfg.ppo, bptt_chunk=bptt, num_minibatches=minibatches)
+    return replace(cfg, n_actors=n_actors, rollout_length=rollout, ppo=ppo)

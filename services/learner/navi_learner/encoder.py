@@ -1,0 +1,107 @@
+"""RayViTEncoder: DistanceMatrix (N, 3, Az, El) -> embedding (N, D).
+
+Non-overlapping patches (patch 8: 32×6 = 192 tokens at 256×48) are embedded linearly, a fixed
+spherical sin/cos positional encoding (computed once, a buffer, never trained) is added, a few lean
+pre-norm transformer blocks with fused attention (F.scaled_dot_product_attention) mix the tokens,
+and the mean token is projected to the embedding.
+
+Ray layout (docs/ACTOR.md): azimuth bin a is at φ = 2π·a/Az (bin 0 straight ahead, increasing to
+the left); elevation bin e at θ = -π/2 + π·(e + 0.5)/El (bottom to top).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from navi_learner.config import EngineConfig
+
+
+def spherical_positions(az_patches: int, el_patches: int, dim: int) -> torch.Tensor:
+    """Fixed sin/cos encoding of each patch centre's direction on the sphere.
+
+    The first three features are the unit direction vector, then sin/cos of integer multiples of
+    the azimuth (periodic over 360°) and of the elevation; zero padding up to D. Returns (Az/p · El/p, D) float32, rows in
+    azimuth-major order (the order of `patchify`).
+    """
+    phi = 2 * math.pi * (torch.arange(az_patches, dtype=torch.float64) + 0.5) / az_patches  # (Pa,)
+    theta = (
+        -math.pi / 2 + math.pi * (torch.arange(el_patches, dtype=torch.float64) + 0.5) / el_patches
+    )  # (Pe,)
+    phi_g, theta_g = torch.meshgrid(phi, theta, indexing="ij")  # (Pa, Pe) each
+    phi_f, theta_f = phi_g.reshape(-1, 1), theta_g.reshape(-1, 1)  # (P, 1) each
+    unit = torch.cat(
+        [theta_f.cos() * phi_f.cos(), theta_f.cos() * phi_f.sin(), theta_f.sin()], dim=1
+    )  # (P, 3) float64
+    k = torch.arange(1, (dim - 3) // 4 + 1, dtype=torch.float64)  # (F,) integer frequencies
+    feats = [unit, torch.sin(phi_f * k), torch.cos(phi_f * k), torch.sin(theta_f * k), torch.cos(theta_f * k)]
+    pos = torch.cat(feats, dim=1)  # (P, 3 + 4F) with 3 + 4F <= D
+    pad = torch.zeros(pos.shape[0], dim - pos.shape[1], dtype=torch.float64)  # (P, rest)
+    return torch.cat([pos, pad], dim=1).float()  # (P, D) float32
+
+
+def patchify(obs: torch.Tensor, patch: int) -> torch.Tensor:
+    """(N, C, Az, El) -> (N, Az/p · El/p, C·p·p) tokens, azimuth-major."""
+    n, c, az, el = obs.shape
+    x = obs.reshape(n, c, az // patch, patch, el // patch, patch)  # (N, C, Pa, p, Pe, p)
+    x = x.permute(0, 2, 4, 1, 3, 5)  # (N, Pa, Pe, C, p, p)
+    return x.reshape(n, (az // patch) * (el // patch), c * patch * patch)  # (N, P, C·p·p)
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block: fused multi-head attention and a GELU MLP."""
+
+    def __init__(self, dim: int, heads: int, mlp_ratio: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.norm1 = nn.LayerNorm(dim)
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.proj = nn.Linear(dim, dim)
+        self.norm2 = nn.LayerNorm(dim)
+        self.fc1 = nn.Linear(dim, mlp_ratio * dim)
+        self.fc2 = nn.Linear(mlp_ratio * dim, dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n, p, d = x.shape
+        qkv = self.qkv(self.norm1(x)).view(n, p, 3, self.heads, d // self.heads)  # (N, P, 3, h, D/h)
+        q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # (N, h, P, D/h) each
+        att = F.scaled_dot_product_attention(q, k, v)  # (N, h, P, D/h)
+        x = x + self.proj(att.transpose(1, 2).reshape(n, p, d))  # (N, P, D)
+        return x + self.fc2(F.gelu(self.fc1(self.norm2(x))))  # (N, P, D)
+
+
+class RayViTEncoder(nn.Module):
+    """DistanceMatrix (N, 3, Az, El) float -> embedding (N, D) float32."""
+
+    pos: torch.Tensor
+
+    def __init__(self, obs_shape: tuple[int, int, int], cfg: EngineConfig) -> None:
+        super().__init__()
+        c, az, el = obs_shape
+        p = cfg.patch_size
+        if az % p or el % p:
+            raise ValueError(f"observation {az}x{el} is not divisible by patch size {p}")
+        self.patch = p
+        self.embed = nn.Linear(c * p * p, cfg.embed_dim)
+        self.register_buffer(
+            "pos", spherical_positions(az // p, el // p, cfg.embed_dim), persistent=False
+        )  # (P, D) float32
+        self.blocks = nn.ModuleList(
+            Block(cfg.embed_dim, cfg.encoder_heads, cfg.mlp_ratio) for _ in range(cfg.encoder_layers)
+        )
+        self.norm = nn.LayerNorm(cfg.embed_dim)
+        self.out = nn.Linear(cfg.embed_dim, cfg.embed_dim)
+
+    @property
+    def n_tokens(self) -> int:
+        """Number of patch tokens P."""
+        return int(self.pos.shape[0])
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        x = self.embed(patchify(obs, self.patch).to(self.embed.weight.dtype)) + self.pos  # (N, P, D)
+        for block in self.blocks:
+            x = block(x)  # (N, P, D)
+        return self.out(self.norm(x.mean(dim=1))).float()  # (N, D) float32

@@ -1,0 +1,57 @@
+"""Environment factory: the drone env (navi_env.env.SdfDagEnv over a corpus folder, imported lazily)
+or the toy env."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+
+from navi_learner.protocol import BatchedEnv
+from navi_learner.toy_env import ToyEnv
+
+EnvKind = Literal["sdfdag", "toy"]
+
+
+class EnvUnavailable(RuntimeError):
+    """The drone environment (or its corpus) cannot be built here."""
+
+
+def corpus_summary(corpus: Path | None, kind: EnvKind) -> dict[str, Any]:
+    """Plain description of what a run trains on, for checkpoints and manifests."""
+    if kind == "toy" or corpus is None:
+        return {"kind": kind}
+    try:
+        from navi_env.corpus import CorpusError, read_manifest
+    except ImportError as err:
+        raise EnvUnavailable(f"navi_env's corpus reader is not importable: {err}") from err
+    try:
+        manifest = read_manifest(corpus)
+    except CorpusError as err:
+        raise EnvUnavailable(str(err)) from err
+    return {"kind": kind, "path": str(corpus), **manifest.summary()}
+
+
+def make_env(
+    corpus: Path | None, n_actors: int, device: str, seed: int, kind: EnvKind = "sdfdag"
+) -> BatchedEnv:
+    """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
+    qualified positions)."""
+    if kind == "toy":
+        return ToyEnv(n_actors, device, seed=seed)
+    if corpus is None:
+        raise EnvUnavailable("the drone environment needs --corpus DIR (a corpus folder with manifest.json)")
+    if not corpus.is_dir():
+        raise EnvUnavailable(f"corpus folder {corpus} does not exist (build one with `navi corpus build`)")
+    try:
+        from navi_env.corpus import CorpusError, load_corpus
+        from navi_env.env import SdfDagEnv
+    except ImportError as err:
+        raise EnvUnavailable(f"navi_env's SdfDagEnv is not importable: {err}") from err
+    try:
+        scenes, manifest = load_corpus(corpus, torch.device(device))
+    except CorpusError as err:
+        raise EnvUnavailable(str(err)) from err
+    env: BatchedEnv = SdfDagEnv(scenes, n_actors, torch.device(device), None, manifest.spawn_tensors(), seed)
+    return env

@@ -1,0 +1,354 @@
+"""`navi serve learner`: training or inference in-process, on the mesh, with the control plane.
+
+The loop is the learner's own (`train.train` or the inference loop below); this module only taps it:
+- `TelemetryTap` wraps the environment the loop steps. At most `observation_hz` times a second it
+  copies actor 0's observation and every actor's action to the host and queues them for publishing
+  (navi/env/observations, navi/actor/actions). Between samples a step costs one clock read.
+- Every log row of `train` becomes TelemetryEvents `actor.training.<name>` and Prometheus gauges;
+  inference publishes `actor.inference.<name>` once a second.
+- Publishers are drop-oldest queues drained by their own threads: the loop never waits on Zenoh, and
+  a router restart costs no step (the session reconnects by itself).
+- The FastAPI control plane runs in a uvicorn thread; its promotions are announced on
+  navi/models/promoted, and inference reloads the model when its followed alias moves.
+SIGTERM or Ctrl+C ends training through its KeyboardInterrupt path (a checkpoint is saved first).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+import zenoh
+
+from navi_contracts.models import Action, DistanceMatrix, ModelPromoted, TelemetryEvent
+from navi_contracts.topics import ACTIONS, MODEL_PROMOTED, OBSERVATIONS, TELEMETRY
+from navi_learner.config import TrainConfig
+from navi_learner.control_plane import ControlPlaneConfig, create_app
+from navi_learner.envs import EnvKind, corpus_summary, make_env
+from navi_learner.protocol import BatchedEnv, StepLike
+from navi_learner.registry import ModelRegistry, RegistryError
+from navi_mesh import metrics
+from navi_mesh.liveliness import declare_alive
+from navi_mesh.messages import action_message, distance_matrix, telemetry
+from navi_mesh.pubsub import Publisher, QueuedPublisher, subscribe
+from navi_mesh.session import SessionConfig, session
+
+log = logging.getLogger("navi_learner.service")
+
+SERVICE = "learner"
+Mode = Literal["train", "infer"]
+
+
+@dataclass(frozen=True)
+class LearnerServiceConfig:
+    """One `navi serve learner` process."""
+
+    mode: Mode = "train"
+    """train (PPO) or infer (run a model, follow promotions)."""
+    corpus: Path = Path("artifacts/corpus/default")
+    """Corpus folder; the procedural default corpus is built there when it holds no scene."""
+    env_kind: EnvKind = "sdfdag"
+    """sdfdag (the drone env) or toy (tests)."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """The training run (actors, budget, device, seed, engine, PPO)."""
+    resume_from: Path | None = None
+    """train: checkpoint to resume from."""
+    model: str = "latest"
+    """infer: a checkpoint path, or a registry version or alias."""
+    follow_alias: str = "champion"
+    """infer: reload the model when this alias is promoted (empty: never)."""
+    deterministic: bool = True
+    """infer: act with the policy mean."""
+    infer_steps: int = 0
+    """infer: batched steps to run (0: until stopped)."""
+    models_dir: Path = Path("artifacts/models")
+    """The model registry."""
+    runs_dir: Path = Path("artifacts/runs")
+    """Run folders."""
+    observation_hz: float = 10.0
+    """Rate of actor 0's observation and of the actions on the mesh (5-10 Hz for dashboards)."""
+    telemetry_capacity: int = 1024
+    """Telemetry queue length (drop-oldest beyond it)."""
+    api_host: str = "0.0.0.0"
+    """Control plane interface."""
+    api_port: int = 8000
+    """Control plane port (0: no control plane)."""
+    api_token: str = ""
+    """Bearer token for mutations (empty: mutations disabled)."""
+    exit_when_done: bool = False
+    """Exit after the run instead of keeping the control plane up until stopped."""
+    session: SessionConfig = field(default_factory=SessionConfig)
+    """How to reach the Zenoh router."""
+
+
+class MeshPublishers:
+    """The learner's publishers over one session."""
+
+    def __init__(self, sess: zenoh.Session, telemetry_capacity: int) -> None:
+        self.telemetry: QueuedPublisher[TelemetryEvent] = QueuedPublisher(sess, TELEMETRY, telemetry_capacity)
+        self.observations: QueuedPublisher[DistanceMatrix] = QueuedPublisher(sess, OBSERVATIONS, capacity=2)
+        self.actions: QueuedPublisher[Action] = QueuedPublisher(sess, ACTIONS, capacity=2)
+        self.promotions: Publisher[ModelPromoted] = Publisher(sess, MODEL_PROMOTED)
+
+    def close(self) -> None:
+        for pub in (self.telemetry, self.observations, self.actions):
+            pub.close()
+        self.promotions.close()
+
+
+class TelemetryTap:
+    """A BatchedEnv that forwards to `env` and samples observations and actions for the mesh."""
+
+    def __init__(self, env: BatchedEnv, pubs: MeshPublishers, hz: float, run_id: str = "") -> None:
+        self.env = env
+        self.pubs = pubs
+        self.period = 1.0 / hz
+        self.run_id = run_id
+        self.steps = 0  # batched steps
+        self.publish_s = 0.0  # time spent building and queueing samples
+        self._next = 0.0
+
+    @property
+    def n_actors(self) -> int:
+        return self.env.n_actors
+
+    @property
+    def device(self) -> torch.device:
+        return self.env.device
+
+    @property
+    def obs_shape(self) -> tuple[int, int, int]:
+        return self.env.obs_shape
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        return self.env.reset(seed)
+
+    def step(self, actions: torch.Tensor) -> StepLike:
+        out = self.env.step(actions)
+        self.steps += 1
+        now = time.monotonic()
+        if now >= self._next:
+            self._next = now + self.period
+            self.sample(out.obs, actions)
+            self.publish_s += time.monotonic() - now
+        return out
+
+    def sample(self, obs: torch.Tensor, actions: torch.Tensor) -> None:
+        """Queue actor 0's observation (1, 3, Az, El) and all actions (N, 4)."""
+        step = self.steps * self.env.n_actors
+        first = obs[:1].detach().float().cpu().numpy()  # (1, 3, Az, El) float32
+        self.pubs.observations.publish(distance_matrix(first, np.zeros(1, np.int32), step, self.run_id))
+        self.pubs.actions.publish(action_message(actions.detach().float().cpu().numpy(), step, self.run_id))
+
+
+def telemetry_rows(prefix: str, row: dict[str, float], run_id: str) -> list[TelemetryEvent]:
+    """A log row -> one TelemetryEvent per finite value, keyed `<prefix>.<name>`."""
+    step = int(row.get("step", 0))
+    return [
+        telemetry(f"{prefix}.{name}", value, step, run_id)
+        for name, value in row.items()
+        if name != "step" and np.isfinite(value)
+    ]
+
+
+class TrainingMetrics:
+    """on_log callback of `train`: Prometheus gauges and counters plus `actor.training.*` telemetry."""
+
+    def __init__(self, pubs: MeshPublishers, tap: TelemetryTap, device: torch.device) -> None:
+        self.pubs, self.tap, self.device = pubs, tap, device
+        self.last_step = 0
+        self.last_episodes = 0
+        self.t0 = time.monotonic()
+
+    def __call__(self, run_id: str, row: dict[str, float]) -> None:
+        step, episodes = int(row.get("step", 0)), int(row.get("episode_count", 0))
+        if self.last_step == 0:
+            self.last_step, self.last_episodes = step - self.tap.steps * self.tap.n_actors, episodes
+        metrics.STEPS.labels("train").inc(max(0, step - self.last_step))
+        metrics.EPISODES.labels("train").inc(max(0, episodes - self.last_episodes))
+        self.last_step, self.last_episodes = step, episodes
+        metrics.STEPS_PER_SECOND.labels("train").set(row.get("sps", 0.0))
+        metrics.REWARD_EMA.set(row.get("reward_ema", 0.0))
+        for name, value in row.items():
+            if "loss" in name or name in ("entropy", "approx_kl", "kl"):
+                metrics.LOSS.labels(name).set(value)
+        metrics.record_gpu_memory(self.device)
+        metrics.PUBLISH_SECONDS.inc(self.tap.publish_s)
+        extra = {"publish_fraction": self.tap.publish_s / max(time.monotonic() - self.t0, 1e-9)}
+        for event in telemetry_rows("actor.training", {**row, **extra}, run_id):
+            self.pubs.telemetry.publish(event)
+        self.tap.publish_s, self.t0 = 0.0, time.monotonic()
+
+
+def ensure_corpus(cfg: LearnerServiceConfig) -> None:
+    """Build the procedural default corpus when the sdfdag env has no scene to fly."""
+    if cfg.env_kind != "sdfdag" or any(cfg.corpus.glob("*.gmdag")):
+        return
+    from navi_env.corpus import build_default_corpus
+
+    log.info("building the procedural default corpus into %s", cfg.corpus)
+    build_default_corpus(cfg.corpus)
+
+
+def run_training(cfg: LearnerServiceConfig, env: TelemetryTap, pubs: MeshPublishers) -> dict[str, Any]:
+    """`train` with the tap and the metrics callback; returns the run summary."""
+    from navi_learner.train import train
+
+    on_log = TrainingMetrics(pubs, env, env.device)
+    result = train(
+        env,
+        cfg.train,
+        run_dir=None,
+        resume_from=cfg.resume_from,
+        on_log=on_log,
+        registry=ModelRegistry(cfg.models_dir),
+        corpus_summary=corpus_summary(cfg.corpus if cfg.env_kind == "sdfdag" else None, cfg.env_kind),
+        progress=False,
+    )
+    summary = {
+        "run_id": result.run_id,
+        "steps": result.step_id,
+        "checkpoint": str(result.final_checkpoint),
+        "sps": result.sps,
+        "reward_ema": result.reward_ema,
+        "interrupted": result.interrupted,
+        "promoted": result.promoted,
+    }
+    pubs.telemetry.publish(telemetry("actor.training.done", 1.0, result.step_id, result.run_id))
+    return summary
+
+
+def resolve_model(model: str, registry: ModelRegistry) -> Path:
+    """A checkpoint path, or the file of a registry version or alias."""
+    path = Path(model)
+    if path.is_file():
+        return path
+    try:
+        return registry.path(model)
+    except RegistryError as err:
+        raise FileNotFoundError(
+            f"{model!r} is neither a checkpoint file nor a registry version: {err}"
+        ) from err
+
+
+def run_inference(
+    cfg: LearnerServiceConfig,
+    env: TelemetryTap,
+    pubs: MeshPublishers,
+    sess: zenoh.Session,
+    stop: threading.Event,
+) -> dict[str, Any]:
+    """Fly the model until stopped (or infer_steps), reloading it when the followed alias moves."""
+    from navi_learner.evaluate import CheckpointPolicy
+
+    registry = ModelRegistry(cfg.models_dir)
+    device = env.device
+    promoted: list[ModelPromoted] = []
+
+    def on_promoted(msg: ModelPromoted) -> None:
+        if msg.alias == cfg.follow_alias:
+            promoted.append(msg)
+
+    sub = subscribe(sess, MODEL_PROMOTED, on_promoted) if cfg.follow_alias else None
+    path = resolve_model(cfg.model, registry)
+    policy = CheckpointPolicy(path, device, cfg.deterministic)
+    policy.reset(env.n_actors, device)
+    obs = env.reset(cfg.train.seed)  # (N, 3, Az, El)
+    resets = torch.ones(env.n_actors, dtype=torch.bool, device=device)  # (N,)
+    reward_sum = torch.zeros((), device=device)  # () float32
+    steps = 0
+    window_t, window_steps = time.monotonic(), 0
+    try:
+        while not stop.is_set() and (cfg.infer_steps == 0 or steps < cfg.infer_steps):
+            if promoted:
+                msg = promoted.pop()
+                promoted.clear()
+                path = Path(msg.checkpoint)
+                policy = CheckpointPolicy(path, device, cfg.deterministic)
+                policy.reset(env.n_actors, device)
+                resets = torch.ones(env.n_actors, dtype=torch.bool, device=device)  # (N,)
+                log.info("loaded %s (%s -> %s)", path, msg.alias, msg.version)
+                pubs.telemetry.publish(telemetry("actor.inference.model_reloaded", 1.0, steps))
+            actions = policy.act(obs, resets)  # (N, 4)
+            out = env.step(actions)
+            obs, resets = out.obs, out.done | out.truncated  # (N, 3, Az, El), (N,)
+            reward_sum += out.reward.sum()
+            steps += 1
+            window_steps += 1
+            now = time.monotonic()
+            if now - window_t >= 1.0:
+                actor_steps = window_steps * env.n_actors
+                sps = actor_steps / (now - window_t)
+                metrics.STEPS.labels("infer").inc(actor_steps)
+                metrics.STEPS_PER_SECOND.labels("infer").set(sps)
+                metrics.record_gpu_memory(device)
+                row = {
+                    "step": float(steps * env.n_actors),
+                    "sps": sps,
+                    "reward_mean": float(reward_sum) / actor_steps,
+                }
+                for event in telemetry_rows("actor.inference", row, ""):
+                    pubs.telemetry.publish(event)
+                reward_sum.zero_()
+                window_t, window_steps = now, 0
+    finally:
+        if sub is not None:
+            sub.undeclare()
+    return {"steps": steps * env.n_actors, "model": str(path)}
+
+
+def start_control_plane(
+    cfg: LearnerServiceConfig, pubs: MeshPublishers
+) -> tuple[Any, threading.Thread] | None:
+    """uvicorn serving the control plane from a daemon thread (None when api_port is 0)."""
+    if cfg.api_port == 0:
+        return None
+    import uvicorn
+
+    if not cfg.api_token:
+        log.warning("NAVI_API_TOKEN is empty: the control plane refuses every mutation (503)")
+    app = create_app(ControlPlaneConfig(cfg.models_dir, cfg.api_token, SERVICE), pubs.promotions.publish)
+    server = uvicorn.Server(uvicorn.Config(app, host=cfg.api_host, port=cfg.api_port, log_level="warning"))
+    thread = threading.Thread(target=server.run, name="control plane", daemon=True)
+    thread.start()
+    return server, thread
+
+
+def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str, Any]:
+    """Run the learner service; returns the run summary (also written to the log as JSON)."""
+    ensure_corpus(cfg)
+    device = torch.device(cfg.train.device)
+    from navi_learner.config import default_actors
+
+    n = cfg.train.n_actors or default_actors(device)
+    base_env = make_env(
+        cfg.corpus if cfg.env_kind == "sdfdag" else None, n, cfg.train.device, cfg.train.seed, cfg.env_kind
+    )
+    sess = session(cfg.session)
+    token = declare_alive(sess, SERVICE)
+    pubs = MeshPublishers(sess, cfg.telemetry_capacity)
+    tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
+    plane = start_control_plane(cfg, pubs)
+    try:
+        if cfg.mode == "train":
+            summary = run_training(cfg, tap, pubs)
+        else:
+            summary = run_inference(cfg, tap, pubs, sess, stop)
+        log.info("run finished: %s", json.dumps(summary, default=str))
+        if not cfg.exit_when_done:
+            stop.wait()
+    finally:
+        if plane is not None:
+            server, thread = plane
+            server.should_exit = True
+            thread.join(timeout=5.0)
+        pubs.close()
+        token.undeclare()
+    return summary

@@ -1,0 +1,383 @@
+"""The PPO training loop (CleanRL-style: collect → advantages → update → log), in-process with the env.
+
+Intrinsic rewards are functions of the observed state: step t's reward is the env reward plus
+w_rnd·RND(e_t) − w_ep·loop_penalty(e_t), with e_t the embedding the policy acted on.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from navi_learner.checkpoint import (
+    CheckpointMeta,
+    checkpoint_name,
+    load_checkpoint,
+    prune_checkpoints,
+    save_checkpoint,
+)
+from navi_learner.config import TrainConfig, resolve, storage_dtype
+from navi_learner.gae import bootstrap_truncated, gae
+from navi_learner.memory import EpisodicMemory
+from navi_learner.policy import CognitiveMambaPolicy
+from navi_learner.ppo import ppo_loss
+from navi_learner.protocol import BatchedEnv
+from navi_learner.registry import ModelRegistry
+from navi_learner.rollout import RolloutStorage
+from navi_learner.runs import Progress, RunFiles, new_run_id, write_report
+from navi_learner.stats import EpisodeStats
+from navi_learner.temporal import CoreState
+
+STAGES = ("env", "forward", "learn")
+
+
+class StageTimers:
+    """Wall time per stage; with sync=True CUDA is synchronised at each boundary so times are exact."""
+
+    def __init__(self, sync: bool) -> None:
+        self.sync = sync
+        self.seconds = dict.fromkeys(STAGES, 0.0)
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        if self.sync:
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        yield
+        if self.sync:
+            torch.cuda.synchronize()
+        self.seconds[stage] += time.perf_counter() - t0
+
+    def read(self, steps: int) -> dict[str, float]:
+        """ms per env step (all actors) per stage since the last read, then clear."""
+        out = {f"ms_{k}": 1000.0 * v / max(steps, 1) for k, v in self.seconds.items()}
+        self.seconds = dict.fromkeys(STAGES, 0.0)
+        return out
+
+
+@dataclass
+class TrainState:
+    """Counters carried across resumes."""
+
+    step_id: int = 0
+    episode_count: int = 0
+    reward_ema: float = 0.0
+    wall_time_hours: float = 0.0
+    skipped_updates: int = 0
+    parent_checkpoint: str | None = None
+
+
+@dataclass
+class TrainResult:
+    """What a finished (or interrupted) run leaves behind."""
+
+    run_id: str
+    run_dir: Path
+    final_checkpoint: Path
+    report: Path
+    step_id: int
+    episode_count: int
+    reward_ema: float
+    sps: float
+    skipped_updates: int
+    interrupted: bool
+    promoted: str | None = None
+    last_metrics: dict[str, float] = field(default_factory=dict)
+
+
+def collect(
+    policy: CognitiveMambaPolicy,
+    env: BatchedEnv,
+    buf: RolloutStorage,
+    memory: EpisodicMemory,
+    stats: EpisodeStats,
+    cfg: TrainConfig,
+    carry: tuple[torch.Tensor, torch.Tensor, CoreState],
+    timers: StageTimers,
+) -> tuple[tuple[torch.Tensor, torch.Tensor, CoreState], torch.Tensor]:
+    """Fill the storage with one rollout; returns the new (obs, resets, state) carry and the mean
+    extrinsic reward per actor-step (a device scalar)."""
+    obs, resets, state = carry
+    ext_sum = torch.zeros((), device=env.device)  # () float32
+    for t in range(buf.t_len):
+        with timers("forward"), torch.no_grad():
+            buf.store_state(t, state)
+            out = policy.act(obs, resets, state)
+            novelty = policy.rnd.intrinsic(out.emb)  # (N,)
+            loop = memory.step(out.emb, resets)  # (N,)
+            intrinsic = cfg.ppo.intrinsic_rnd_weight * novelty - cfg.ppo.intrinsic_episodic_weight * loop
+            buf.obs[t].copy_(obs)
+            buf.actions[t].copy_(out.action)
+            buf.logp[t].copy_(out.logp)
+            buf.values[t].copy_(out.value)
+            buf.resets[t].copy_(resets)
+            state = out.state
+        with timers("env"):
+            step = env.step(out.action)
+        with timers("forward"):
+            ends = step.done | step.truncated  # (N,) bool
+            buf.rewards[t].copy_(step.reward + intrinsic)
+            buf.ends[t].copy_(ends)
+            buf.truncs[t].copy_(step.truncated & ~step.done)
+            ext_sum += step.reward.sum()
+            stats.update(step, intrinsic)
+            obs, resets = step.obs, ends
+    return (obs, resets, state), ext_sum / (buf.t_len * buf.n)
+
+
+def advantages(
+    policy: CognitiveMambaPolicy,
+    buf: RolloutStorage,
+    cfg: TrainConfig,
+    carry: tuple[torch.Tensor, torch.Tensor, CoreState],
+) -> None:
+    """GAE over the rollout into buf.advantages / buf.returns, bootstrapping from the next observation."""
+    obs, resets, state = carry
+    with torch.no_grad():
+        next_value = policy.act(obs, resets, state, deterministic=True).value  # (N,)
+        rewards = bootstrap_truncated(buf.rewards, buf.values, buf.truncs, cfg.ppo.gamma)  # (T, N)
+        adv, ret = gae(rewards, buf.values, buf.ends, next_value, cfg.ppo.gamma, cfg.ppo.gae_lambda)
+    buf.advantages.copy_(adv)
+    buf.returns.copy_(ret)
+
+
+def update(
+    policy: CognitiveMambaPolicy,
+    optimizer: torch.optim.Optimizer,
+    buf: RolloutStorage,
+    cfg: TrainConfig,
+    gen: torch.Generator,
+    logger: Any = None,
+) -> tuple[dict[str, torch.Tensor], int]:
+    """PPO epochs over sequence minibatches. A non-finite loss or gradient norm skips that optimizer
+    step (one host read per minibatch) and is counted. Returns mean metrics (device) and the skip count."""
+    p = cfg.ppo
+    params = [q for q in policy.parameters() if q.requires_grad]
+    sums: dict[str, torch.Tensor] = {}
+    count, skipped = 0, 0
+    for _ in range(p.ppo_epochs):
+        for mb in buf.minibatches(p.num_minibatches, gen):
+            ev = policy.evaluate(mb.obs, mb.resets, mb.state, mb.actions)
+            loss, metrics = ppo_loss(
+                ev.logp,
+                mb.logp,
+                mb.advantages,
+                ev.value,
+                mb.values,
+                mb.returns,
+                ev.entropy,
+                clip_coef=p.clip_coef,
+                value_clip_coef=p.value_clip_coef,
+                vf_coef=p.vf_coef,
+                ent_coef=p.ent_coef,
+                norm_adv=p.norm_adv,
+            )
+            rnd_loss = policy.rnd.loss(ev.emb)
+            total = loss + p.rnd_coef * rnd_loss
+            optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(params, p.max_grad_norm)
+            if bool(torch.isfinite(total) & torch.isfinite(grad_norm)):
+                optimizer.step()
+            else:
+                skipped += 1
+                if logger is not None:
+                    logger.warning("non-finite loss or gradient: optimizer step skipped")
+            optimizer.zero_grad(set_to_none=True)
+            for k, v in {**metrics, "rnd_loss": rnd_loss.detach(), "grad_norm": grad_norm.detach()}.items():
+                sums[k] = sums.get(k, torch.zeros((), device=v.device)) + v
+            count += 1
+    return {k: v / max(count, 1) for k, v in sums.items()}, skipped
+
+
+def train(
+    env: BatchedEnv,
+    cfg: TrainConfig,
+    *,
+    run_dir: Path | None = None,
+    resume_from: Path | None = None,
+    on_log: Callable[[str, dict[str, float]], None] | None = None,
+    registry: ModelRegistry | None = None,
+    corpus_summary: dict[str, Any] | None = None,
+    run_id: str | None = None,
+    progress: bool | None = None,
+) -> TrainResult:
+    """Train until cfg.total_steps (final checkpoint) or Ctrl+C (checkpoint first, then return)."""
+    cfg = resolve(cfg, env.obs_shape)
+    device = env.device
+    if cfg.n_actors != env.n_actors:
+        raise ValueError(f"config asks for {cfg.n_actors} actors but the env has {env.n_actors}")
+    torch.manual_seed(cfg.seed)
+    run_id = run_id or new_run_id()
+    run = RunFiles(run_dir or Path("artifacts/runs") / run_id, run_id, on_log)
+    policy = CognitiveMambaPolicy(env.obs_shape, cfg.engine).to(device)
+    policy.amp = cfg.amp and device.type == "cuda"
+    optimizer = torch.optim.Adam([q for q in policy.parameters() if q.requires_grad], lr=cfg.ppo.lr, eps=1e-5)
+    st = TrainState()
+    if resume_from is not None:
+        ckpt = load_checkpoint(resume_from, device)
+        if ckpt.meta.temporal_core != cfg.engine.temporal_core:
+            raise ValueError(
+                f"{resume_from} uses temporal core {ckpt.meta.temporal_core}, not {cfg.engine.temporal_core}"
+            )
+        policy.load_state_dict(ckpt.model)
+        if ckpt.optimizer is not None:
+            optimizer.load_state_dict(ckpt.optimizer)
+        m = ckpt.meta
+        st = TrainState(m.step_id, m.episode_count, m.reward_ema, m.wall_time_hours, 0, str(resume_from))
+    if cfg.compile and device.type == "cuda":
+        policy.encoder.compile(dynamic=False)
+    run.write_manifest(
+        "run",
+        {
+            "config": cfg.to_dict(),
+            "obs_shape": list(env.obs_shape),
+            "device": str(device),
+            "resume_from": st.parent_checkpoint,
+            "corpus_summary": corpus_summary or {},
+        },
+    )
+    run.logger.info(f"start: {cfg.n_actors} actors, T={cfg.rollout_length}, core={cfg.engine.temporal_core}")
+    buf = RolloutStorage(
+        cfg.rollout_length,
+        cfg.n_actors,
+        env.obs_shape,
+        storage_dtype(cfg, device),
+        policy.initial_state(cfg.n_actors, device),
+        cfg.ppo.bptt_chunk,
+        device,
+    )
+    memory = EpisodicMemory(
+        cfg.n_actors, cfg.engine.memory_slots, cfg.engine.embed_dim, cfg.engine.memory_threshold, device
+    )
+    stats = EpisodeStats(cfg.n_actors, device)
+    timers = StageTimers(cfg.sync_timers and device.type == "cuda")
+    gen = torch.Generator().manual_seed(cfg.seed)
+    ema = torch.full((), st.reward_ema, device=device)  # () float32
+    fresh_ema = resume_from is None
+    carry = (
+        env.reset(seed=cfg.seed),
+        torch.ones(cfg.n_actors, dtype=torch.bool, device=device),
+        policy.initial_state(cfg.n_actors, device),
+    )
+    bar = Progress(cfg.total_steps, progress)
+    start_step, t_start, t_window, steps_window = st.step_id, time.perf_counter(), time.perf_counter(), 0
+    next_ckpt = (st.step_id // cfg.checkpoint_every + 1) * cfg.checkpoint_every
+    row: dict[str, float] = {}
+    updates = 0
+    latest: Path | None = None
+    base_episodes, base_hours = st.episode_count, st.wall_time_hours
+
+    def sync_state() -> None:
+        st.reward_ema = float(ema)
+        st.episode_count = base_episodes + int(stats.episodes_total)
+        st.wall_time_hours = base_hours + (time.perf_counter() - t_start) / 3600.0
+
+    def checkpoint() -> Path:
+        sync_state()
+        meta = CheckpointMeta(
+            step_id=st.step_id,
+            episode_count=st.episode_count,
+            reward_ema=st.reward_ema,
+            wall_time_hours=st.wall_time_hours,
+            temporal_core=cfg.engine.temporal_core,
+            run_id=run_id,
+            config=cfg.to_dict(),
+            obs_shape=list(env.obs_shape),
+            parent_checkpoint=st.parent_checkpoint,
+            corpus_summary=corpus_summary or {},
+        )
+        path = save_checkpoint(
+            run.checkpoints / checkpoint_name(st.step_id), policy.state_dict(), optimizer.state_dict(), meta
+        )
+        prune_checkpoints(run.checkpoints, cfg.keep_checkpoints)
+        run.logger.info(f"checkpoint {path}")
+        return path
+
+    interrupted = False
+    try:
+        while st.step_id < cfg.total_steps:
+            policy.eval()
+            carry, ext_mean = collect(policy, env, buf, memory, stats, cfg, carry, timers)
+            with timers("learn"):
+                advantages(policy, buf, cfg, carry)
+                policy.train()
+                metrics, skipped = update(policy, optimizer, buf, cfg, gen, run.logger)
+            st.skipped_updates += skipped
+            decay = 0.0 if fresh_ema else cfg.ppo.reward_ema_decay
+            ema = decay * ema + (1 - decay) * ext_mean
+            fresh_ema = False
+            st.step_id += buf.t_len * buf.n
+            steps_window += buf.t_len * buf.n
+            updates += 1
+            if updates % cfg.log_every == 0 or st.step_id >= cfg.total_steps:
+                now = time.perf_counter()
+                sps = steps_window / (now - t_window)
+                sync_state()
+                row = {
+                    "step": float(st.step_id),
+                    "sps": sps,
+                    "reward_ema": st.reward_ema,
+                    "episode_count": float(st.episode_count),
+                    "skipped_updates": float(st.skipped_updates),
+                    **{k: float(v) for k, v in metrics.items()},
+                    **stats.read(),
+                    **timers.read(steps_window // buf.n),
+                }
+                run.log_metrics(row)
+                bar.update(st.step_id, sps, f"reward_ema {st.reward_ema:+.3f}")
+                t_window, steps_window = now, 0
+            if st.step_id >= next_ckpt and st.step_id < cfg.total_steps:
+                latest = checkpoint()
+                next_ckpt += cfg.checkpoint_every
+    except KeyboardInterrupt:
+        interrupted = True
+        run.logger.warning("interrupted: saving a checkpoint")
+    bar.close()
+    latest = checkpoint()
+    elapsed = time.perf_counter() - t_start
+    sps_total = (st.step_id - start_step) / max(elapsed, 1e-9)
+    promoted = None
+    if registry is not None and not interrupted:
+        entry = registry.maybe_promote(
+            latest, notes=f"auto-promote of run {run_id}", tags=("rl", cfg.engine.temporal_core)
+        )
+        promoted = entry.version if entry is not None else None
+    summary = {
+        "run_id": run_id,
+        "steps": st.step_id,
+        "episodes": st.episode_count,
+        "reward_ema": f"{st.reward_ema:.4f}",
+        "mean SPS": f"{sps_total:,.0f}",
+        "skipped updates": st.skipped_updates,
+        "final checkpoint": latest,
+        "interrupted": interrupted,
+        "promoted": promoted or "no",
+        "temporal core": cfg.engine.temporal_core,
+        "actors": cfg.n_actors,
+        "rollout length": cfg.rollout_length,
+        "device": str(device),
+    }
+    report = write_report(run, summary)
+    run.logger.info(f"done: {summary}")
+    run.close()
+    return TrainResult(
+        run_id,
+        run.root,
+        latest,
+        report,
+        st.step_id,
+        st.episode_count,
+        st.reward_ema,
+        sps_total,
+        st.skipped_updates,
+        interrupted,
+        promoted,
+        row,
+    )

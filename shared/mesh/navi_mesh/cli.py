@@ -1,0 +1,482 @@
+"""`navi serve ...` and `navi stack ...` (registered by navi.cli). Module-level imports: typer + stdlib.
+
+Every service reads NaviSettings (NAVI_* variables and .env); options override single fields.
+Other packages add their own long-running services to `serve_app` (e.g. `navi serve auditor`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any
+
+import typer
+
+if TYPE_CHECKING:
+    from navi_contracts.settings import NaviSettings
+    from navi_mesh.session import SessionConfig
+
+PANEL = "Services"
+
+serve_app = typer.Typer(
+    help="Run one service of the mesh in the foreground (Zenoh client of NAVI_ZENOH_CONNECT).",
+    no_args_is_help=True,
+)
+stack_app = typer.Typer(
+    help="The whole stack as local processes: router, compiler, env, learner, auditor.", no_args_is_help=True
+)
+
+ConnectOpt = Annotated[
+    str | None, typer.Option("--connect", help="Zenoh endpoints to connect to (default: NAVI_ZENOH_CONNECT).")
+]
+ZenohConfigOpt = Annotated[
+    Path | None,
+    typer.Option("--zenoh-config", help="A Zenoh JSON5 config file (default: NAVI_ZENOH_CONFIG)."),
+]
+MetricsPortOpt = Annotated[
+    int | None, typer.Option("--metrics-port", help="Port of GET /metrics (default: NAVI_METRICS_PORT).")
+]
+DeviceOpt = Annotated[str, typer.Option("--device", help="Torch device: auto, cpu, cuda, cuda:N.")]
+CorpusOpt = Annotated[
+    Path, typer.Option("--corpus", help="Corpus folder (the default corpus is built when empty).")
+]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of the environment (and of training).")]
+
+
+def fail(message: str) -> typer.Exit:
+    """Print a one-line error to stderr; the caller raises the returned Exit(2)."""
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(2)
+
+
+def _settings() -> NaviSettings:
+    from pydantic import ValidationError
+
+    from navi_contracts.settings import NaviSettings
+
+    try:
+        return NaviSettings()  # type: ignore[call-arg]  # pydantic-settings fills the fields
+    except ValidationError as err:
+        raise fail(f"invalid NAVI_* setting: {err.errors()[0]['loc']}: {err.errors()[0]['msg']}") from err
+
+
+def _session_config(settings: NaviSettings, connect: str | None, zenoh_config: Path | None) -> SessionConfig:
+    from dataclasses import replace
+
+    from navi_mesh.session import config_from_settings
+
+    cfg = config_from_settings(settings)
+    if connect is not None:
+        cfg = replace(cfg, connect=tuple(e.strip() for e in connect.split(",") if e.strip()))
+    if zenoh_config is not None:
+        cfg = replace(cfg, config_file=zenoh_config)
+    return cfg
+
+
+def _device(device: str) -> str:
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise fail(f"device {device} requested but CUDA is not available")
+    if not (device == "cpu" or device.startswith("cuda")):
+        raise fail(f"unknown device {device!r}; use auto, cpu, cuda or cuda:N")
+    return device
+
+
+def _logging() -> None:
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
+    )
+
+
+def run_service(body: Callable[[threading.Event], Any], interrupt: bool = False) -> Any:
+    """Run body(stop) with SIGTERM/SIGINT setting `stop` (and raising KeyboardInterrupt when
+    `interrupt`, so a training loop saves its checkpoint); clear errors exit 2."""
+    from navi_mesh.session import MeshError, close_session
+
+    _logging()
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        first = not stop.is_set()
+        stop.set()
+        if interrupt and first:
+            raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    try:
+        return body(stop)
+    except KeyboardInterrupt:
+        return None
+    except (MeshError, FileNotFoundError, ValueError) as err:
+        raise fail(str(err)) from err
+    finally:
+        close_session()
+
+
+@serve_app.command("router")
+def serve_router(
+    listen: Annotated[
+        str | None, typer.Option("--listen", help="Endpoints to listen on (default: NAVI_ZENOH_LISTEN).")
+    ] = None,
+    zenoh_config: ZenohConfigOpt = None,
+) -> None:
+    """A Zenoh router in this process (for machines without zenohd)."""
+    from navi_mesh.router import RouterConfig, run_router
+
+    settings = _settings()
+    endpoints = (
+        tuple(e.strip() for e in listen.split(",") if e.strip())
+        if listen
+        else tuple(settings.listen_endpoints)
+    )
+    cfg = RouterConfig(listen=endpoints, config_file=zenoh_config or settings.zenoh_config)
+    run_service(lambda stop: run_router(cfg, stop))
+
+
+@serve_app.command("compiler")
+def serve_compiler(
+    workers: Annotated[
+        int, typer.Option("--workers", min=1, help="Worker threads; each takes one job at a time.")
+    ] = 1,
+    threads: Annotated[int, typer.Option("--threads", min=0, help="C++ threads per job (0: all cores).")] = 0,
+    metrics_port: MetricsPortOpt = None,
+    connect: ConnectOpt = None,
+    zenoh_config: ZenohConfigOpt = None,
+) -> None:
+    """Compile workers answering CompileJobs on navi/compiler/jobs/<worker>."""
+    from navi_compiler.service import CompilerServiceConfig
+    from navi_compiler.service import serve_compiler as serve
+
+    settings = _settings()
+    cfg = CompilerServiceConfig(
+        workers=workers,
+        threads=threads,
+        metrics_port=metrics_port or settings.metrics_port,
+        session=_session_config(settings, connect, zenoh_config),
+    )
+    run_service(lambda stop: serve(cfg, stop))
+
+
+@serve_app.command("env")
+def serve_env(
+    corpus: CorpusOpt = Path("artifacts/corpus/default"),
+    actors: Annotated[int, typer.Option("--actors", min=1, help="Actors an external brain flies.")] = 4,
+    device: DeviceOpt = "auto",
+    seed: SeedOpt = 0,
+    observation_hz: Annotated[
+        float, typer.Option("--observation-hz", min=0.1, help="Rate of actor 0's published observation.")
+    ] = 10.0,
+    metrics_port: MetricsPortOpt = None,
+    connect: ConnectOpt = None,
+    zenoh_config: ZenohConfigOpt = None,
+) -> None:
+    """The drone environment over Zenoh: StepRequest queryable, observations published."""
+    from navi_env.config import EnvConfig
+    from navi_env.service import EnvServiceConfig
+    from navi_env.service import serve_env as serve
+
+    settings = _settings()
+    env = EnvConfig(
+        azimuth_bins=settings.azimuth_bins,
+        elevation_bins=settings.elevation_bins,
+        horizon=settings.max_distance,
+        max_steps_per_episode=settings.max_steps_per_episode,
+        episodes_per_scene=settings.scene_episodes_per_scene,
+    )
+    cfg = EnvServiceConfig(
+        corpus=corpus,
+        actors=actors,
+        device=_device(device),
+        seed=seed,
+        observation_hz=observation_hz,
+        metrics_port=metrics_port or settings.metrics_port,
+        env=env,
+        session=_session_config(settings, connect, zenoh_config),
+    )
+    if not (corpus / "manifest.json").is_file():
+        from navi_env.corpus import build_default_corpus
+
+        typer.echo(f"building the procedural default corpus into {corpus}", err=True)
+        build_default_corpus(corpus)
+    run_service(lambda stop: serve(cfg, stop))
+
+
+@serve_app.command("learner")
+def serve_learner(
+    mode: Annotated[str, typer.Option("--mode", help="train (PPO) or infer (run a model).")] = "train",
+    corpus: CorpusOpt = Path("artifacts/corpus/default"),
+    env_kind: Annotated[
+        str, typer.Option("--env", help="Environment: sdfdag (the drone env) or toy (tests).")
+    ] = "sdfdag",
+    actors: Annotated[
+        int, typer.Option("--actors", min=0, help="Parallel actors (0: 4 on CPU, 4096 on CUDA).")
+    ] = 0,
+    temporal_core: Annotated[str, typer.Option("--temporal-core", help="mamba2, gru or mambapy.")] = "mamba2",
+    rollout_length: Annotated[
+        int, typer.Option("--rollout-length", min=0, help="Steps per rollout (0: default).")
+    ] = 0,
+    total_steps: Annotated[
+        int, typer.Option("--total-steps", min=1, help="train: env-step budget.")
+    ] = 1_000_000,
+    checkpoint_every: Annotated[
+        int, typer.Option("--checkpoint-every", min=1, help="train: env steps between checkpoints.")
+    ] = 25_000,
+    checkpoint: Annotated[
+        Path | None, typer.Option("--checkpoint", help="train: resume from this checkpoint.")
+    ] = None,
+    model: Annotated[
+        str, typer.Option("--model", help="infer: checkpoint path, registry version or alias.")
+    ] = "latest",
+    follow_alias: Annotated[
+        str, typer.Option("--follow-alias", help="infer: reload when this alias is promoted ('' never).")
+    ] = "champion",
+    infer_steps: Annotated[
+        int, typer.Option("--infer-steps", min=0, help="infer: batched steps (0: forever).")
+    ] = 0,
+    device: DeviceOpt = "auto",
+    seed: SeedOpt = 0,
+    host: Annotated[str, typer.Option("--host", help="Control plane interface.")] = "0.0.0.0",
+    port: Annotated[
+        int | None, typer.Option("--port", help="Control plane port (default NAVI_API_PORT; 0: none).")
+    ] = None,
+    observation_hz: Annotated[
+        float,
+        typer.Option(
+            "--observation-hz", min=0.1, max=1000.0, help="Rate of observations/actions on the mesh."
+        ),
+    ] = 10.0,
+    exit_when_done: Annotated[
+        bool, typer.Option("--exit-when-done", help="Exit after the run instead of serving until stopped.")
+    ] = False,
+    connect: ConnectOpt = None,
+    zenoh_config: ZenohConfigOpt = None,
+) -> None:
+    """Training or inference in-process, publishing telemetry, with the REST control plane."""
+    from navi_learner.cli import train_config
+    from navi_learner.service import LearnerServiceConfig
+    from navi_learner.service import serve_learner as serve
+
+    if mode not in ("train", "infer"):
+        raise typer.BadParameter(f"--mode must be train or infer, got {mode!r}")
+    if env_kind not in ("sdfdag", "toy"):
+        raise typer.BadParameter(f"--env must be sdfdag or toy, got {env_kind!r}")
+    settings = _settings()
+    dev = _device(device)
+    train = train_config(
+        actors, temporal_core, rollout_length, 1, 5e-4, total_steps, checkpoint_every, dev, seed
+    )
+    cfg = LearnerServiceConfig(
+        mode="train" if mode == "train" else "infer",
+        corpus=corpus,
+        env_kind="toy" if env_kind == "toy" else "sdfdag",
+        train=train,
+        resume_from=checkpoint,
+        model=model,
+        follow_alias=follow_alias,
+        infer_steps=infer_steps,
+        models_dir=settings.artifacts_dir / "models",
+        runs_dir=settings.artifacts_dir / "runs",
+        observation_hz=observation_hz,
+        api_host=host,
+        api_port=settings.api_port if port is None else port,
+        api_token=settings.api_token.get_secret_value(),
+        exit_when_done=exit_when_done,
+        session=_session_config(settings, connect, zenoh_config),
+    )
+    summary = run_service(lambda stop: serve(cfg, stop), interrupt=True)
+    if summary is not None:
+        typer.echo(json.dumps(summary, default=str))
+
+
+@serve_app.command("auditor")
+def serve_auditor(
+    host: Annotated[str, typer.Option("--host", help="Dashboard interface.")] = "0.0.0.0",
+    port: Annotated[
+        int | None, typer.Option("--port", help="Dashboard port (default NAVI_AUDITOR_PORT).")
+    ] = None,
+) -> None:
+    """The auditor's live web dashboard (passive: it only subscribes)."""
+    try:
+        from navi_auditor.server import serve
+    except ImportError as err:
+        raise fail(f"the auditor is not installed: {err}") from err
+    settings = _settings()
+    _logging()
+    serve(host, settings.auditor_port if port is None else port, settings)
+
+
+def _print_status(cfg_root: Path, connect: tuple[str, ...], as_json: bool, timeout_s: float) -> None:
+    from navi_mesh.liveliness import live_tokens
+    from navi_mesh.session import MeshError, SessionConfig, open_new_session
+    from navi_mesh.stack import read_states
+
+    states = read_states(cfg_root)
+    tokens: list[str] = []
+    error = ""
+    try:
+        sess = open_new_session(SessionConfig(connect=connect, connect_timeout_s=timeout_s))
+    except MeshError as err:
+        error = str(err)
+    else:
+        try:
+            tokens = [t.key for t in live_tokens(sess, timeout_s=timeout_s)]
+        finally:
+            sess.close()
+    if as_json:
+        typer.echo(
+            json.dumps(
+                {
+                    "processes": [
+                        {"name": s.name, "pid": s.pid, "running": s.running, "log": s.log} for s in states
+                    ],
+                    "alive": tokens,
+                    "router_error": error,
+                }
+            )
+        )
+        return
+    if not states:
+        typer.echo(f"no stack processes under {cfg_root}")
+    for s in states:
+        since = time.strftime("%H:%M:%S", time.localtime(s.started_at))
+        typer.echo(
+            f"{s.name:<9} pid {s.pid:<8} {'running' if s.running else 'stopped':<8} since {since}  {s.log}"
+        )
+    typer.echo(f"live tokens ({len(tokens)}):" if not error else f"router unreachable: {error}")
+    for key in tokens:
+        typer.echo(f"  {key}")
+
+
+@stack_app.command("up")
+def stack_up(
+    corpus: CorpusOpt = Path("artifacts/corpus/default"),
+    actors: Annotated[int, typer.Option("--actors", min=1, help="Learner actors.")] = 4,
+    env_actors: Annotated[int, typer.Option("--env-actors", min=1, help="Env-service actors.")] = 2,
+    device: DeviceOpt = "auto",
+    router_port: Annotated[int, typer.Option("--router-port", help="Zenoh router port on 127.0.0.1.")] = 7447,
+    api_port: Annotated[
+        int | None, typer.Option("--api-port", help="Control plane port (NAVI_API_PORT).")
+    ] = None,
+    auditor: Annotated[
+        bool, typer.Option("--auditor/--no-auditor", help="Start the auditor dashboard.")
+    ] = True,
+    wait_s: Annotated[
+        float, typer.Option("--wait", min=0.0, help="Seconds to wait for every service's token.")
+    ] = 120.0,
+) -> None:
+    """Start router, compiler, env, learner (and auditor) as local processes (pid files in artifacts/stack)."""
+    from navi_mesh.stack import STACK_DIR, StackConfig, api_token, read_states, service_specs, start
+
+    settings = _settings()
+    root = STACK_DIR
+    root.mkdir(parents=True, exist_ok=True)
+    if any(s.running for s in read_states(root)):
+        raise fail(f"the stack is already running (see `navi stack status`; pid files in {root})")
+    cfg = StackConfig(
+        root=root,
+        router_port=router_port,
+        api_port=api_port or settings.api_port,
+        auditor_port=settings.auditor_port,
+        corpus=corpus,
+        actors=actors,
+        env_actors=env_actors,
+        device=device,
+        auditor=auditor,
+    )
+    if not any(corpus.glob("*.gmdag")):
+        from navi_env.corpus import build_default_corpus
+
+        typer.echo(f"building the procedural default corpus into {corpus} (once)", err=True)
+        build_default_corpus(corpus, progress=lambda line: typer.echo(f"  {line}", err=True))
+    token, generated = api_token(root)
+    if generated:
+        typer.echo(
+            f"NAVI_API_TOKEN was unset; generated one for this stack (stored in {root / 'api_token'}):"
+        )
+        typer.echo(f"  {token}")
+    env = {**os.environ, "NAVI_API_TOKEN": token, "NAVI_ZENOH_CONNECT": f"tcp/127.0.0.1:{router_port}"}
+    with_auditor = auditor and _has_auditor()
+    for spec in service_specs(cfg, with_auditor):
+        state = start(spec, root, env)
+        typer.echo(f"started {state.name:<9} pid {state.pid}  log {state.log}", err=True)
+        if spec.name == "router":
+            time.sleep(0.5)
+    _wait_for_tokens(settings, router_port, [s.name for s in service_specs(cfg, with_auditor)], wait_s)
+    _print_status(root, (f"tcp/127.0.0.1:{router_port}",), False, 2.0)
+
+
+def _has_auditor() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("navi_auditor.server") is not None
+
+
+def _wait_for_tokens(settings: NaviSettings, router_port: int, names: list[str], wait_s: float) -> None:
+    from navi_mesh.liveliness import live_tokens
+    from navi_mesh.session import MeshError, SessionConfig, open_new_session
+
+    deadline = time.monotonic() + wait_s
+    cfg = SessionConfig(
+        connect=(f"tcp/127.0.0.1:{router_port}",), connect_timeout_s=max(1.0, min(10.0, wait_s))
+    )
+    try:
+        sess = open_new_session(cfg)
+    except MeshError as err:
+        typer.echo(f"warning: the router did not answer: {err}", err=True)
+        return
+    try:
+        while time.monotonic() < deadline:
+            alive = {t.service for t in live_tokens(sess, timeout_s=1.0)}
+            missing = [n for n in names if n not in alive]
+            if not missing:
+                return
+            time.sleep(1.0)
+        typer.echo(f"warning: no liveliness token yet from {', '.join(missing)} (see their logs)", err=True)
+    finally:
+        sess.close()
+
+
+@stack_app.command("down")
+def stack_down(
+    grace_s: Annotated[
+        float, typer.Option("--grace", min=0.0, help="Seconds between SIGTERM and SIGKILL.")
+    ] = 30.0,
+) -> None:
+    """Stop every stack process (SIGTERM, then SIGKILL after the grace period)."""
+    from navi_mesh.stack import STACK_DIR, stop_all
+
+    states = stop_all(STACK_DIR, grace_s)
+    if not states:
+        typer.echo("no stack processes")
+    for s in states:
+        typer.echo(f"{s.name:<9} pid {s.pid:<8} {'STILL RUNNING' if s.running else 'stopped'}")
+
+
+@stack_app.command("status")
+def stack_status(
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    timeout_s: Annotated[
+        float, typer.Option("--timeout", min=0.1, help="Seconds to wait for the router.")
+    ] = 2.0,
+) -> None:
+    """Process states (pid files) and the live liveliness tokens (navi/alive/<service>/<id>)."""
+    from navi_mesh.stack import STACK_DIR
+
+    _print_status(STACK_DIR, tuple(_settings().connect_endpoints), as_json, timeout_s)
+
+
+def register(app: typer.Typer, bench: typer.Typer) -> None:
+    """Add `serve` and `stack` to the root app."""
+    app.add_typer(serve_app, name="serve", rich_help_panel=PANEL)
+    app.add_typer(stack_app, name="stack", rich_help_panel=PANEL)

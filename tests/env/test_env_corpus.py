@@ -1,0 +1,169 @@
+"""Corpus build (transactional), manifest, listing and loading; the env's CLI commands."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import typer
+from typer.testing import CliRunner
+
+from navi_compiler.dag import build_gmdag
+from navi_compiler.gmdag import Gmdag, write_gmdag
+from navi_env import cli_env
+from navi_env.config import EnvConfig
+from navi_env.corpus import CorpusError, build_corpus, find_sources, load_corpus, read_manifest
+from navi_env.env import SdfDagEnv
+
+RES, VOXEL = 32, 0.5
+
+
+def points() -> np.ndarray:
+    i = np.arange(RES + 1, dtype=np.float64) * VOXEL
+    return np.stack(np.meshgrid(i, i, i, indexing="ij"), axis=-1)
+
+
+def room(height: float = 3.0) -> Gmdag:
+    q = np.abs(points() - np.array([8.0, 8.0, 1.0 + height])) - np.array([7.0, 7.0, height])
+    box = np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+    return build_gmdag(
+        (-box / VOXEL).astype(np.float32),
+        origin=(0.0, 0.0, 0.0),
+        voxel_size=VOXEL,
+        bounds=((1.0, 1.0, 1.0), (15.0, 15.0, 1.0 + 2 * height)),
+    )
+
+
+def ball() -> Gmdag:
+    d = np.linalg.norm(points() - 8.0, axis=-1) - 1.0
+    return build_gmdag(
+        (d / VOXEL).astype(np.float32),
+        origin=(0.0, 0.0, 0.0),
+        voxel_size=VOXEL,
+        bounds=((0.5, 0.5, 0.5), (15.5, 15.5, 15.5)),
+    )
+
+
+@pytest.fixture
+def sources(tmp_path: Path) -> Path:
+    src = tmp_path / "src"
+    src.mkdir()
+    write_gmdag(room(), src / "room_a.gmdag")
+    write_gmdag(room(2.5), src / "room_b.gmdag")
+    write_gmdag(ball(), src / "void.gmdag")
+    (src / "notes.txt").write_text("not a scene")
+    return src
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_build_list_and_load(sources: Path, tmp_path: Path) -> None:
+    found = find_sources(sources)
+    assert [Path(s).name for s in found] == ["room_a.gmdag", "room_b.gmdag", "void.gmdag"]
+    out = tmp_path / "corpus"
+    manifest = build_corpus(found, out, resolution=32)
+    assert [s.name for s in manifest.scenes] == ["room_a", "room_b"]
+    assert len(manifest.rejected) == 1 and "void.gmdag" in manifest.rejected[0]["source"]
+    assert sorted(p.name for p in out.iterdir()) == ["manifest.json", "room_a.gmdag", "room_b.gmdag"]
+    entry = manifest.scenes[0]
+    assert (
+        entry.resolution == 32
+        and entry.voxel_size == VOXEL
+        and entry.bytes == (out / entry.file).stat().st_size
+    )
+    assert entry.qualification["verdict"] == "pass" and entry.qualification["viable_spawns"] > 0
+    assert read_manifest(out) == manifest
+    scenes, loaded = load_corpus(out, "cpu")
+    assert len(scenes) == 2 and loaded == manifest
+    spawns = loaded.spawn_tensors()
+    assert [s.shape[1] for s in spawns] == [3, 3] and all(s.shape[0] > 0 for s in spawns)
+    env = SdfDagEnv(scenes, 4, "cpu", EnvConfig(azimuth_bins=16, elevation_bins=4), spawns=spawns)
+    env.reset(seed=0)
+    assert env.scene.tolist() == [0, 1, 0, 1]
+    assert not list(tmp_path.glob(".corpus.*"))  # no temporary folder left behind
+
+
+def test_a_failing_source_leaves_the_old_corpus_intact(sources: Path, tmp_path: Path) -> None:
+    out = tmp_path / "corpus"
+    build_corpus([sources / "room_a.gmdag"], out, resolution=32)
+    before = snapshot(out)
+    broken = sources / "broken.gmdag"
+    data = bytearray((sources / "room_b.gmdag").read_bytes())
+    data[200] ^= 0xFF  # checksum mismatch
+    broken.write_bytes(bytes(data))
+    with pytest.raises(CorpusError, match=r"broken\.gmdag"):
+        build_corpus([sources / "room_b.gmdag", broken], out, resolution=32)
+    assert snapshot(out) == before
+    with pytest.raises(CorpusError, match="no scene qualified"):
+        build_corpus([sources / "void.gmdag"], out, resolution=32)
+    assert snapshot(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["corpus", "src"]
+    build_corpus([sources / "room_b.gmdag"], out, resolution=32)  # a good build does replace it
+    assert sorted(snapshot(out)) == ["manifest.json", "room_b.gmdag"]
+
+
+def test_mesh_sources_compile_into_a_corpus(tmp_path: Path) -> None:
+    from navi_compiler.scenes import generate_corpus
+
+    meshes = generate_corpus(tmp_path / "meshes", 2, seed=1, families=["rooms", "corridors"])
+    manifest = build_corpus(meshes, tmp_path / "corpus", resolution=32)
+    assert len(manifest.scenes) + len(manifest.rejected) == 2 and manifest.scenes
+    assert all(s.resolution == 32 for s in manifest.scenes)
+
+
+def app() -> typer.Typer:
+    root = typer.Typer(pretty_exceptions_enable=False)
+    bench = typer.Typer()
+    cli_env.register(root, bench)
+    root.add_typer(bench, name="bench")
+    return root
+
+
+def test_cli_qualify_corpus_and_bench(sources: Path, tmp_path: Path) -> None:
+    runner = CliRunner()
+    good = runner.invoke(app(), ["qualify", str(sources / "room_a.gmdag"), "--json"])
+    assert good.exit_code == 0, good.output
+    verdict = json.loads(good.stdout)
+    assert verdict["verdict"] == "pass" and verdict["viable_spawns"] > 0 and verdict["best_starvation"] == 0.0
+    bad = runner.invoke(app(), ["qualify", str(sources / "void.gmdag"), "--json"])
+    assert bad.exit_code == 1 and json.loads(bad.stdout)["verdict"] == "fail"
+    missing = runner.invoke(app(), ["qualify", str(tmp_path / "nope.gmdag")])
+    assert missing.exit_code == 2 and "not found" in missing.output
+    out = tmp_path / "corpus"
+    built = runner.invoke(
+        app(), ["corpus", "build", str(sources), "--out", str(out), "--resolution", "32", "--json"]
+    )
+    assert built.exit_code == 0, built.output
+    assert json.loads(built.stdout)["scenes"] == 2
+    listed = runner.invoke(app(), ["corpus", "list", str(out)])
+    assert listed.exit_code == 0 and "room_a" in listed.stdout and "rejected" in listed.stdout
+    both = runner.invoke(app(), ["corpus", "build", str(sources), "--default", "--out", str(out)])
+    assert both.exit_code == 2
+    res = runner.invoke(
+        app(),
+        [
+            "bench",
+            "env",
+            "--corpus",
+            str(out),
+            "--actors",
+            "2",
+            "--steps",
+            "2",
+            "--azimuth",
+            "16",
+            "--elevation",
+            "4",
+            "--json",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    report = json.loads(res.stdout)
+    assert report["obs_shape"] == [2, 3, 16, 4] and report["steps_per_s"] > 0
+    assert set(report["ms_per_stage"]) == {"physics", "reward", "episode", "trace", "observation"}
+    assert torch.tensor(list(report["ms_per_stage"].values())).ge(0).all()

@@ -1,0 +1,87 @@
+"""The CUDA environment agrees with the CPU one on a short rollout (needs a CUDA device)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from navi_compiler.dag import build_gmdag
+from navi_env.config import EnvConfig, SensorConfig
+from navi_env.env import SdfDagEnv
+from navi_env.scene import load_corpus
+
+pytestmark = pytest.mark.gpu
+needs_cuda = pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device (torch.cuda.is_available() is false)"
+)
+
+RES, VOXEL = 32, 0.5
+
+
+def room() -> object:
+    i = np.arange(RES + 1, dtype=np.float64) * VOXEL
+    p = np.stack(np.meshgrid(i, i, i, indexing="ij"), axis=-1)
+    q = np.abs(p - np.array([8.0, 8.0, 4.0])) - np.array([7.0, 7.0, 3.0])
+    box = np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+    pillar = np.linalg.norm(p[..., :2] - np.array([10.0, 6.0]), axis=-1) - 1.0  # a column floor to ceiling
+    d = np.minimum(-box, pillar)
+    return build_gmdag(
+        (d / VOXEL).astype(np.float32),
+        origin=(0.0, 0.0, 0.0),
+        voxel_size=VOXEL,
+        bounds=((1.0, 1.0, 1.0), (15.0, 15.0, 7.0)),
+    )
+
+
+def rollout(device: str, steps: int, graph: bool = True) -> list[torch.Tensor]:
+    cfg = EnvConfig(
+        cuda_graph=graph,
+        azimuth_bins=64,
+        elevation_bins=16,
+        max_steps_per_episode=12,
+        sensor=SensorConfig(range_noise_std=0.01, dropout=0.01),
+    )
+    spawns = [torch.tensor([[4.0, 4.0, 3.0], [12.0, 12.0, 5.0], [6.0, 11.0, 2.0]])]
+    env = SdfDagEnv(load_corpus([room()], device), 16, device, cfg, spawns=spawns)
+    g = torch.Generator().manual_seed(0)
+    frames = [env.reset(seed=4).to("cpu", copy=True)]
+    for _ in range(steps):
+        out = env.step((torch.rand(16, 4, generator=g) * 2 - 1).to(device))
+        keep = [out.obs, out.reward, out.info["position"], out.truncated.float()]
+        frames += [t.to("cpu", copy=True) for t in keep]  # the env reuses its buffers
+    return frames
+
+
+@needs_cuda
+def test_cpu_and_cuda_rollouts_agree() -> None:
+    cpu, cuda = rollout("cpu", 30), rollout("cuda", 30)
+    for a, b in zip(cpu, cuda, strict=True):
+        assert torch.allclose(a, b, atol=2e-3, rtol=1e-3), float((a - b).abs().max())
+
+
+@needs_cuda
+def test_cuda_graph_replay_matches_eager_steps() -> None:
+    graphed, eager = rollout("cuda", 20, graph=True), rollout("cuda", 20, graph=False)
+    assert all(torch.equal(a, b) for a, b in zip(graphed, eager, strict=True))
+
+
+@needs_cuda
+def test_cuda_step_does_not_synchronise() -> None:
+    env = SdfDagEnv(
+        load_corpus([room()], "cuda"),
+        64,
+        "cuda",
+        EnvConfig(azimuth_bins=64, elevation_bins=16),
+        spawns=[torch.tensor([[4.0, 4.0, 3.0]])],
+    )
+    env.reset(seed=0)
+    actions = torch.zeros(64, 4, device="cuda")
+    env.step(actions)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(3):
+            env.step(actions)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")

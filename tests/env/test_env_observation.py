@@ -1,0 +1,98 @@
+"""DistanceMatrix v2 layout, the sensor pattern and model, the view statistics and dataset adapters."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from navi_env.config import EnvConfig, SensorConfig
+from navi_env.observation import view_stats, write_observation
+from navi_env.sensor import apply_sensor, dome_lidar, ray_pattern
+
+CFG = EnvConfig()
+
+
+def test_ray_pattern_layout() -> None:
+    az, el = 16, 8
+    d = ray_pattern(az, el, SensorConfig()).reshape(az, el, 3)  # ray r = a * El + e
+    assert torch.allclose(d.norm(dim=-1), torch.ones(az, el), atol=1e-6)
+    mid = el // 2
+    assert float(d[0, mid, 0]) > 0.9 and abs(float(d[0, mid, 1])) < 1e-6  # bin 0 straight ahead (+X)
+    assert float(d[az // 4, mid, 1]) > 0.9  # a quarter turn is to the left (+Y)
+    assert float(d[az // 2, mid, 0]) < -0.9  # half a turn is behind
+    assert torch.all(d[:, 1:, 2] > d[:, :-1, 2])  # elevation from bottom to top
+    assert float(d[0, 0, 2]) < -0.9 and float(d[0, -1, 2]) > 0.9  # full sphere
+
+
+def test_dome_lidar_preset_limits_elevation() -> None:
+    s = dome_lidar()
+    d = ray_pattern(32, 8, s)
+    elevation = torch.rad2deg(torch.asin(d[:, 2]))
+    assert float(elevation.min()) > -7.0 and float(elevation.max()) < 52.0
+    assert s.enabled
+
+
+def test_write_observation_channels_and_delta() -> None:
+    n, az, el = 2, 4, 2
+    obs = torch.zeros(n, 3, az, el)
+    depth = torch.tensor([[1.0] * 8, [100.0] * 8])
+    sem = torch.tensor([[3] * 8, [0] * 8], dtype=torch.uint8)
+    hit = sem > 0
+    write_observation(obs, depth, sem, hit, torch.ones(n, dtype=torch.bool), 100.0)
+    assert torch.allclose(obs[0, 0], torch.full((az, el), 0.01)) and torch.all(obs[1, 0] == 1.0)
+    assert math.isclose(float(obs[0, 1, 0, 0]), 0.5 + 0.5 * 2 / 255, rel_tol=1e-6) and torch.all(
+        obs[1, 1] == 0.0
+    )
+    assert torch.all(obs[:, 2] == 0.0)  # fresh: no delta
+    write_observation(obs, depth * 0.5, sem, hit, torch.tensor([False, True]), 100.0)
+    assert torch.allclose(obs[0, 2], torch.full((az, el), -0.005))  # came closer
+    assert torch.all(obs[1, 2] == 0.0)
+
+
+def test_view_stats_fractions_and_balance() -> None:
+    az, el = 8, 2
+    depth = torch.full((1, az, el), 100.0)
+    depth[0, 1:4] = 5.0  # mid-range structure on the left (bins 1..3)
+    depth[0, 0] = 0.5  # near field straight ahead
+    hit = depth < 100.0
+    s = view_stats(depth.reshape(1, -1), hit.reshape(1, -1), az, CFG.reward)
+    assert math.isclose(float(s.void), 4 / 8, rel_tol=1e-6)
+    assert math.isclose(float(s.near), 1 / 8, rel_tol=1e-6)
+    assert math.isclose(float(s.mid), 3 / 8, rel_tol=1e-6)
+    assert math.isclose(float(s.mid_balance), 1.0, rel_tol=1e-6)
+
+
+def test_sensor_noise_and_dropout() -> None:
+    n, r = 64, 512
+    depth = torch.full((n, r), 10.0)
+    sem = torch.full((n, r), 3, dtype=torch.uint8)
+    sem[:, :10] = 0
+    depth[:, :10] = 100.0
+    seed, tick = torch.tensor(0), torch.tensor(1)
+    clean = apply_sensor(depth, sem, SensorConfig(), 100.0, seed, tick)
+    assert torch.equal(clean[0], depth) and torch.equal(clean[1], sem)
+    cfg = SensorConfig(range_noise_std=0.1, dropout=0.05)
+    noisy, seen = apply_sensor(depth, sem, cfg, 100.0, seed, tick)
+    kept = seen > 0
+    assert abs(float(noisy[kept].std()) - 0.1) < 0.01 and abs(float(noisy[kept].mean()) - 10.0) < 0.01
+    assert torch.all(noisy[:, :10] == 100.0) and torch.all(seen[:, :10] == 0)  # misses stay misses
+    assert abs(float((seen[:, 10:] == 0).float().mean()) - 0.05) < 0.01
+    assert torch.all(noisy[~kept] == 100.0)
+    again = apply_sensor(depth, sem, cfg, 100.0, seed, tick)
+    assert torch.equal(again[0], noisy) and torch.equal(again[1], seen)
+    other = apply_sensor(depth, sem, cfg, 100.0, seed, torch.tensor(2))
+    assert not torch.equal(other[0], noisy)
+
+
+def test_dropped_rays_read_as_misses_in_the_observation() -> None:
+    depth = torch.full((1, 8), 10.0)
+    sem = torch.full((1, 8), 2, dtype=torch.uint8)
+    d, s = apply_sensor(depth, sem, SensorConfig(dropout=0.5), 100.0, torch.tensor(3), torch.tensor(0))
+    obs = torch.zeros(1, 3, 4, 2)
+    write_observation(obs, d, s, s > 0, torch.ones(1, dtype=torch.bool), 100.0)
+    ch0, ch1 = obs[0, 0].reshape(-1), obs[0, 1].reshape(-1)
+    dropped = s[0] == 0
+    assert 0 < int(dropped.sum()) < 8
+    assert torch.all(ch0[dropped] == 1.0) and torch.all(ch1[dropped] == 0.0)
+    assert torch.allclose(ch1[~dropped], torch.full_like(ch1[~dropped], 0.5 + 0.5 / 255))

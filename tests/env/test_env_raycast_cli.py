@@ -1,0 +1,121 @@
+"""`navi raycast` and `navi bench trace` on the CPU."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from navi.cli import build_app
+from navi_compiler.gmdag import write_gmdag
+from navi_env.analytic_scenes import demo_room, free_points, random_directions
+from navi_env.scene import load_scene
+from navi_env.trace import trace
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    room = demo_room(32, 8.0)
+    path = tmp_path_factory.mktemp("scenes") / "room.gmdag"
+    write_gmdag(room.gmdag(spawns=free_points(room, 4, 0.5, seed=0)), path)
+    return path
+
+
+def _save(tmp: Path, name: str, a: np.ndarray) -> Path:
+    p = tmp / name
+    np.save(p, a)
+    return p
+
+
+def test_raycast_writes_the_traced_depth(scene_file: Path, tmp_path: Path) -> None:
+    origins = free_points(demo_room(32, 8.0), 3, 0.5, seed=1).astype(np.float32)  # (N, 3)
+    dirs = random_directions(20, seed=2).astype(np.float32)  # (R, 3)
+    o, d = _save(tmp_path, "o.npy", origins), _save(tmp_path, "d.npy", dirs)
+    out, sem = tmp_path / "depth.npy", tmp_path / "sem.npy"
+    res = CliRunner().invoke(
+        build_app(), ["raycast", str(scene_file), "--origins", str(o), "--dirs", str(d), "-o", str(out),
+                      "--semantic-out", str(sem), "--horizon", "50"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    depth = np.load(out)
+    expected = torch.empty(3, 20)  # (N, R) float32
+    trace(load_scene(scene_file), torch.zeros(3, dtype=torch.int64), torch.from_numpy(origins),
+          torch.from_numpy(dirs), out_depth=expected, horizon=50.0)  # fmt: skip
+    assert depth.shape == (3, 20) and depth.dtype == np.float32
+    assert np.array_equal(depth, expected.numpy())
+    assert (np.load(sem) > 0).all()  # a closed room: every ray hits
+
+    per_ray = np.repeat(dirs[None], 3, axis=0)  # (N, R, 3)
+    d3 = _save(tmp_path, "d3.npy", per_ray)
+    res = CliRunner().invoke(
+        build_app(),
+        [
+            "raycast",
+            str(scene_file),
+            "--origins",
+            str(o),
+            "--dirs",
+            str(d3),
+            "-o",
+            str(out),
+            "--horizon",
+            "50",
+        ],
+    )
+    assert res.exit_code == 0 and np.array_equal(np.load(out), depth)
+
+
+@pytest.mark.parametrize(
+    ("origins", "dirs", "message"),
+    [
+        (np.zeros((3, 2), np.float32), np.eye(3, dtype=np.float32), "--origins must be (N, 3)"),
+        (np.ones((3, 3), np.float32), np.ones((2, 4, 3), np.float32), "--dirs must be (R, 3) or (3, R, 3)"),
+        (np.ones((3, 3), np.float32), np.zeros((4, 3), np.float32), "unit vectors"),
+    ],
+)
+def test_raycast_rejects_bad_inputs_with_exit_2(
+    scene_file: Path, tmp_path: Path, origins: np.ndarray, dirs: np.ndarray, message: str
+) -> None:
+    o, d = _save(tmp_path, "o.npy", origins), _save(tmp_path, "d.npy", dirs)
+    res = CliRunner().invoke(build_app(), ["raycast", str(scene_file), "--origins", str(o), "--dirs", str(d),
+                                           "-o", str(tmp_path / "x.npy")])  # fmt: skip
+    assert res.exit_code == 2
+    assert message in res.output
+    assert "Traceback" not in res.output
+
+
+def test_raycast_rejects_a_missing_scene(tmp_path: Path) -> None:
+    o = _save(tmp_path, "o.npy", np.ones((1, 3), np.float32))
+    d = _save(tmp_path, "d.npy", np.eye(3, dtype=np.float32))
+    res = CliRunner().invoke(build_app(), ["raycast", str(tmp_path / "nope.gmdag"), "--origins", str(o), "--dirs",
+                                           str(d), "-o", str(tmp_path / "x.npy")])  # fmt: skip
+    assert res.exit_code == 2 and "error:" in res.output
+
+
+def test_bench_trace_prints_one_json_object(scene_file: Path) -> None:
+    res = CliRunner().invoke(
+        build_app(),
+        ["bench", "trace", "--gmdag", str(scene_file), "--agents", "4", "--device", "cpu", "--steps", "1",
+         "--azimuth", "32", "--elevation", "8", "--json"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    result = json.loads(res.stdout.strip().splitlines()[-1])
+    assert result["rays_per_agent"] == 256 and result["agents"] == 4
+    assert result["grays_per_s"] > 0 and result["observations_per_s"] > 0
+    assert 1.0 <= result["mean_steps"] <= result["p99_steps"] <= 256
+    assert result["hit_fraction"] == 1.0  # agents at spawns inside a closed room
+    assert result["bytes_per_scene"] == load_scene(scene_file).infos[0].nbytes
+
+
+def test_spherical_pattern_layout() -> None:
+    from navi_env.rays import spherical_directions
+
+    d = spherical_directions(8, 4).view(8, 4, 3)  # (Az, El, 3)
+    assert torch.allclose(d.norm(dim=-1), torch.ones(8, 4))
+    assert d[0, :, 1].abs().max() < 1e-6 and (d[0, :, 0] > 0).all()  # azimuth bin 0 looks along +X
+    assert (d[2, :, 1] > 0.1).all()  # a quarter turn counter-clockwise looks along +Y
+    assert (d[:, 0, 2] < -0.9).all() and (d[:, -1, 2] > 0.9).all()  # elevation bins run from down to up

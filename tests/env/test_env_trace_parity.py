@@ -1,0 +1,213 @@
+"""The compiled tracer takes the same steps as trace_ref (CPU here, CUDA on a GPU host)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from navi_env.analytic_scenes import AnalyticScene, Box, Sphere, demo_room, free_points, random_directions
+from navi_env.scene import SceneCorpus, load_corpus
+from navi_env.trace import sample_distance, trace
+from navi_env.trace_ref import sample_distance_ref, trace_ref
+
+REL_TOL = 1e-4
+CUDA = torch.cuda.is_available()
+gpu = pytest.mark.skipif(not CUDA, reason="needs a CUDA device (torch.cuda.is_available() is False)")
+
+
+def _scenes() -> list[AnalyticScene]:
+    ball = AnalyticScene(
+        (Sphere((5.1, 4.3, 3.9), 2.6),), resolution=16, voxel_size=0.5, origin=(-0.5, 0.2, 0.0)
+    )
+    boxes = AnalyticScene(
+        (Box((1.0, 1.5, 0.5), (3.0, 6.0, 2.5)), Box((4.5, 0.7, 1.0), (7.2, 2.1, 7.0))),
+        resolution=32,
+        voxel_size=0.25,
+    )
+    sparse = AnalyticScene((Sphere((21.0, 12.0, 9.5), 2.5),), resolution=64, voxel_size=0.5)  # far codes
+    return [ball, boxes, demo_room(32, 8.0), sparse]
+
+
+@pytest.fixture(scope="module")
+def corpus() -> tuple[list[AnalyticScene], SceneCorpus]:
+    scenes = _scenes()
+    return scenes, load_corpus([s.gmdag() for s in scenes])
+
+
+def _batch(scenes: list[AnalyticScene], per_scene: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    origins = [free_points(s, per_scene, 0.0, seed=seed + i) for i, s in enumerate(scenes)]  # (P, 3) each
+    ids = torch.arange(len(scenes), dtype=torch.int64).repeat_interleave(per_scene)  # (B,)
+    return ids, torch.tensor(np.concatenate(origins), dtype=torch.float32)  # (B,), (B, 3)
+
+
+def _run(fn: object, corpus: SceneCorpus, ids: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
+         **kw: object) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+    b, r = len(ids), dirs.shape[-2]
+    depth = torch.full((b, r), -1.0, device=origins.device)  # (B, R) float32
+    sem = torch.full((b, r), -1, dtype=torch.int32, device=origins.device)  # (B, R) int32
+    steps = torch.full((b, r), -1, dtype=torch.int32, device=origins.device)  # (B, R) int32
+    fn(corpus, ids, origins, dirs, out_depth=depth, out_semantic=sem, out_steps=steps, **kw)  # type: ignore[operator]
+    return depth, sem, steps
+
+
+def _assert_close(a: torch.Tensor, b: torch.Tensor) -> None:
+    rel = (a - b).abs() / b.abs().clamp(min=1e-3)  # (B, R)
+    assert float(rel.max()) <= REL_TOL, f"max relative difference {float(rel.max()):.3g}"
+
+
+def test_cpu_matches_reference_with_shared_directions(
+    corpus: tuple[list[AnalyticScene], SceneCorpus],
+) -> None:
+    scenes, c = corpus
+    ids, origins = _batch(scenes, 6, seed=1)  # (B,), (B, 3)
+    dirs = torch.tensor(random_directions(160, seed=2), dtype=torch.float32)  # (R, 3)
+    d1, s1, n1 = _run(trace, c, ids, origins, dirs, max_steps=200, horizon=30.0)
+    d2, s2, n2 = _run(trace_ref, c, ids, origins, dirs, max_steps=200, horizon=30.0)
+    _assert_close(d1, d2)
+    assert torch.equal(s1, s2) and torch.equal(n1, n2)
+    assert 0.2 < float((s1 > 0).float().mean()) < 1.0  # the batch holds hits and misses
+    assert float((d1 == 30.0).float().mean()) > 0.0
+
+
+def test_cpu_matches_reference_from_outside_the_cube(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> None:
+    scenes, c = corpus
+    rng = np.random.default_rng(20)
+    ids = torch.arange(len(scenes), dtype=torch.int64).repeat_interleave(4)  # (B,)
+    lo = np.array([scenes[i].origin for i in ids.tolist()])  # (B, 3)
+    hi = np.array([scenes[i].cube_max for i in ids.tolist()])  # (B, 3)
+    origins = torch.tensor(rng.uniform(lo - (hi - lo), hi + (hi - lo)), dtype=torch.float32)  # (B, 3)
+    dirs = torch.tensor(random_directions(300, seed=21), dtype=torch.float32)  # (R, 3)
+    d1, s1, n1 = _run(trace, c, ids, origins, dirs, horizon=200.0)
+    d2, s2, n2 = _run(trace_ref, c, ids, origins, dirs, horizon=200.0)
+    _assert_close(d1, d2)
+    assert torch.equal(s1, s2) and torch.equal(n1, n2)
+    assert float((s1 > 0).float().mean()) > 0.01
+
+
+def test_cpu_matches_reference_with_per_actor_directions_and_yaw(
+    corpus: tuple[list[AnalyticScene], SceneCorpus],
+) -> None:
+    scenes, c = corpus
+    ids, origins = _batch(scenes, 4, seed=3)  # (B,), (B, 3)
+    b = len(ids)
+    dirs = torch.tensor(random_directions(b * 100, seed=4), dtype=torch.float32).view(b, 100, 3)  # (B, R, 3)
+    yaw = torch.linspace(-3.0, 3.0, b)  # (B,)
+    d1, s1, n1 = _run(trace, c, ids.to(torch.int32), origins, dirs, yaw=yaw, hit_epsilon=0.02)
+    d2, s2, n2 = _run(trace_ref, c, ids.to(torch.int32), origins, dirs, yaw=yaw, hit_epsilon=0.02)
+    _assert_close(d1, d2)
+    assert torch.equal(s1, s2) and torch.equal(n1, n2)
+
+
+def test_yaw_equals_pre_rotated_directions(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> None:
+    scenes, c = corpus
+    ids, origins = _batch(scenes, 4, seed=5)  # (B,), (B, 3)
+    dirs = torch.tensor(random_directions(150, seed=6), dtype=torch.float32)  # (R, 3)
+    b = len(ids)
+    yaw = torch.linspace(-2.5, 6.0, b)  # (B,)
+    cos, sin = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]  # (B, 1) each
+    x, y = dirs[None, :, 0], dirs[None, :, 1]  # (1, R) each
+    rotated = torch.stack(
+        [cos * x - sin * y, sin * x + cos * y, dirs[None, :, 2].expand(b, -1)], dim=-1
+    )  # (B, R, 3)
+    d1, s1, _ = _run(trace, c, ids, origins, dirs, yaw=yaw)
+    d2, s2, _ = _run(trace, c, ids, origins, rotated.contiguous())
+    # cos/sin may round differently in the kernel than in torch: allow a rare last-step difference.
+    close = (d1 - d2).abs() <= REL_TOL * d2.abs().clamp(min=1e-3)  # (B, R)
+    assert float(close.float().mean()) >= 0.999
+    assert float((d1 - d2).abs().max()) <= 0.1 * 0.5  # at most ~one hit epsilon of the coarsest scene
+    assert float((s1 != s2).float().mean()) <= 0.001
+
+
+def test_one_launch_over_many_scenes_equals_one_launch_per_scene(
+    corpus: tuple[list[AnalyticScene], SceneCorpus],
+) -> None:
+    scenes, c = corpus
+    ids, origins = _batch(scenes, 5, seed=7)  # (B,), (B, 3)
+    dirs = torch.tensor(random_directions(64, seed=8), dtype=torch.float32)  # (R, 3)
+    together, _, _ = _run(trace, c, ids, origins, dirs)
+    for i, s in enumerate(scenes):
+        alone = load_corpus([s.gmdag()])
+        rows = ids == i  # (B,)
+        d, _, _ = _run(trace, alone, torch.zeros(int(rows.sum()), dtype=torch.int64), origins[rows], dirs)
+        assert torch.equal(d, together[rows])
+
+
+def test_uint8_semantic_matches_int32(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> None:
+    scenes, c = corpus
+    ids, origins = _batch(scenes, 3, seed=9)  # (B,), (B, 3)
+    dirs = torch.tensor(random_directions(50, seed=10), dtype=torch.float32)  # (R, 3)
+    d32, s32, _ = _run(trace, c, ids, origins, dirs)
+    d8 = torch.empty_like(d32)  # (B, R) float32
+    s8 = torch.empty(s32.shape, dtype=torch.uint8)  # (B, R) uint8
+    trace(c, ids, origins, dirs, out_depth=d8, out_semantic=s8)
+    assert torch.equal(d8, d32) and torch.equal(s8.to(torch.int32), s32)
+
+
+def test_sample_distance_matches_reference_and_the_analytic_field(
+    corpus: tuple[list[AnalyticScene], SceneCorpus],
+) -> None:
+    scenes, c = corpus
+    rng = np.random.default_rng(11)
+    pts, ids = [], []
+    for i, s in enumerate(scenes):
+        lo, hi = np.array(s.origin), s.cube_max
+        pad = 0.2 * (hi - lo)
+        cand = rng.uniform(lo, hi, size=(20000, 3))  # (20000, 3)
+        shell = cand[np.abs(s.sdf(cand)) < 2 * s.voxel_size][:300]  # near the surface
+        both = np.concatenate([rng.uniform(lo - pad, hi + pad, size=(400, 3)), shell])  # (n, 3)
+        pts.append(both)
+        ids.append(np.full(len(both), i))
+    p = torch.tensor(np.concatenate(pts), dtype=torch.float32)  # (N, 3)
+    sid = torch.tensor(np.concatenate(ids), dtype=torch.int64)  # (N,)
+    got = sample_distance(c, sid, p)  # (N,)
+    assert torch.equal(got, sample_distance_ref(c, sid, p))
+    # Inside the band the decoded field is within trilinear + quantisation error of the exact one.
+    for i, s in enumerate(scenes):
+        rows = (sid == i).numpy()
+        exact = s.sdf(p[rows].double().numpy())  # (n,)
+        inside = ((p[rows].numpy() > s.origin) & (p[rows].numpy() < s.cube_max)).all(axis=1)
+        near = inside & (np.abs(exact) < 2 * s.voxel_size)
+        err = np.abs(got[rows].numpy()[near] - exact[near]) / s.voxel_size  # voxels
+        assert near.sum() > 50 and np.median(err) < 0.1 and err.max() < 0.5
+        outside = ~((p[rows].numpy() >= s.origin) & (p[rows].numpy() <= s.cube_max)).all(axis=1)
+        assert (got[rows].numpy()[outside] > 0).all()
+
+
+@gpu
+def test_cuda_matches_cpu(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> None:
+    scenes, c = corpus
+    cuda = load_corpus([s.gmdag() for s in scenes], "cuda")
+    ids, origins = _batch(scenes, 40, seed=12)  # (B,), (B, 3)
+    dirs = torch.tensor(random_directions(500, seed=13), dtype=torch.float32)  # (R, 3)
+    yaw = torch.linspace(-3.0, 3.0, len(ids))  # (B,)
+    d1, s1, _n1 = _run(trace, c, ids, origins, dirs, yaw=yaw)
+    d2, s2, _n2 = _run(trace, cuda, ids.cuda(), origins.cuda(), dirs.cuda(), yaw=yaw.cuda())
+    torch.cuda.synchronize()
+    same = (d1 - d2.cpu()).abs() <= REL_TOL * d1.abs().clamp(min=1e-3)  # (B, R)
+    assert float(same.float().mean()) >= 0.999  # kernel cosf/sinf may differ from glibc by an ulp
+    assert float((s1 != s2.cpu()).float().mean()) <= 0.001
+    p = torch.tensor(
+        np.concatenate([free_points(s, 300, -1.0, seed=14) for s in scenes]), dtype=torch.float32
+    )
+    sid = torch.arange(len(scenes)).repeat_interleave(300)  # (N,)
+    assert torch.equal(sample_distance(cuda, sid.cuda(), p.cuda()).cpu(), sample_distance(c, sid, p))
+
+
+@gpu
+def test_cuda_trace_without_validation_does_not_synchronise(
+    corpus: tuple[list[AnalyticScene], SceneCorpus],
+) -> None:
+    scenes, _ = corpus
+    cuda = load_corpus([s.gmdag() for s in scenes], "cuda")
+    ids, origins = _batch(scenes, 8, seed=15)
+    dirs = torch.tensor(random_directions(64, seed=16), dtype=torch.float32).cuda()  # (R, 3)
+    depth = torch.empty(len(ids), 64, device="cuda")  # (B, R) float32
+    ids, origins = ids.cuda(), origins.cuda()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        trace(cuda, ids, origins, dirs, out_depth=depth, skip_direction_validation=True)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    torch.cuda.synchronize()
+    assert bool(torch.isfinite(depth).all())

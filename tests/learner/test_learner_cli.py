@@ -1,0 +1,188 @@
+"""The learner's `navi` commands end to end on the toy env (train -> registry -> evaluate), and their
+one-line errors (exit code 2)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from navi.cli import build_app
+
+runner = CliRunner()
+
+
+@pytest.fixture(autouse=True)
+def in_tmp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    monkeypatch.chdir(tmp_path)
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def invoke(*args: str) -> tuple[int, str, str]:
+    result = runner.invoke(build_app(), list(args))
+    return result.exit_code, result.stdout, result.stderr
+
+
+def test_train_promote_list_evaluate_compare(tmp_path: Path) -> None:
+    code, out, err = invoke(
+        "train",
+        "--env",
+        "toy",
+        "--actors",
+        "4",
+        "--rollout-length",
+        "32",
+        "--total-steps",
+        "256",
+        "--device",
+        "cpu",
+        "--temporal-core",
+        "gru",
+    )
+    assert code == 0, err
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["steps"] == 256 and summary["promoted"] == "v001"
+    assert Path(summary["checkpoint"]).is_file() and Path(summary["report"]).is_file()
+    code, out, _ = invoke("models", "list", "--json")
+    listing = json.loads(out)
+    assert [v["version"] for v in listing["versions"]] == ["v001"] and listing["aliases"]["latest"] == "v001"
+    # a second run resumes from artifacts/models/latest.pt
+    code, out, err = invoke(
+        "train",
+        "--env",
+        "toy",
+        "--actors",
+        "4",
+        "--rollout-length",
+        "32",
+        "--total-steps",
+        "512",
+        "--device",
+        "cpu",
+        "--temporal-core",
+        "gru",
+    )
+    assert code == 0, err
+    assert "resuming from artifacts/models/latest.pt" in err
+    assert json.loads(out.strip().splitlines()[-1])["steps"] == 512
+    code, out, err = invoke("evaluate", "v001", "--env", "toy", "--steps", "50", "--device", "cpu", "--json")
+    assert code == 0, err
+    (row,) = json.loads(out)["results"]
+    assert row["steps"] == 50 and row["actors"] == 4
+    code, out, err = invoke(
+        "compare", "random", "reactive", "--env", "toy", "--steps", "50", "--device", "cpu", "--json"
+    )
+    assert code == 0, err
+    rand, reactive = json.loads(out)["results"]
+    assert reactive["reward_per_step"] > rand["reward_per_step"]
+    code, out, _ = invoke(
+        "models",
+        "promote",
+        summary["checkpoint"],
+        "--alias",
+        "champion",
+        "--notes",
+        "hand-picked",
+        "--tags",
+        "rl,gru",
+    )
+    assert code == 0 and json.loads(out)["tags"] == ["rl", "gru"]
+
+
+def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
+    code, _, err = invoke("evaluate", "--env", "toy")
+    assert code == 2
+    code, _, err = invoke("evaluate", "nope.pt", "--env", "toy", "--device", "cpu")
+    assert code == 2 and "neither" in err
+    code, _, err = invoke(
+        "train", "--corpus", str(tmp_path / "missing"), "--device", "cpu", "--total-steps", "1"
+    )
+    assert code == 2 and "does not exist" in err
+    code, _, err = invoke("models", "rollback")
+    assert code == 2 and "no previous version" in err
+    (tmp_path / "junk.pt").write_bytes(b"junk")
+    code, _, err = invoke("export", "junk.pt", "--onnx", "out.onnx")
+    assert code == 2 and err.startswith("error:")
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("onnx") is not None, reason="onnx is installed; this checks its absence"
+)
+def test_export_without_onnx_says_what_to_install(tmp_path: Path) -> None:
+    code, out, err = invoke(
+        "train",
+        "--env",
+        "toy",
+        "--actors",
+        "4",
+        "--rollout-length",
+        "32",
+        "--total-steps",
+        "128",
+        "--device",
+        "cpu",
+        "--fresh",
+    )
+    assert code == 0, err
+    ckpt = json.loads(out.strip().splitlines()[-1])["checkpoint"]
+    code, _, err = invoke("export", ckpt, "--onnx", "out.onnx")
+    assert code == 2 and "pip install onnx" in err
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("onnxruntime") is None, reason="onnx/onnxruntime are not installed"
+)
+def test_onnx_export_matches_pytorch_step(tmp_path: Path) -> None:
+    import numpy as np
+    import onnxruntime as ort
+
+    from navi_learner.checkpoint import load_checkpoint
+    from navi_learner.config import EngineConfig
+    from navi_learner.policy import CognitiveMambaPolicy
+
+    code, out, err = invoke(
+        "train",
+        "--env",
+        "toy",
+        "--actors",
+        "4",
+        "--rollout-length",
+        "32",
+        "--total-steps",
+        "128",
+        "--device",
+        "cpu",
+        "--fresh",
+    )
+    assert code == 0, err
+    ckpt = json.loads(out.strip().splitlines()[-1])["checkpoint"]
+    code, _, err = invoke("export", ckpt, "--onnx", "policy.onnx")
+    assert code == 0, err
+    loaded = load_checkpoint(Path(ckpt))
+    policy = CognitiveMambaPolicy((3, 16, 8), EngineConfig(**loaded.meta.config["engine"]))
+    policy.load_state_dict(loaded.model)
+    policy.eval()
+    obs = torch.rand(3, 3, 16, 8)
+    resets = torch.tensor([True, False, True])
+    state = tuple(torch.randn_like(s) for s in policy.initial_state(3, torch.device("cpu")))
+    with torch.no_grad():
+        want = policy.act(obs, resets, state, deterministic=True)
+    sess = ort.InferenceSession("policy.onnx")
+    feeds = {
+        "obs": obs.numpy(),
+        "resets": resets.numpy(),
+        **{f"state_{i}": s.numpy() for i, s in enumerate(state)},
+    }
+    action, value, *new_state = sess.run(None, feeds)
+    assert np.allclose(action, want.action.clamp(-1, 1).numpy(), atol=1e-4)
+    assert np.allclose(value, want.value.numpy(), atol=1e-4)
+    for got, ref in zip(new_state, want.state, strict=True):
+        assert np.allclose(got, ref.numpy(), atol=1e-4)

@@ -1,0 +1,130 @@
+"""PPO loss on hand-computed numbers and the non-finite update guard."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.policy import CognitiveMambaPolicy
+from navi_learner.ppo import ppo_loss
+from navi_learner.rollout import RolloutStorage
+from navi_learner.train import update
+
+
+def test_ppo_loss_hand_computed() -> None:
+    # ratios e^0.5 = 1.6487 (clipped to 1.2) with A = +1, and e^-0.5 = 0.6065 (clipped to 0.8) with A = -1.
+    new_logp, old_logp = torch.tensor([0.5, -0.5]), torch.tensor([0.0, 0.0])
+    adv = torch.tensor([1.0, -1.0])
+    new_v, old_v, ret = torch.tensor([1.0, 0.0]), torch.tensor([0.0, 0.0]), torch.tensor([2.0, 1.0])
+    loss, m = ppo_loss(
+        new_logp,
+        old_logp,
+        adv,
+        new_v,
+        old_v,
+        ret,
+        torch.tensor(0.7),
+        clip_coef=0.2,
+        value_clip_coef=0.5,
+        vf_coef=0.5,
+        ent_coef=0.1,
+        norm_adv=False,
+    )
+    # policy: max(-A r, -A clip(r)) per sample = max(-1.6487, -1.2) = -1.2 ; max(0.6065, 0.8) = 0.8 -> mean -0.2
+    pg = (-1.2 + 0.8) / 2
+    # value: unclipped (1-2)^2 = 1, clipped 0.5 -> (0.5-2)^2 = 2.25 -> 2.25 ; sample 2: (0-1)^2 = 1 both -> 0.5*mean
+    vl = 0.5 * (2.25 + 1.0) / 2
+    assert math.isclose(float(m["policy_loss"]), pg, abs_tol=1e-6)
+    assert math.isclose(float(m["value_loss"]), vl, abs_tol=1e-6)
+    assert math.isclose(float(loss), pg + 0.5 * vl - 0.1 * 0.7, abs_tol=1e-6)
+    kl = ((math.exp(0.5) - 1 - 0.5) + (math.exp(-0.5) - 1 + 0.5)) / 2
+    assert math.isclose(float(m["approx_kl"]), kl, abs_tol=1e-6)
+    assert math.isclose(float(m["clipfrac"]), 1.0)
+
+
+def test_ppo_loss_advantage_normalisation() -> None:
+    same = torch.zeros(4)
+    adv = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    _, m1 = ppo_loss(
+        same,
+        same,
+        adv,
+        same,
+        same,
+        same,
+        torch.tensor(0.0),
+        clip_coef=0.2,
+        value_clip_coef=0,
+        vf_coef=0.5,
+        ent_coef=0.0,
+        norm_adv=True,
+    )
+    # ratio 1 everywhere: policy loss = -mean(normalised A) = 0
+    assert abs(float(m1["policy_loss"])) < 1e-6
+
+
+def tiny_setup() -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
+    eng = EngineConfig(
+        embed_dim=16,
+        patch_size=4,
+        encoder_layers=1,
+        encoder_heads=2,
+        ssm_head_dim=8,
+        ssm_chunk=4,
+        memory_slots=4,
+        head_hidden=16,
+        rnd_dim=8,
+    )
+    cfg = TrainConfig(
+        n_actors=3, rollout_length=8, engine=eng, ppo=PPOConfig(bptt_chunk=4, num_minibatches=2)
+    )
+    policy = CognitiveMambaPolicy((3, 8, 8), eng)
+    buf = RolloutStorage(
+        8, 3, (3, 8, 8), torch.float32, policy.initial_state(3, torch.device("cpu")), 4, torch.device("cpu")
+    )
+    g = torch.Generator().manual_seed(0)
+    buf.obs.copy_(torch.rand(buf.obs.shape, generator=g))
+    buf.actions.copy_(torch.randn(buf.actions.shape, generator=g))
+    buf.advantages.copy_(torch.randn(8, 3, generator=g))
+    buf.returns.copy_(torch.randn(8, 3, generator=g))
+    return policy, buf, cfg
+
+
+def test_non_finite_loss_skips_the_update_and_is_counted() -> None:
+    torch.manual_seed(0)
+    policy, buf, cfg = tiny_setup()
+    buf.advantages[2, 1] = float("nan")
+    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    _, skipped = update(policy, opt, buf, cfg, torch.Generator().manual_seed(0))
+    assert skipped >= 1
+    poisoned_all = skipped == cfg.ppo.num_minibatches * cfg.ppo.ppo_epochs
+    for k, v in policy.state_dict().items():
+        assert torch.isfinite(v).all(), k
+        if poisoned_all:
+            assert torch.equal(v, before[k]), k
+
+
+def test_non_finite_gradient_never_reaches_the_weights() -> None:
+    torch.manual_seed(0)
+    policy, buf, cfg = tiny_setup()
+    buf.returns[:] = float("inf")
+    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    _, skipped = update(policy, opt, buf, cfg, torch.Generator().manual_seed(0))
+    assert skipped == cfg.ppo.num_minibatches
+    for k, v in policy.state_dict().items():
+        assert torch.equal(v, before[k]), k
+    assert len(opt.state) == 0
+
+
+def test_finite_update_changes_the_weights() -> None:
+    torch.manual_seed(0)
+    policy, buf, cfg = tiny_setup()
+    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
+    before = policy.heads.log_std.detach().clone()
+    _, skipped = update(policy, opt, buf, cfg, torch.Generator().manual_seed(0))
+    assert skipped == 0
+    assert not torch.equal(before, policy.heads.log_std.detach())
