@@ -19,6 +19,7 @@ COMMAND_MODULES = (
     "navi_env.cli",
     "navi_learner.cli",
     "navi_auditor.cli",
+    "navi_mesh.cli",
 )
 
 

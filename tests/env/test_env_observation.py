@@ -8,6 +8,7 @@ import torch
 
 from navi_env.config import EnvConfig, SensorConfig
 from navi_env.observation import view_stats, write_observation
+from navi_env.rays import spherical_directions
 from navi_env.sensor import apply_sensor, dome_lidar, ray_pattern
 
 CFG = EnvConfig()
@@ -23,6 +24,10 @@ def test_ray_pattern_layout() -> None:
     assert float(d[az // 2, mid, 0]) < -0.9  # half a turn is behind
     assert torch.all(d[:, 1:, 2] > d[:, :-1, 2])  # elevation from bottom to top
     assert float(d[0, 0, 2]) < -0.9 and float(d[0, -1, 2]) > 0.9  # full sphere
+
+
+def test_full_sphere_pattern_is_the_tracers_pattern() -> None:
+    assert torch.equal(ray_pattern(256, 48, SensorConfig()), spherical_directions(256, 48))
 
 
 def test_dome_lidar_preset_limits_elevation() -> None:

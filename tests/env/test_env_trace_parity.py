@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from navi_env.analytic_scenes import AnalyticScene, Box, Sphere, demo_room, free_points, random_directions
+from navi_env.rays import spherical_directions, tiled_ray_order
 from navi_env.scene import SceneCorpus, load_corpus
 from navi_env.trace import sample_distance, trace
 from navi_env.trace_ref import sample_distance_ref, trace_ref
@@ -133,6 +134,26 @@ def test_one_launch_over_many_scenes_equals_one_launch_per_scene(
         assert torch.equal(d, together[rows])
 
 
+def test_ray_order_changes_the_schedule_not_the_results(
+    corpus: tuple[list[AnalyticScene], SceneCorpus],
+) -> None:
+    scenes, c = corpus
+    ids, origins = _batch(scenes, 3, seed=30)  # (B,), (B, 3)
+    dirs = spherical_directions(16, 4)  # (R, 3)
+    order = tiled_ray_order(16, 4, 4, 2)  # (R,)
+    assert sorted(order.tolist()) == list(range(64)) and order.tolist() != list(range(64))
+    plain = _run(trace, c, ids, origins, dirs)
+    tiled = _run(trace, c, ids, origins, dirs, ray_order=order)
+    ref = _run(trace_ref, c, ids, origins, dirs, ray_order=order)
+    for a, b in zip(plain, tiled, strict=True):
+        assert torch.equal(a, b)
+    assert torch.equal(plain[0], ref[0])
+    with pytest.raises(ValueError, match="ray_order must be a permutation"):
+        _run(trace, c, ids, origins, dirs, ray_order=torch.zeros(64, dtype=torch.int32))
+    with pytest.raises(TypeError, match="ray_order must be int32"):
+        _run(trace, c, ids, origins, dirs, ray_order=order.long())
+
+
 def test_uint8_semantic_matches_int32(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> None:
     scenes, c = corpus
     ids, origins = _batch(scenes, 3, seed=9)  # (B,), (B, 3)
@@ -181,8 +202,9 @@ def test_cuda_matches_cpu(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> No
     ids, origins = _batch(scenes, 40, seed=12)  # (B,), (B, 3)
     dirs = torch.tensor(random_directions(500, seed=13), dtype=torch.float32)  # (R, 3)
     yaw = torch.linspace(-3.0, 3.0, len(ids))  # (B,)
-    d1, s1, _n1 = _run(trace, c, ids, origins, dirs, yaw=yaw)
-    d2, s2, _n2 = _run(trace, cuda, ids.cuda(), origins.cuda(), dirs.cuda(), yaw=yaw.cuda())
+    order = tiled_ray_order(25, 20, 5, 4).cuda()  # (R,) a GPU schedule; results must not depend on it
+    d1, s1, _ = _run(trace, c, ids, origins, dirs, yaw=yaw)
+    d2, s2, _ = _run(trace, cuda, ids.cuda(), origins.cuda(), dirs.cuda(), yaw=yaw.cuda(), ray_order=order)
     torch.cuda.synchronize()
     same = (d1 - d2.cpu()).abs() <= REL_TOL * d1.abs().clamp(min=1e-3)  # (B, R)
     assert float(same.float().mean()) >= 0.999  # kernel cosf/sinf may differ from glibc by an ulp

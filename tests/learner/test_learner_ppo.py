@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
+import pytest
 import torch
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
@@ -107,13 +109,17 @@ def test_non_finite_loss_skips_the_update_and_is_counted() -> None:
             assert torch.equal(v, before[k]), k
 
 
-def test_non_finite_gradient_never_reaches_the_weights() -> None:
+def test_non_finite_gradient_never_reaches_the_weights(caplog: pytest.LogCaptureFixture) -> None:
     torch.manual_seed(0)
     policy, buf, cfg = tiny_setup()
     buf.returns[:] = float("inf")
     opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
     before = {k: v.clone() for k, v in policy.state_dict().items()}
-    _, skipped = update(policy, opt, buf, cfg, torch.Generator().manual_seed(0))
+    with caplog.at_level(logging.WARNING):
+        _, skipped = update(
+            policy, opt, buf, cfg, torch.Generator().manual_seed(0), logging.getLogger("guard")
+        )
+    assert sum("non-finite" in r.message for r in caplog.records) == skipped
     assert skipped == cfg.ppo.num_minibatches
     for k, v in policy.state_dict().items():
         assert torch.equal(v, before[k]), k

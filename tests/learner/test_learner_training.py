@@ -14,6 +14,7 @@ import torch
 from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.evaluate import CheckpointPolicy, RandomPolicy, ReactivePolicy, evaluate
+from navi_learner.protocol import StepOut
 from navi_learner.registry import ModelRegistry
 from navi_learner.toy_env import ToyEnv
 from navi_learner.train import train
@@ -127,3 +128,25 @@ def test_baselines_on_the_toy_env() -> None:
     assert reactive.reward_per_step > rand.reward_per_step + 0.3
     assert reactive.coverage_per_1k > 0 and reactive.distance_per_1k > rand.distance_per_1k
     assert rand.collisions_per_1k >= 0 and rand.episodes > 0
+
+
+class InterruptingEnv(ToyEnv):
+    """A toy env whose step raises KeyboardInterrupt (Ctrl+C) after `after` steps."""
+
+    def __init__(self, after: int) -> None:
+        super().__init__(32, seed=1)
+        self.after = after
+
+    def step(self, actions: torch.Tensor) -> StepOut:
+        self.after -= 1
+        if self.after < 0:
+            raise KeyboardInterrupt
+        return super().step(actions)
+
+
+def test_ctrl_c_saves_a_checkpoint_first(tmp_path: Path) -> None:
+    result = train(InterruptingEnv(after=32 * 2 + 5), config(10**9), run_dir=tmp_path / "run", progress=False)
+    assert result.interrupted
+    ckpt = load_checkpoint(result.final_checkpoint)
+    assert ckpt.meta.step_id == 2 * 32 * 32  # the two completed updates
+    assert ckpt.optimizer is not None and ckpt.optimizer["state"]

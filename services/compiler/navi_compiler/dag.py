@@ -5,7 +5,7 @@ This is the NumPy reference; csrc/dag.h is its C++ twin and produces the same by
 Rules (docs/COMPILER.md, docs/GMDAG.md):
 - The lattice is (R+1)^3 float32 samples in voxels, indexed [x, y, z], positive in free space.
 - A brick (8^3 cells, 9^3 corner samples) is *far* when every sample is >= band (far free) or every
-  sample is <= -band (far solid). Its far-code payload is floor(16 * lower) where `lower` is the
+  sample is <= -band (far solid). Its far-code payload is floor(16 * lower) (capped at 2^29) where `lower` is the
   caller's `far_lower` for that brick or, by default, max(min |sample| - sqrt(3)/2, 0): any point of a
   cell lies within sqrt(3)/2 voxel of a corner, so this is a lower bound of the distance for any
   1-Lipschitz field whose samples do not over-estimate it.
@@ -136,7 +136,7 @@ def _children(words: np.ndarray) -> np.ndarray:
 
 def _first_appearance(ids: np.ndarray) -> np.ndarray:
     """Distinct values of `ids` in order of first appearance."""
-    values, first = np.unique(ids, return_index=True)
+    values, first = np.unique(ids, return_index=True)  # (U,), (U,)
     return values[np.argsort(first, kind="stable")]
 
 
@@ -159,14 +159,16 @@ def _renumber(root: int, levels: int, level_nodes: list[np.ndarray]) -> tuple[in
     order = np.array([root & PAYLOAD_MASK], np.int64)  # (K_d,) provisional ids at depth d, final order
     out: list[np.ndarray] = []
     base = 0
-    brick_order = np.zeros(0, np.int64)
+    brick_order = np.zeros(0, np.int64)  # (Bn,) provisional brick ids, final order
     for d in range(levels):
         words = level_nodes[d][order].astype(np.int64)  # (K_d, 8)
         tags = words >> 30
         child_tag = TAG_NODE if d + 1 < levels else TAG_BRICK
         refs = tags == child_tag  # (K_d, 8)
         next_order = _first_appearance(words[refs] & PAYLOAD_MASK)  # (K_{d+1},)
-        rank = np.zeros(int(next_order.max()) + 1 if len(next_order) else 0, np.int64)
+        rank = np.zeros(
+            int(next_order.max()) + 1 if len(next_order) else 0, np.int64
+        )  # (P,) provisional -> final
         rank[next_order] = np.arange(len(next_order))
         child_base = base + len(order) if child_tag == TAG_NODE else 0
         words[refs] = (child_tag << 30) | (rank[words[refs] & PAYLOAD_MASK] + child_base)
@@ -188,7 +190,7 @@ def f32_inside(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray
     out = values.astype(np.float32)  # (..., 3) float32
     below = out.astype(np.float64) < lo
     above = out.astype(np.float64) > hi
-    out = np.where(below, np.nextafter(out, np.float32(np.inf)), out)
+    out = np.where(below, np.nextafter(out, np.float32(np.inf)), out)  # (..., 3) float32
     return np.where(above, np.nextafter(out, np.float32(-np.inf)), out).astype(np.float32)
 
 
@@ -247,7 +249,7 @@ def build_dag(
     brick_ids, brick_first = dedup_rows(keys)  # (K,), (U,)
     words[near] = (TAG_BRICK << 30) | brick_ids.astype(np.uint32)
 
-    level_nodes: list[np.ndarray] = [np.zeros((0, 8), np.uint32)] * levels
+    level_nodes: list[np.ndarray] = [np.zeros((0, 8), np.uint32)] * levels  # per depth: (P_d, 8) uint32
     for d in range(levels - 1, -1, -1):
         n = 1 << d
         children = _children(words).reshape(n**3, 8)  # (n^3, 8) uint32

@@ -91,7 +91,7 @@ def closest_points(p: np.ndarray, tri: Triangles, idx: np.ndarray) -> np.ndarray
     choices = [a, b, q_ab, c, q_ac, q_bc]
     out = q_in
     for cond, q in zip(reversed(conds), reversed(choices), strict=True):
-        out = np.where(cond[..., None], q, out)
+        out = np.where(cond[..., None], q, out)  # (..., 3) float64
     return out
 
 
@@ -119,7 +119,7 @@ def brick_candidates(tri: Triangles, n_bricks: int, reach: float) -> dict[int, n
     all_pairs = np.concatenate(pairs)  # (P, 2) [brick, triangle]
     order = np.lexsort((all_pairs[:, 1], all_pairs[:, 0]))
     all_pairs = all_pairs[order]
-    bricks, starts = np.unique(all_pairs[:, 0], return_index=True)
+    bricks, starts = np.unique(all_pairs[:, 0], return_index=True)  # (U,), (U,)
     ends = np.append(starts[1:], len(all_pairs))
     return {int(b): all_pairs[s:e, 1] for b, s, e in zip(bricks, starts, ends, strict=True)}
 

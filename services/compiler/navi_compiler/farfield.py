@@ -27,7 +27,7 @@ def surface_corners(distance: np.ndarray) -> np.ndarray:
     for c in range(8):
         x, y, z = c & 1, (c >> 1) & 1, (c >> 2) & 1
         cell |= close[x : x + cell.shape[0], y : y + cell.shape[1], z : z + cell.shape[2]]
-    corners = np.zeros_like(close)
+    corners = np.zeros_like(close)  # (n, n, n) bool
     for c in range(8):
         x, y, z = c & 1, (c >> 1) & 1, (c >> 2) & 1
         corners[x : x + cell.shape[0], y : y + cell.shape[1], z : z + cell.shape[2]] |= cell
@@ -38,10 +38,10 @@ def _min_plus_axis(f: np.ndarray, axis: int) -> np.ndarray:
     """g[i] = min_j f[j] + (i - j)^2 along `axis` (exact int64), in chunks to bound memory."""
     f = np.moveaxis(f, axis, -1)
     n = f.shape[-1]
-    j = np.arange(n, dtype=np.int64)
+    j = np.arange(n, dtype=np.int64)  # (n,)
     cost = (j[:, None] - j[None, :]) ** 2  # (n, n) [i, j]
     flat = f.reshape(-1, n)  # (L, n)
-    out = np.empty_like(flat)
+    out = np.empty_like(flat)  # (L, n) int64
     chunk = max(1, (1 << 24) // (n * n))
     for s in range(0, len(flat), chunk):
         out[s : s + chunk] = (flat[s : s + chunk, None, :] + cost[None]).min(axis=2)
@@ -61,5 +61,5 @@ def lower_bound(d2: np.ndarray) -> np.ndarray:
     """Squared distances (int32) -> sqrt rounded down to float32 (+inf where there is no site)."""
     exact = np.sqrt(d2.astype(np.float64))  # float64
     low = exact.astype(np.float32)  # float32, round to nearest
-    low = np.where(low.astype(np.float64) > exact, np.nextafter(low, np.float32(0)), low)
+    low = np.where(low.astype(np.float64) > exact, np.nextafter(low, np.float32(0)), low)  # float32
     return np.where(d2 >= NO_SITE, np.float32(np.inf), low).astype(np.float32)

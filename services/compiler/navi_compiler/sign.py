@@ -59,7 +59,7 @@ def seed_starts(seeds: np.ndarray, wall: np.ndarray) -> np.ndarray:
 
 def border(n: int) -> np.ndarray:
     """(n, n, n) bool: the lattice points on the cube's faces."""
-    out = np.zeros((n, n, n), bool)
+    out = np.zeros((n, n, n), bool)  # (n, n, n) bool
     out[[0, -1], :, :] = True
     out[:, [0, -1], :] = True
     out[:, :, [0, -1]] = True
@@ -71,7 +71,7 @@ def flood(start: np.ndarray, wall: np.ndarray) -> np.ndarray:
     reached = start & ~wall
     frontier = reached.copy()
     while frontier.any():
-        grown = np.zeros_like(frontier)
+        grown = np.zeros_like(frontier)  # (n, n, n) bool
         grown[1:] |= frontier[:-1]
         grown[:-1] |= frontier[1:]
         grown[:, 1:] |= frontier[:, :-1]
@@ -89,7 +89,7 @@ def fill(seeds: np.ndarray, wall: np.ndarray) -> Fill:
     edge = border(n)
     starts = seed_starts(seeds, wall)  # (K, 3)
     if len(starts):
-        start = np.zeros((n, n, n), bool)
+        start = np.zeros((n, n, n), bool)  # (n, n, n) bool
         start[starts[:, 0], starts[:, 1], starts[:, 2]] = True
         reached = flood(start, wall)
         if not (reached & edge).any():

@@ -22,6 +22,7 @@ class TraceArgs(ctypes.Structure):
         ("origins", ctypes.c_void_p),
         ("directions", ctypes.c_void_p),
         ("yaw", ctypes.c_void_p),
+        ("ray_order", ctypes.c_void_p),
         ("out_depth", ctypes.c_void_p),
         ("out_semantic", ctypes.c_void_p),
         ("out_steps", ctypes.c_void_p),

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from navi_env.rays import spherical_directions
+from navi_env.rays import spherical_directions, tiled_ray_order
 from navi_env.scene import SceneCorpus, load_scene
 from navi_env.trace import DEFAULT_HORIZON, DEFAULT_MAX_STEPS, sample_distance, trace
 
@@ -37,6 +37,7 @@ class TraceBenchConfig:
     horizon: float = DEFAULT_HORIZON  # meters
     clearance_voxels: float = 2.0  # minimum clearance of random agent positions
     seed: int = 0
+    tiled_order: bool = True  # trace in 16x2 direction tiles (rays.tiled_ray_order), the fast schedule
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,7 @@ class TraceBenchResult:
     mean_steps: float  # main-loop steps per ray
     p99_steps: float
     hit_fraction: float
+    ray_order: str  # "tiled 16x2" or "pattern"
     bytes_per_scene: int
     max_steps: int
     horizon_m: float
@@ -128,6 +130,7 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
     dev = corpus.device
     agents = place_agents(corpus, cfg.agents, cfg.clearance_voxels, cfg.seed)
     dirs = spherical_directions(cfg.azimuth_bins, cfg.elevation_bins, dev)  # (R, 3)
+    order = tiled_ray_order(cfg.azimuth_bins, cfg.elevation_bins).to(dev) if cfg.tiled_order else None  # (R,)
     b, r = cfg.agents, len(dirs)
     depth = torch.empty(b, r, device=dev)  # (B, R) float32
     semantic = torch.empty(b, r, dtype=torch.uint8, device=dev)  # (B, R) uint8
@@ -135,7 +138,7 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
 
     def launch() -> None:
         trace(corpus, agents.scene_ids, agents.origins, dirs, yaw=agents.yaw, out_depth=depth,
-              out_semantic=semantic, max_steps=cfg.max_steps, horizon=cfg.horizon,
+              out_semantic=semantic, ray_order=order, max_steps=cfg.max_steps, horizon=cfg.horizon,
               skip_direction_validation=True)  # fmt: skip
 
     trace(corpus, agents.scene_ids, agents.origins, dirs, yaw=agents.yaw, out_depth=depth, out_semantic=semantic,
@@ -163,6 +166,7 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
         mean_steps=float(step_counts.mean()),
         p99_steps=float(torch.quantile(sampled, 0.99)),
         hit_fraction=float((semantic > 0).float().mean()),
+        ray_order="tiled 16x2" if cfg.tiled_order else "pattern",
         bytes_per_scene=info.nbytes,
         max_steps=cfg.max_steps,
         horizon_m=cfg.horizon,

@@ -93,6 +93,10 @@ def bench_trace_cmd(
     azimuth: Annotated[int, typer.Option(help="Azimuth bins of the spherical pattern.")] = 256,
     elevation: Annotated[int, typer.Option(help="Elevation bins of the spherical pattern.")] = 48,
     max_steps: Annotated[int, typer.Option(help="Sphere-tracing steps per ray.")] = 256,
+    tiled: Annotated[
+        bool,
+        typer.Option("--tiled/--no-tiled", help="Schedule rays in 16x2 direction tiles (coherent warps)."),
+    ] = True,
     vs_warp: Annotated[
         bool, typer.Option("--vs-warp", help="Also cast the same rays with a Warp mesh BVH.")
     ] = False,
@@ -113,7 +117,7 @@ def bench_trace_cmd(
         raise _fail("--vs-warp needs --mesh FILE.npz (vertices, triangles) of the scene's source mesh")
     cfg = TraceBenchConfig(
         agents=agents, device=device, launches=steps, azimuth_bins=azimuth, elevation_bins=elevation,
-        max_steps=max_steps,
+        max_steps=max_steps, tiled_order=tiled,
     )  # fmt: skip
     try:
         corpus = load_scene(gmdag, device)

@@ -132,9 +132,16 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         azimuth: Annotated[int, typer.Option(help="Azimuth bins.")] = 256,
         elevation: Annotated[int, typer.Option(help="Elevation bins.")] = 48,
         seed: Annotated[int, typer.Option(help="Seed of the environment and the random actions.")] = 0,
+        threads: Annotated[
+            int, typer.Option(help="CPU threads for torch and the CPU tracer (0: torch's default).", min=0)
+        ] = 0,
         json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
     ) -> None:
         """Env-steps per second of SdfDagEnv with random actions, and milliseconds per stage."""
+        if threads:
+            import torch
+
+            torch.set_num_threads(threads)
         if (gmdag is None) == (corpus is None):
             raise _fail("give exactly one of --gmdag FILE or --corpus DIR")
         try:

@@ -27,3 +27,23 @@ def spherical_directions(
     )  # (Az, El, 3)
     dirs = dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True)  # (Az, El, 3) float64
     return dirs.reshape(-1, 3).to(device=device, dtype=torch.float32)  # (Az*El, 3) float32
+
+
+def tiled_ray_order(
+    azimuth_bins: int = 256, elevation_bins: int = 48, tile_azimuth: int = 16, tile_elevation: int = 2
+) -> torch.Tensor:
+    """(Az * El,) int32 permutation of the azimuth-major pattern that groups rays in tiles of
+    tile_azimuth x tile_elevation neighbouring directions, tile after tile.
+
+    Passed as `trace(..., ray_order=...)` it puts one tile in one GPU warp (32 rays for 16 x 2), so the
+    rays of a warp take similar step counts; the outputs keep the azimuth-major layout.
+    """
+    if azimuth_bins % tile_azimuth or elevation_bins % tile_elevation:
+        raise ValueError(
+            f"{azimuth_bins}x{elevation_bins} bins do not split into {tile_azimuth}x{tile_elevation} tiles"
+        )
+    idx = torch.arange(azimuth_bins * elevation_bins, dtype=torch.int32)  # (Az*El,) ray ids
+    tiles = idx.view(
+        azimuth_bins // tile_azimuth, tile_azimuth, elevation_bins // tile_elevation, tile_elevation
+    )
+    return tiles.permute(0, 2, 1, 3).reshape(-1).contiguous()  # (Az*El,) int32

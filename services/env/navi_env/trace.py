@@ -69,6 +69,7 @@ def validate_trace(
     out_semantic: torch.Tensor | None,
     yaw: torch.Tensor | None,
     out_steps: torch.Tensor | None,
+    ray_order: torch.Tensor | None,
     max_steps: int,
     horizon: float,
     hit_epsilon: float | None,
@@ -105,6 +106,12 @@ def validate_trace(
             raise _fail_type("out_semantic", "int32 or uint8", out_semantic)
         if tuple(out_semantic.shape) != (b, r):
             raise ValueError(f"out_semantic must have shape {(b, r)}, got {tuple(out_semantic.shape)}")
+    if ray_order is not None:
+        ray_order = _check_tensor("ray_order", ray_order, dev)
+        if ray_order.dtype != torch.int32:
+            raise _fail_type("ray_order", "int32", ray_order)
+        if tuple(ray_order.shape) != (r,):
+            raise ValueError(f"ray_order must have shape {(r,)}, got {tuple(ray_order.shape)}")
     if out_steps is not None:
         out_steps = _check_tensor("out_steps", out_steps, dev)
         if out_steps.dtype != torch.int32:
@@ -118,7 +125,7 @@ def validate_trace(
     if hit_epsilon is not None and not (0.0 < hit_epsilon < float("inf")):
         raise ValueError(f"hit_epsilon must be positive and finite (meters) or None, got {hit_epsilon}")
     if not skip_direction_validation:
-        _check_values(scenes, scene_ids, directions)
+        _check_values(scenes, scene_ids, directions, ray_order)
     return TraceParams(
         batch=b,
         rays=r,
@@ -129,22 +136,31 @@ def validate_trace(
     )
 
 
-def _check_values(scenes: SceneCorpus, scene_ids: torch.Tensor, directions: torch.Tensor) -> None:
-    """Direction norms and scene-id range: numpy on the CPU, one device-to-host read on CUDA."""
+def _check_values(
+    scenes: SceneCorpus, scene_ids: torch.Tensor, directions: torch.Tensor, ray_order: torch.Tensor | None
+) -> None:
+    """Direction norms, scene-id range and ray_order being a permutation: numpy on the CPU, one
+    device-to-host read on CUDA."""
     lo, hi = (1.0 - NORM_TOLERANCE) ** 2, (1.0 + NORM_TOLERANCE) ** 2  # bounds of |d|^2
+    r = directions.shape[-2]
     if directions.device.type == "cpu":
         x = directions.reshape(-1, 3).numpy()  # (R or B*R, 3) float32, shares memory
         norm2 = np.einsum("ij,ij->i", x, x)  # (R or B*R,) float32
         dirs_ok = bool(((norm2 >= lo) & (norm2 <= hi)).all())
         ids = scene_ids.numpy()  # (B,)
         ids_ok = bool(((ids >= 0) & (ids < len(scenes))).all())
+        order_ok = ray_order is None or bool(np.array_equal(np.sort(ray_order.numpy()), np.arange(r)))
     else:
         dirs = directions.reshape(-1, 3)  # (R or B*R, 3)
         norm2 = (dirs * dirs).sum(dim=1)  # (R or B*R,)
-        flags = torch.stack(
-            [((norm2 >= lo) & (norm2 <= hi)).all(), ((scene_ids >= 0) & (scene_ids < len(scenes))).all()]
-        ).cpu()  # (2,) bool, the one sync
+        checks = [((norm2 >= lo) & (norm2 <= hi)).all(), ((scene_ids >= 0) & (scene_ids < len(scenes))).all()]
+        if ray_order is not None:
+            in_range = ((ray_order >= 0) & (ray_order < r)).all()  # () bool
+            counts = torch.bincount(ray_order.clamp(0, max(r - 1, 0)).long(), minlength=r)  # (R,)
+            checks.append(in_range & (counts == 1).all())
+        flags = torch.stack(checks).cpu()  # (2 or 3,) bool, the one sync
         dirs_ok, ids_ok = bool(flags[0]), bool(flags[1])
+        order_ok = ray_order is None or bool(flags[2])
     if not ids_ok:
         raise ValueError(f"scene_ids must lie in [0, {len(scenes)})")
     if not dirs_ok:
@@ -152,6 +168,8 @@ def _check_values(scenes: SceneCorpus, scene_ids: torch.Tensor, directions: torc
             f"directions must be unit vectors (| |d| - 1 | <= {NORM_TOLERANCE}); "
             "found a zero-length, NaN, infinite or unnormalised direction"
         )
+    if not order_ok:
+        raise ValueError(f"ray_order must be a permutation of 0..{r - 1}")
 
 
 def _ptr(t: torch.Tensor | None) -> int | None:
@@ -208,6 +226,7 @@ def trace(
     out_semantic: torch.Tensor | None = None,
     yaw: torch.Tensor | None = None,
     out_steps: torch.Tensor | None = None,
+    ray_order: torch.Tensor | None = None,
     max_steps: int = DEFAULT_MAX_STEPS,
     horizon: float = DEFAULT_HORIZON,
     hit_epsilon: float | None = None,
@@ -220,12 +239,15 @@ def trace(
     unit vectors, rotated about +Z by yaw (B,) float32 radians when given.
     out_depth: (B, R) float32 meters, `horizon` on a miss. out_semantic: (B, R) int32 or uint8,
     0 = miss, 1 + class id on a hit (uint8 saturates at 255). out_steps: (B, R) int32 main-loop steps.
+    ray_order: (R,) int32 permutation deciding which rays share a GPU warp (e.g.
+    `navi_env.rays.tiled_ray_order`); results do not depend on it, speed does (coherent warps).
+    Without validation a non-permutation leaves some outputs unwritten (never out of bounds).
     max_steps: bound per ray; a ray out of steps reports the distance reached and semantic 0.
     hit_epsilon: meters; None uses 0.1 voxel of each scene. skip_direction_validation: skip the
     norm and scene-id checks (and their device sync); an out-of-range id then yields NaN depth.
     """
     p = validate_trace(
-        scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps,
+        scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps, ray_order,
         max_steps, horizon, hit_epsilon, skip_direction_validation,
     )  # fmt: skip
     args = TraceArgs(
@@ -237,6 +259,7 @@ def trace(
         origins=origins.data_ptr(),
         directions=directions.data_ptr(),
         yaw=_ptr(yaw),
+        ray_order=_ptr(ray_order),
         out_depth=out_depth.data_ptr(),
         out_semantic=_ptr(out_semantic),
         out_steps=_ptr(out_steps),

@@ -199,14 +199,16 @@ def trace_ref(
     out_semantic: torch.Tensor | None = None,
     yaw: torch.Tensor | None = None,
     out_steps: torch.Tensor | None = None,
+    ray_order: torch.Tensor | None = None,
     max_steps: int = DEFAULT_MAX_STEPS,
     horizon: float = DEFAULT_HORIZON,
     hit_epsilon: float | None = None,
     skip_direction_validation: bool = False,
 ) -> None:
-    """Reference twin of `navi_env.trace.trace` (same arguments, same results)."""
+    """Reference twin of `navi_env.trace.trace` (same arguments, same results; ray_order only
+    schedules the compiled launchers, so it is validated and otherwise unused here)."""
     p = validate_trace(
-        scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps,
+        scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps, ray_order,
         max_steps, horizon, hit_epsilon, skip_direction_validation,
     )  # fmt: skip
     b, r = p.batch, p.rays

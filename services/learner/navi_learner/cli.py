@@ -130,7 +130,10 @@ def print_metrics(rows: list[EvalMetrics], as_json: bool) -> None:
     from navi_learner.evaluate import comparison_table
 
     if as_json:
-        clean = [{k: None if isinstance(v, float) and math.isnan(v) else v for k, v in asdict(r).items()} for r in rows]
+        clean = [
+            {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in asdict(r).items()}
+            for r in rows
+        ]
         typer.echo(json.dumps({"results": clean}))
     else:
         typer.echo(comparison_table(rows))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -135,8 +136,6 @@ def evaluate(
     env: BatchedEnv, policy: EvalPolicy, steps: int, seed: int = 0, progress: bool = False
 ) -> EvalMetrics:
     """Run `steps` batched steps from env.reset(seed) and summarise (one host read at the end)."""
-    import time
-
     n, device = env.n_actors, env.device
     policy.reset(n, device)
     obs = env.reset(seed=seed)
@@ -187,7 +186,8 @@ def evaluate(
     episodes = int(host["episodes"])
     coverage = nan
     if has["position"]:
-        coverage = 1000.0 * torch.unique(torch.cat(cells), dim=0).shape[0] / total
+        visited = torch.unique(torch.cat(cells), dim=0)  # (V, 5) distinct (actor, episode, cell)
+        coverage = 1000.0 * visited.shape[0] / total
     return EvalMetrics(
         policy=policy.name,
         steps=steps,

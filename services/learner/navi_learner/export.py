@@ -28,9 +28,9 @@ class StepPolicy(nn.Module):
         self.policy = policy
 
     def forward(
-        self, obs: torch.Tensor, resets: torch.Tensor, *state: torch.Tensor
+        self, obs: torch.Tensor, resets: torch.Tensor, state: tuple[torch.Tensor, ...]
     ) -> tuple[torch.Tensor, ...]:
-        out = self.policy.act(obs, resets, tuple(state), deterministic=True)
+        out = self.policy.act(obs, resets, state, deterministic=True)
         return (out.action.clamp(-1.0, 1.0), out.value, *out.state)
 
 

@@ -199,13 +199,17 @@ def ensure_corpus(cfg: LearnerServiceConfig) -> None:
 
 def run_training(cfg: LearnerServiceConfig, env: TelemetryTap, pubs: MeshPublishers) -> dict[str, Any]:
     """`train` with the tap and the metrics callback; returns the run summary."""
+    from navi_learner.runs import new_run_id
     from navi_learner.train import train
 
+    run_id = new_run_id()
+    env.run_id = run_id
     on_log = TrainingMetrics(pubs, env, env.device)
     result = train(
         env,
         cfg.train,
-        run_dir=None,
+        run_dir=cfg.runs_dir / run_id,
+        run_id=run_id,
         resume_from=cfg.resume_from,
         on_log=on_log,
         registry=ModelRegistry(cfg.models_dir),

@@ -20,7 +20,7 @@ class EpisodeStats:
 
     def _add(self, name: str, value: torch.Tensor) -> None:
         if name not in self.sums:
-            self.sums[name] = torch.zeros((), device=self.device)
+            self.sums[name] = torch.zeros((), device=self.device)  # () float32
         self.sums[name] += value
 
     def update(self, out: StepLike, intrinsic: torch.Tensor | None = None) -> None:
@@ -50,7 +50,7 @@ class EpisodeStats:
     def read(self) -> dict[str, float]:
         """Host-side means for the window (one transfer), then clear the window."""
         names = list(self.sums)
-        values = torch.stack([self.sums[k] for k in names]).tolist() if names else []
+        values = torch.stack([self.sums[k] for k in names]).tolist() if names else []  # (K,) -> host
         raw = dict(zip(names, values, strict=True))
         steps = max(self.steps, 1)
         episodes = raw.get("episodes", 0.0)

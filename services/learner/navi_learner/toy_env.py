@@ -60,9 +60,9 @@ class ToyEnv:
     def _respawn(self, mask: torch.Tensor) -> None:
         u = torch.rand(self.n_actors, generator=self.gen, device=self.device)  # (N,)
         self.target = torch.where(mask, 2 * math.pi * u, self.target)
-        self.heading = torch.where(mask, torch.zeros_like(self.heading), self.heading)
-        self.position = torch.where(mask[:, None], torch.zeros_like(self.position), self.position)
-        self.t = torch.where(mask, torch.zeros_like(self.t), self.t)
+        self.heading = torch.where(mask, torch.zeros_like(self.heading), self.heading)  # (N,)
+        self.position = torch.where(mask[:, None], torch.zeros_like(self.position), self.position)  # (N, 3)
+        self.t = torch.where(mask, torch.zeros_like(self.t), self.t)  # (N,) int64
 
     def _obs(self, fresh: torch.Tensor) -> torch.Tensor:
         depth = self._profile()  # (N, Az)
@@ -89,9 +89,8 @@ class ToyEnv:
         progress = forward * torch.cos(bearing)  # (N,)
         front = self.depth[:, 0]  # (N,) depth straight ahead before moving
         collision = (front < 0.2) & (forward > 0.5)  # (N,) bool
-        step_vec = torch.stack(
-            [torch.cos(self.heading), torch.sin(self.heading), torch.zeros_like(forward)], 1
-        )
+        flat = torch.zeros_like(forward)  # (N,)
+        step_vec = torch.stack([torch.cos(self.heading), torch.sin(self.heading), flat], 1)  # (N, 3)
         self.position = self.position + SPEED * forward.clamp(min=0.0)[:, None] * step_vec  # (N, 3)
         self.heading = self.heading + YAW_GAIN * yaw
         self.t = self.t + 1
@@ -100,9 +99,9 @@ class ToyEnv:
             "clearance": 10.0 * front,
             "collision": collision,
             "position": self.position.clone(),
-            "starved": torch.zeros_like(truncated),
+            "starved": torch.zeros_like(truncated),  # (N,) bool
         }
         self._respawn(truncated)
         obs = self._obs(truncated)
-        done = torch.zeros_like(truncated)
+        done = torch.zeros_like(truncated)  # (N,) bool: the toy never terminates
         return StepOut(obs, progress, done, truncated, {"progress": progress}, info)

@@ -6,10 +6,11 @@ w_rnd·RND(e_t) − w_ep·loop_penalty(e_t), with e_t the embedding the policy a
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -153,7 +154,7 @@ def update(
     buf: RolloutStorage,
     cfg: TrainConfig,
     gen: torch.Generator,
-    logger: Any = None,
+    logger: logging.Logger | None = None,
 ) -> tuple[dict[str, torch.Tensor], int]:
     """PPO epochs over sequence minibatches. A non-finite loss or gradient norm skips that optimizer
     step (one host read per minibatch) and is counted. Returns mean metrics (device) and the skip count."""
@@ -191,7 +192,7 @@ def update(
                     logger.warning("non-finite loss or gradient: optimizer step skipped")
             optimizer.zero_grad(set_to_none=True)
             for k, v in {**metrics, "rnd_loss": rnd_loss.detach(), "grad_norm": grad_norm.detach()}.items():
-                sums[k] = sums.get(k, torch.zeros((), device=v.device)) + v
+                sums[k] = sums.get(k, torch.zeros((), device=v.device)) + v  # () float32
             count += 1
     return {k: v / max(count, 1) for k, v in sums.items()}, skipped
 
@@ -209,8 +210,8 @@ def train(
     progress: bool | None = None,
 ) -> TrainResult:
     """Train until cfg.total_steps (final checkpoint) or Ctrl+C (checkpoint first, then return)."""
-    cfg = resolve(cfg, env.obs_shape)
     device = env.device
+    cfg = resolve(replace(cfg, n_actors=cfg.n_actors or env.n_actors, device=str(device)), env.obs_shape)
     if cfg.n_actors != env.n_actors:
         raise ValueError(f"config asks for {cfg.n_actors} actors but the env has {env.n_actors}")
     torch.manual_seed(cfg.seed)
@@ -261,11 +262,9 @@ def train(
     gen = torch.Generator().manual_seed(cfg.seed)
     ema = torch.full((), st.reward_ema, device=device)  # () float32
     fresh_ema = resume_from is None
-    carry = (
-        env.reset(seed=cfg.seed),
-        torch.ones(cfg.n_actors, dtype=torch.bool, device=device),
-        policy.initial_state(cfg.n_actors, device),
-    )
+    first_obs = env.reset(seed=cfg.seed)  # (N, 3, Az, El)
+    starts = torch.ones(cfg.n_actors, dtype=torch.bool, device=device)  # (N,) every actor starts an episode
+    carry = (first_obs, starts, policy.initial_state(cfg.n_actors, device))
     bar = Progress(cfg.total_steps, progress)
     start_step, t_start, t_window, steps_window = st.step_id, time.perf_counter(), time.perf_counter(), 0
     next_ckpt = (st.step_id // cfg.checkpoint_every + 1) * cfg.checkpoint_every

@@ -16,6 +16,7 @@ from prometheus_client import (
     Gauge,
     Histogram,
     generate_latest,
+    disable_created_metrics,
     start_http_server,
 )
 from prometheus_client.platform_collector import PlatformCollector
@@ -24,6 +25,7 @@ from prometheus_client.process_collector import ProcessCollector
 if TYPE_CHECKING:
     import torch
 
+disable_created_metrics()
 REGISTRY = CollectorRegistry()
 ProcessCollector(registry=REGISTRY)
 PlatformCollector(registry=REGISTRY)

@@ -60,6 +60,7 @@ struct TraceArgs {
   const float* origins;         // (B, 3) world meters
   const float* directions;      // (R, 3) shared or (B, R, 3) per actor, unit vectors
   const float* yaw;             // (B,) radians about +Z, or null
+  const int32_t* ray_order;     // (R,) permutation, or null: thread j of an actor traces ray ray_order[j]
   float* out_depth;             // (B, R) meters
   void* out_semantic;           // (B, R) int32 or uint8, or null
   int32_t* out_steps;           // (B, R) steps taken, or null
@@ -308,18 +309,38 @@ NAVI_HD int32_t class_semantic(const uint8_t* brick_class, int64_t brick) {
   return brick >= 0 ? 1 + static_cast<int32_t>(load_ro(brick_class + brick)) : 1;
 }
 
-// Sphere-traces one ray of actor b. See docs/SDFDAG_RUNTIME.md for the contract.
-NAVI_HD RayResult trace_one(const TraceArgs& a, int64_t b, int64_t r) {
-  RayResult out;
-  out.depth = a.horizon;
-  out.semantic = 0;
-  out.steps = 0;
+// One ray in flight: everything the main loop carries from one step to the next.
+struct Ray {
+  Scene s;
+  float ox, oy, oz;          // origin, voxel space
+  float dx, dy, dz;          // unit direction
+  float inv_x, inv_y, inv_z; // 1 / direction (kBig where 0)
+  float eps;                 // hit epsilon, voxels
+  float t, t1;               // current time and the clip end (cube exit or horizon), voxels
+  float prev_t, prev_d;      // previous sample
+  int64_t last_brick;        // last brick sampled (class of a hit), or -1
+  int64_t out;               // output element b * R + r
+  Walker w;
+  RayResult res;
+  bool done;
+};
+
+// Sets up ray r of actor b (writing to element b * R + r); rays that are decided before the first
+// sample (bad scene id, non-finite input, missing the cube) come back done.
+NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t r) {
+  Ray ray;
+  ray.out = b * a.num_rays + r;
+  ray.res.depth = a.horizon;
+  ray.res.semantic = 0;
+  ray.res.steps = 0;
+  ray.done = true;
   const int64_t sid = load_scene_id(a.scene_ids, a.scene_id_bytes, b);
   if (sid < 0 || sid >= a.num_scenes) {
-    out.depth = kNaN();
-    return out;
+    ray.res.depth = kNaN();
+    return ray;
   }
   const Scene s = load_scene(a.scenes, sid);
+  ray.s = s;
   const float* dir = a.directions + (a.directions_shared ? r : b * a.num_rays + r) * 3;
   float dx = load_ro(dir), dy = load_ro(dir + 1);
   const float dz = load_ro(dir + 2);
@@ -334,102 +355,145 @@ NAVI_HD RayResult trace_one(const TraceArgs& a, int64_t b, int64_t r) {
   const float ox = (load_ro(a.origins + b * 3) - s.ox) * s.inv_voxel;
   const float oy = (load_ro(a.origins + b * 3 + 1) - s.oy) * s.inv_voxel;
   const float oz = (load_ro(a.origins + b * 3 + 2) - s.oz) * s.inv_voxel;
-  if (!(finite(ox) && finite(oy) && finite(oz) && finite(dx) && finite(dy) && finite(dz))) return out;
+  if (!(finite(ox) && finite(oy) && finite(oz) && finite(dx) && finite(dy) && finite(dz))) return ray;
   const float res = static_cast<float>(s.resolution);
-  const float eps = a.hit_epsilon > 0.0f ? a.hit_epsilon * s.inv_voxel : kDefaultHitEpsilonVoxels;
+  ray.eps = a.hit_epsilon > 0.0f ? a.hit_epsilon * s.inv_voxel : kDefaultHitEpsilonVoxels;
 
   // Clip the ray to the cube and the horizon (slab test); a ray that misses the cube is a miss.
-  const float inv_x = dx != 0.0f ? 1.0f / dx : kBig;
-  const float inv_y = dy != 0.0f ? 1.0f / dy : kBig;
-  const float inv_z = dz != 0.0f ? 1.0f / dz : kBig;
+  ray.inv_x = dx != 0.0f ? 1.0f / dx : kBig;
+  ray.inv_y = dy != 0.0f ? 1.0f / dy : kBig;
+  ray.inv_z = dz != 0.0f ? 1.0f / dz : kBig;
   float t0 = 0.0f, t1 = a.horizon * s.inv_voxel;
-  clip_slab(ox, dx, inv_x, res, t0, t1);
-  clip_slab(oy, dy, inv_y, res, t0, t1);
-  clip_slab(oz, dz, inv_z, res, t0, t1);
-  if (t0 > t1) return out;
-
-  Walker w;
-  w.cached = false;
-  w.force_axis = -1;
-  w.force_cell = 0;
-  w.force_sign = 1;
-  float t = t0, prev_t = t0, prev_d = 0.0f;
-  int64_t last_brick = -1;
-  for (int step = 0; step < a.max_steps; ++step) {
-    out.steps = step + 1;
-    const float px = ox + t * dx, py = oy + t * dy, pz = oz + t * dz;
-    const FieldSample f = walk_sample(a.nodes, a.bricks, s, w, px, py, pz);
-    w.force_axis = -1;
-    if (f.brick >= 0) last_brick = f.brick;
-    if (f.solid || f.dist < 0.0f) {
-      float hit = t;
-      if (step > 0) {
-        // Sign change between prev_t (free) and t (solid): bisect, then one secant step.
-        float lo = prev_t, hi = t, flo = prev_d, fhi = f.dist;
-        for (int k = 0; k < kRefineIterations; ++k) {
-          const float mid = 0.5f * (lo + hi);
-          const FieldSample m = walk_sample(a.nodes, a.bricks, s, w, ox + mid * dx, oy + mid * dy, oz + mid * dz);
-          if (m.brick >= 0) last_brick = m.brick;
-          if (m.solid || m.dist < 0.0f) {
-            hi = mid;
-            fhi = m.dist;
-          } else {
-            lo = mid;
-            flo = m.dist;
-          }
-        }
-        const float denom = flo - fhi;
-        hit = denom > 0.0f ? lo + (hi - lo) * (flo / denom) : lo;
-      }
-      out.depth = hit * s.voxel;
-      out.semantic = class_semantic(a.brick_class, last_brick);
-      return out;
-    }
-    // Within epsilon of a surface while not moving away from it (a ray leaving the surface it
-    // starts on is not stopped by it).
-    if (step > 0 && !f.far_free && f.dist < eps && f.dist <= prev_d) {
-      out.depth = t * s.voxel;
-      out.semantic = class_semantic(a.brick_class, last_brick);
-      return out;
-    }
-    float next = t + fmaxf(f.dist, eps);
-    if (f.far_free) {
-      // Skip the whole far cube: to its exit, or by its lower bound when that is farther. The next
-      // sample is forced into the neighbouring cube across the exit face, so rounding cannot stall.
-      const int edge = 1 << w.leaf.shift;
-      const float tx = exit_time(ox, dx, inv_x, w.leaf.cx, edge);
-      const float ty = exit_time(oy, dy, inv_y, w.leaf.cy, edge);
-      const float tz = exit_time(oz, dz, inv_z, w.leaf.cz, edge);
-      const int axis = (tx <= ty && tx <= tz) ? 0 : (ty <= tz ? 1 : 2);
-      const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
-      const float d_axis = axis == 0 ? dx : (axis == 1 ? dy : dz);
-      const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
-      next = fmaxf(t + f.dist, t_exit);
-      w.force_axis = axis;
-      w.force_sign = d_axis > 0.0f ? 1 : -1;
-      w.force_cell = d_axis > 0.0f ? cube_min + edge : cube_min - 1;
-      if (w.force_cell < 0 || w.force_cell >= s.resolution) return out;  // left the cube: a miss
-    }
-    prev_t = t;
-    prev_d = f.dist;
-    t = next;
-    if (t > t1) return out;
-  }
-  out.depth = fminf(t * s.voxel, a.horizon);  // out of steps: the distance reached so far, semantic 0
-  return out;
+  clip_slab(ox, dx, ray.inv_x, res, t0, t1);
+  clip_slab(oy, dy, ray.inv_y, res, t0, t1);
+  clip_slab(oz, dz, ray.inv_z, res, t0, t1);
+  if (t0 > t1) return ray;
+  ray.ox = ox;
+  ray.oy = oy;
+  ray.oz = oz;
+  ray.dx = dx;
+  ray.dy = dy;
+  ray.dz = dz;
+  ray.t = t0;
+  ray.t1 = t1;
+  ray.prev_t = t0;
+  ray.prev_d = 0.0f;
+  ray.last_brick = -1;
+  ray.w.cached = false;
+  ray.w.force_axis = -1;
+  ray.w.force_cell = 0;
+  ray.w.force_sign = 1;
+  ray.done = false;
+  return ray;
 }
 
-NAVI_HD void trace_ray(const TraceArgs& a, int64_t i) {
-  const int64_t b = i / a.num_rays;
-  const int64_t r = i - b * a.num_rays;
-  const RayResult res = trace_one(a, b, r);
-  a.out_depth[i] = res.depth;
-  if (a.semantic_bytes == 4) {
-    static_cast<int32_t*>(a.out_semantic)[i] = res.semantic;
-  } else if (a.semantic_bytes == 1) {
-    static_cast<uint8_t*>(a.out_semantic)[i] = static_cast<uint8_t>(res.semantic < 255 ? res.semantic : 255);
+// One main-loop iteration of sphere tracing (see docs/SDFDAG_RUNTIME.md): sample, hit tests, step.
+NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
+  const Scene& s = ray.s;
+  Walker& w = ray.w;
+  if (ray.res.steps >= a.max_steps) {
+    ray.res.depth = fminf(ray.t * s.voxel, a.horizon);  // out of steps: the distance reached, semantic 0
+    ray.done = true;
+    return;
   }
-  if (a.out_steps != nullptr) a.out_steps[i] = res.steps;
+  const int step = ray.res.steps;
+  ray.res.steps = step + 1;
+  const float t = ray.t;
+  const float px = ray.ox + t * ray.dx, py = ray.oy + t * ray.dy, pz = ray.oz + t * ray.dz;
+  const FieldSample f = walk_sample(a.nodes, a.bricks, s, w, px, py, pz);
+  w.force_axis = -1;
+  if (f.brick >= 0) ray.last_brick = f.brick;
+  if (f.solid || f.dist < 0.0f) {
+    float hit = t;
+    if (step > 0) {
+      // Sign change between prev_t (free) and t (solid): bisect, then one secant step.
+      float lo = ray.prev_t, hi = t, flo = ray.prev_d, fhi = f.dist;
+      for (int k = 0; k < kRefineIterations; ++k) {
+        const float mid = 0.5f * (lo + hi);
+        const FieldSample m =
+            walk_sample(a.nodes, a.bricks, s, w, ray.ox + mid * ray.dx, ray.oy + mid * ray.dy, ray.oz + mid * ray.dz);
+        if (m.brick >= 0) ray.last_brick = m.brick;
+        if (m.solid || m.dist < 0.0f) {
+          hi = mid;
+          fhi = m.dist;
+        } else {
+          lo = mid;
+          flo = m.dist;
+        }
+      }
+      const float denom = flo - fhi;
+      hit = denom > 0.0f ? lo + (hi - lo) * (flo / denom) : lo;
+    }
+    ray.res.depth = hit * s.voxel;
+    ray.res.semantic = class_semantic(a.brick_class, ray.last_brick);
+    ray.done = true;
+    return;
+  }
+  // Within epsilon of a surface while not moving away from it (a ray leaving the surface it
+  // starts on is not stopped by it).
+  if (step > 0 && !f.far_free && f.dist < ray.eps && f.dist <= ray.prev_d) {
+    ray.res.depth = t * s.voxel;
+    ray.res.semantic = class_semantic(a.brick_class, ray.last_brick);
+    ray.done = true;
+    return;
+  }
+  float next = t + fmaxf(f.dist, ray.eps);
+  if (f.far_free) {
+    // Skip the whole far cube: to its exit, or by its lower bound when that is farther. The next
+    // sample is forced into the neighbouring cube across the exit face, so rounding cannot stall.
+    const int edge = 1 << w.leaf.shift;
+    const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
+    const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
+    const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, w.leaf.cz, edge);
+    const int axis = (tx <= ty && tx <= tz) ? 0 : (ty <= tz ? 1 : 2);
+    const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
+    const float d_axis = axis == 0 ? ray.dx : (axis == 1 ? ray.dy : ray.dz);
+    const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
+    next = fmaxf(t + f.dist, t_exit);
+    w.force_axis = axis;
+    w.force_sign = d_axis > 0.0f ? 1 : -1;
+    w.force_cell = d_axis > 0.0f ? cube_min + edge : cube_min - 1;
+    if (w.force_cell < 0 || w.force_cell >= s.resolution) {  // left the cube: a miss
+      ray.done = true;
+      return;
+    }
+  }
+  ray.prev_t = t;
+  ray.prev_d = f.dist;
+  ray.t = next;
+  if (next > ray.t1) ray.done = true;  // past the cube or the horizon: a miss
+}
+
+// Writes a finished ray's outputs.
+NAVI_HD void finish_ray(const TraceArgs& a, const Ray& ray) {
+  a.out_depth[ray.out] = ray.res.depth;
+  if (a.semantic_bytes == 4) {
+    static_cast<int32_t*>(a.out_semantic)[ray.out] = ray.res.semantic;
+  } else if (a.semantic_bytes == 1) {
+    static_cast<uint8_t*>(a.out_semantic)[ray.out] =
+        static_cast<uint8_t>(ray.res.semantic < 255 ? ray.res.semantic : 255);
+  }
+  if (a.out_steps != nullptr) a.out_steps[ray.out] = ray.res.steps;
+}
+
+// Work item i = b * R + j is ray ray_order[j] (or j) of actor b. The order only decides which rays
+// run side by side in a GPU warp (coherent neighbours take similar step counts); results do not
+// depend on it.
+// Returns false for an out-of-range ray_order entry (the item is skipped).
+NAVI_HD bool item_ray(const TraceArgs& a, int64_t i, int64_t& b, int64_t& r) {
+  b = i / a.num_rays;
+  const int64_t j = i - b * a.num_rays;
+  r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
+  return r >= 0 && r < a.num_rays;
+}
+
+// Traces work item i to the end.
+NAVI_HD void trace_ray(const TraceArgs& a, int64_t i) {
+  int64_t b, r;
+  if (!item_ray(a, i, b, r)) return;
+  Ray ray = start_ray(a, b, r);
+  while (!ray.done) step_ray(a, ray);
+  finish_ray(a, ray);
 }
 
 // ---------------------------------------------------------------------------------------------

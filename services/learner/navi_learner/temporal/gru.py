@@ -27,7 +27,7 @@ class GRUCore(nn.Module):
 
     def initial_state(self, n: int, device: torch.device) -> CoreState:
         """Zero hidden state (N, Hg) float32."""
-        return (torch.zeros(n, self.hidden, device=device),)
+        return (torch.zeros(n, self.hidden, device=device),)  # (N, Hg) float32
 
     def forward(
         self, x: torch.Tensor, resets: torch.Tensor, state: CoreState

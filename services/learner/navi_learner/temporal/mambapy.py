@@ -50,7 +50,7 @@ class MambaPyCore(Mamba2Core):
         for t in range(x.shape[0]):
             y, ssm, window = self._plain_step(x[t], resets[t], ssm, window)
             ys.append(y)
-        return torch.stack(ys), (ssm, window)
+        return torch.stack(ys), (ssm, window)  # (T, N, D)
 
     def step(self, x: torch.Tensor, resets: torch.Tensor, state: CoreState) -> tuple[torch.Tensor, CoreState]:
         """One step: x (N, D), resets (N,) -> y (N, D), state."""

@@ -1,0 +1,100 @@
+"""Helpers for the service tests (imported through conftest.py): free ports, the `navi` command,
+managed service processes."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+# `navi` with the mesh commands registered (until navi.cli lists navi_mesh.cli itself).
+NAVI_CODE = (
+    "import navi.cli as c\n"
+    "if 'navi_mesh.cli' not in c.COMMAND_MODULES:\n"
+    "    c.COMMAND_MODULES = (*c.COMMAND_MODULES, 'navi_mesh.cli')\n"
+    "c.main()\n"
+)
+NAVI = (sys.executable, "-c", NAVI_CODE)
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str, poll_s: float = 0.1) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(poll_s)
+    raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")
+
+
+class Service:
+    """A `navi serve ...` child process with its log file."""
+
+    def __init__(self, name: str, args: list[str], cwd: Path, env: dict[str, str]) -> None:
+        self.name = name
+        self.log = cwd / f"{name}.log"
+        self._log = self.log.open("ab")
+        self.proc = subprocess.Popen(
+            [*NAVI, *args], cwd=cwd, env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True
+        )
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 20.0) -> int:
+        if self.alive():
+            os.kill(self.proc.pid, sig)
+            try:
+                self.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                os.kill(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(5)
+        self._log.close()
+        return int(self.proc.returncode)
+
+    def text(self) -> str:
+        return self.log.read_text(errors="replace")
+
+
+class Services:
+    """Starts services in one working folder with one environment; stops them all at the end."""
+
+    def __init__(self, cwd: Path, env: dict[str, str]) -> None:
+        self.cwd, self.env, self.started = cwd, env, []
+
+    def start(self, name: str, *args: str) -> Service:
+        svc = Service(name, list(args), self.cwd, self.env)
+        self.started.append(svc)
+        return svc
+
+    def stop_all(self) -> None:
+        for svc in reversed(self.started):
+            svc.stop(signal.SIGKILL if svc.name.startswith("router") else signal.SIGTERM, 10.0)
+
+
+def services_fixture(tmp_path: Path) -> Iterator[Services]:
+    port = free_port()
+    env = {
+        **os.environ,
+        "NAVI_ZENOH_CONNECT": f"tcp/127.0.0.1:{port}",
+        "NAVI_ZENOH_LISTEN": f"tcp/127.0.0.1:{port}",
+        "NAVI_ARTIFACTS_DIR": str(tmp_path / "artifacts"),
+        "NAVI_API_TOKEN": "",
+        "PYTHONUNBUFFERED": "1",
+        "OMP_NUM_THREADS": "1",
+    }
+    svc = Services(tmp_path, env)
+    try:
+        yield svc
+    finally:
+        svc.stop_all()

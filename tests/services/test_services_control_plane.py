@@ -1,0 +1,123 @@
+"""The learner's FastAPI control plane over a real on-disk registry (no network: TestClient)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from fastapi.testclient import TestClient
+from navi_contracts.models import ModelPromoted
+from navi_learner.checkpoint import CheckpointMeta, save_checkpoint
+from navi_learner.config import TrainConfig
+from navi_learner.control_plane import ControlPlaneConfig, create_app
+from prometheus_client.parser import text_string_to_metric_families
+
+TOKEN = "s3cret-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def checkpoint(folder: Path, step: int, reward_ema: float) -> Path:
+    meta = CheckpointMeta(
+        step_id=step,
+        episode_count=step // 100,
+        reward_ema=reward_ema,
+        wall_time_hours=0.01,
+        temporal_core="gru",
+        run_id="run-test",
+        config=TrainConfig().to_dict(),
+        obs_shape=[3, 16, 8],
+    )
+    return save_checkpoint(folder / f"ckpt_{step}.pt", {"w": torch.ones(2)}, None, meta)
+
+
+@pytest.fixture
+def plane(tmp_path: Path) -> tuple[TestClient, list[ModelPromoted], Path]:
+    announced: list[ModelPromoted] = []
+    app = create_app(ControlPlaneConfig(tmp_path / "models", TOKEN), announced.append)
+    return TestClient(app), announced, tmp_path
+
+
+def test_mutations_need_the_bearer_token(plane: tuple[TestClient, list[ModelPromoted], Path]) -> None:
+    client, announced, tmp = plane
+    ckpt = checkpoint(tmp, 1000, 0.5)
+    body = {"checkpoint": str(ckpt), "alias": "champion", "notes": "first", "tags": ["rl"]}
+    missing = client.post("/models/promote", json=body)
+    assert missing.status_code == 401 and missing.headers["www-authenticate"] == "Bearer"
+    wrong = client.post("/models/promote", json=body, headers={"Authorization": "Bearer nope"})
+    assert wrong.status_code == 403
+    assert client.post("/models/rollback", json={"alias": "champion"}).status_code == 401
+    assert announced == [] and client.get("/models").json()["count"] == 0
+
+    ok = client.post("/models/promote", json=body, headers=AUTH)
+    assert ok.status_code == 200, ok.text
+    move = ok.json()
+    assert move["alias"] == "champion" and move["version"] == "v001" and move["previous_version"] is None
+    assert move["model"]["step_id"] == 1000 and move["model"]["aliases"] == ["champion"]
+    assert len(announced) == 1
+    msg = announced[0]
+    assert (msg.alias, msg.version, msg.previous_version, msg.notes, msg.tags) == ("champion", "v001", None, "first", ("rl",))
+    assert Path(msg.checkpoint).is_file() and Path(msg.checkpoint).name == "v001.pt"
+
+
+def test_promote_rollback_and_audit_log(plane: tuple[TestClient, list[ModelPromoted], Path]) -> None:
+    client, announced, tmp = plane
+    for step, ema in ((1000, 0.1), (2000, 0.3)):
+        r = client.post("/models/promote", json={"checkpoint": str(checkpoint(tmp, step, ema))}, headers=AUTH)
+        assert r.status_code == 200, r.text
+    listing = client.get("/models").json()
+    assert [m["version"] for m in listing["data"]] == ["v001", "v002"]
+    assert listing["aliases"]["champion"] == "v002"
+    assert client.get("/models/champion").json()["version"] == "v002"
+    assert client.get("/models/v001").json()["step_id"] == 1000
+    assert client.get("/models/v999").status_code == 404
+
+    # A version can be promoted by name, without a new file.
+    again = client.post("/models/promote", json={"checkpoint": "v001", "alias": "stable"}, headers=AUTH)
+    assert again.status_code == 200 and again.json()["version"] == "v001"
+    assert len(client.get("/models").json()["data"]) == 2
+
+    back = client.post("/models/rollback", json={"alias": "champion"}, headers=AUTH)
+    assert back.status_code == 200, back.text
+    assert back.json()["version"] == "v001" and back.json()["previous_version"] == "v002"
+    assert announced[-1].version == "v001" and announced[-1].previous_version == "v002"
+    assert client.post("/models/rollback", json={"alias": "champion"}, headers=AUTH).status_code == 422
+    missing = client.post("/models/promote", json={"checkpoint": str(tmp / "nope.pt")}, headers=AUTH)
+    assert missing.status_code == 422
+
+    audit = [json.loads(line) for line in (tmp / "models" / "audit.jsonl").read_text().splitlines()]
+    moves = [(a["action"], a["alias"], a["from_version"], a["to_version"]) for a in audit]
+    assert moves == [
+        ("promote", "champion", None, "v001"),
+        ("promote", "champion", "v001", "v002"),
+        ("promote", "stable", None, "v001"),
+        ("rollback", "champion", "v002", "v001"),
+    ]
+    assert all(a["when"] for a in audit)
+
+
+def test_empty_token_disables_mutations(tmp_path: Path) -> None:
+    client = TestClient(create_app(ControlPlaneConfig(tmp_path / "models", "")))
+    r = client.post("/models/promote", json={"checkpoint": "v001"}, headers={"Authorization": "Bearer "})
+    assert r.status_code == 503
+    assert client.post("/models/promote", json={"checkpoint": "v001"}, headers=AUTH).status_code == 503
+    health = client.get("/healthz").json()
+    assert health["status"] == "ok" and health["mutations_enabled"] is False
+
+
+def test_metrics_health_and_docs(plane: tuple[TestClient, list[ModelPromoted], Path]) -> None:
+    client, _, tmp = plane
+    client.post("/models/promote", json={"checkpoint": str(checkpoint(tmp, 10, 0.0))}, headers=AUTH)
+    r = client.get("/metrics", follow_redirects=False)
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
+    families = {f.name: f for f in text_string_to_metric_families(r.text)}
+    assert "navi_promotions" in families and "navi_decode_errors" in families
+    promote = [s.value for s in families["navi_promotions"].samples if s.labels.get("action") == "promote"]
+    assert promote and promote[0] >= 1
+    assert all(name.startswith(("navi_", "process_", "python_")) for name in families)
+    assert client.get("/metrics/", follow_redirects=False).status_code == 404  # no redirect games
+    assert client.get("/healthz").json()["mutations_enabled"] is True
+    assert client.get("/docs").status_code == 200
+    paths = client.get("/openapi.json").json()["paths"]
+    assert {"/models", "/models/{version}", "/models/promote", "/models/rollback", "/healthz", "/metrics"} <= set(paths)

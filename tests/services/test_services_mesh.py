@@ -1,0 +1,197 @@
+"""navi_mesh over a real Zenoh router on loopback (in this process): QoS, decode errors, requests, liveliness."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from services_testlib import free_port, wait_for
+from navi_contracts.codec import encode
+from navi_contracts.models import CompileJob, CompileResult, Message, StepRequest, TelemetryEvent
+from navi_contracts.topics import ALL_TOPICS, COMPILE_JOBS, STEP, TELEMETRY, Topic
+from navi_mesh import metrics
+from navi_mesh.liveliness import declare_alive, live_tokens, parse_token
+from navi_mesh.messages import telemetry
+from navi_mesh.pubsub import QueuedPublisher, RequestError, RequestQueue, request, subscribe
+from navi_mesh.session import MeshError, SessionConfig, config_json, open_new_session, zenoh_config
+
+pytestmark = pytest.mark.integration
+
+
+@pytest.fixture
+def mesh() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    """A router and two client sessions connected to it."""
+    port = free_port()
+    router = open_new_session(SessionConfig(mode="router", connect=(), listen=(f"tcp/127.0.0.1:{port}",)))
+    a = open_new_session(SessionConfig(connect=(f"tcp/127.0.0.1:{port}",), connect_timeout_s=5.0))
+    b = open_new_session(SessionConfig(connect=(f"tcp/127.0.0.1:{port}",), connect_timeout_s=5.0))
+    try:
+        yield a, b
+    finally:
+        for s in (a, b, router):
+            s.close()
+
+
+def counter(metric: object, topic: str) -> float:
+    value = metrics.REGISTRY.get_sample_value(f"{metric}_total", {"topic": topic})
+    return 0.0 if value is None else value
+
+
+def test_client_config_is_explicit_and_waits_for_the_router() -> None:
+    cfg = config_json(SessionConfig(connect=("tcp/10.0.0.1:7447",)))
+    assert cfg["mode"] == "client"
+    assert cfg["scouting"] == {"multicast": {"enabled": False}, "gossip": {"enabled": False}}
+    connect = cfg["connect"]
+    assert isinstance(connect, dict)
+    assert connect["endpoints"] == ["tcp/10.0.0.1:7447"] and connect["timeout_ms"] == -1
+    assert connect["exit_on_failure"] is False
+    zenoh_config(SessionConfig())  # a valid zenoh.Config
+
+
+def test_json5_file_is_used_as_is(tmp_path: Path) -> None:
+    path = tmp_path / "z.json5"
+    path.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"] } }')
+    cfg = zenoh_config(SessionConfig(config_file=path))
+    assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7999"]
+    with pytest.raises(MeshError):
+        zenoh_config(SessionConfig(config_file=tmp_path / "missing.json5"))
+
+
+def test_no_router_before_the_deadline_is_a_mesh_error() -> None:
+    t0 = time.monotonic()
+    with pytest.raises(MeshError):
+        open_new_session(SessionConfig(connect=(f"tcp/127.0.0.1:{free_port()}",), connect_timeout_s=0.5))
+    assert time.monotonic() - t0 < 10.0
+
+
+def test_malformed_payloads_on_every_topic_are_counted_and_dropped(
+    mesh: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    pub, sub = mesh
+    received: dict[str, list[Message]] = {t.key: [] for t in ALL_TOPICS}
+    subscribers = []
+    queues: list[RequestQueue[Message]] = []
+    for topic in ALL_TOPICS:
+        if topic.reply is None:
+            subscribers.append(subscribe(sub, topic, received[topic.key].append))
+        else:
+            queues.append(RequestQueue(sub, topic))
+    time.sleep(0.3)
+    before = {t.key: counter("navi_decode_errors", t.key) for t in ALL_TOPICS}
+    wrong_model = encode(TelemetryEvent(key="x", value=1.0, step=0, timestamp=1.0))
+    for topic in ALL_TOPICS:
+        bad = [b"\xc1garbage", b"", wrong_model if topic is not TELEMETRY else encode(_compile_job())]
+        for payload in bad:
+            if topic.reply is None:
+                pub.put(topic.key, payload)
+            else:
+                with pytest.raises(RequestError, match="ContractError"):
+                    request_raw(pub, topic, payload)
+    # A valid telemetry event after the garbage still arrives: the subscriber lives on.
+    good = telemetry("actor.training.sps", 12.5, 7)
+    pub.put(TELEMETRY.key, encode(good))
+    wait_for(lambda: len(received[TELEMETRY.key]) == 1, 5.0, "the valid telemetry event")
+    wait_for(
+        lambda: all(counter("navi_decode_errors", t.key) - before[t.key] == 3 for t in ALL_TOPICS),
+        5.0,
+        "three decode errors counted per topic",
+    )
+    assert received[TELEMETRY.key][0] == good
+    assert all(not v for k, v in received.items() if k != TELEMETRY.key)
+    assert all(q.pending() == 0 for q in queues)
+
+
+def request_raw(sess: zenoh.Session, topic: Topic, payload: bytes) -> None:
+    """Send raw bytes to a queryable; raise RequestError on an error reply."""
+    for reply in sess.get(topic.key, payload=payload, timeout=5.0):
+        if reply.err is not None:
+            raise RequestError(reply.err.payload.to_bytes().decode())
+
+
+def _compile_job(job_id: str = "j1") -> CompileJob:
+    return CompileJob(job_id=job_id, source="scene.obj", output="out.gmdag", resolution=64)
+
+
+def test_queued_publisher_never_waits_and_drops_the_oldest(mesh: tuple[zenoh.Session, zenoh.Session]) -> None:
+    pub_sess, sub_sess = mesh
+    got: list[TelemetryEvent] = []
+    sub = subscribe(sub_sess, TELEMETRY, got.append)
+    time.sleep(0.3)
+    pub: QueuedPublisher[TelemetryEvent] = QueuedPublisher(pub_sess, TELEMETRY, capacity=4)
+    n = 5000
+    events = [telemetry("actor.training.step", float(i), i) for i in range(n)]
+    t0 = time.perf_counter()
+    for e in events:
+        pub.publish(e)
+    per_call = (time.perf_counter() - t0) / n
+    assert pub.flush(10.0)
+    assert pub.sent + pub.dropped == n
+    assert per_call < 200e-6, f"publish() took {per_call * 1e6:.1f} us per call"
+    wait_for(lambda: bool(got) and got[-1].step == n - 1, 5.0, "the newest event (drop-oldest keeps it)")
+    steps = [e.step for e in got]
+    assert steps == sorted(steps)  # dropping never reorders
+    pub.close()
+    sub.undeclare()
+
+
+def test_request_reply_with_progress_and_typed_errors(mesh: tuple[zenoh.Session, zenoh.Session]) -> None:
+    client, server = mesh
+    jobs: RequestQueue[CompileJob] = RequestQueue(server, COMPILE_JOBS, key=f"{COMPILE_JOBS.key}/w1")
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            item = jobs.get(0.1)
+            if item is None:
+                continue
+            for frac in (0.25, 0.5):
+                item.progress(telemetry("compiler.progress.sdf", frac, 0, item.message.job_id))
+            item.reply(CompileResult(job_id=item.message.job_id, ok=True, output="out.gmdag", stats={"x": 1.0}))
+
+    worker = threading.Thread(target=serve, daemon=True)
+    worker.start()
+    seen: list[float] = []
+    result = request(client, f"{COMPILE_JOBS.key}/w1", _compile_job(), CompileResult, 5.0, lambda e: seen.append(e.value))
+    assert result.ok and result.output == "out.gmdag" and result.stats == {"x": 1.0}
+    assert seen == [0.25, 0.5]
+    with pytest.raises(RequestError, match="no reply"):
+        request(client, f"{COMPILE_JOBS.key}/nobody", _compile_job(), CompileResult, 0.5)
+    stop.set()
+    worker.join(2.0)
+    jobs.close()
+
+
+def test_step_request_queue_refuses_when_full(mesh: tuple[zenoh.Session, zenoh.Session]) -> None:
+    client, server = mesh
+    steps: RequestQueue[StepRequest] = RequestQueue(server, STEP, capacity=1)
+    req = StepRequest(request_id="r", env_ids=np.zeros(1, np.int32), actions=np.zeros((1, 4), np.float32))
+    first = threading.Thread(target=lambda: _swallow(client, req), daemon=True)
+    first.start()
+    wait_for(lambda: steps.pending() == 1, 5.0, "the first request queued")
+    with pytest.raises(RequestError, match="Busy"):
+        request(client, STEP.key, req, CompileResult, 5.0)
+    item = steps.get(1.0)
+    assert item is not None and item.message.request_id == "r"
+    item.fail("StepError: test")
+    first.join(5.0)
+    steps.close()
+
+
+def _swallow(sess: zenoh.Session, req: StepRequest) -> None:
+    with pytest.raises(RequestError):
+        request(sess, STEP.key, req, CompileResult, 5.0)
+
+
+def test_liveliness_tokens_come_and_go(mesh: tuple[zenoh.Session, zenoh.Session]) -> None:
+    a, b = mesh
+    token = declare_alive(a, "compiler", "host-1")
+    wait_for(lambda: [t.key for t in live_tokens(b, timeout_s=0.5)] == ["navi/alive/compiler/host-1"], 5.0, "token")
+    token.undeclare()
+    wait_for(lambda: not live_tokens(b, timeout_s=0.5), 5.0, "the token to disappear")
+    assert parse_token("navi/alive/env/x") is not None and parse_token("navi/alive/env") is None
