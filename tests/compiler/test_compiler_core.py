@@ -7,7 +7,7 @@ import pytest
 
 from navi_compiler import _core  # type: ignore[attr-defined]
 from navi_compiler.dag import build_dag
-from navi_compiler.distance import make_triangles, nearest_triangles, squared_distances
+from navi_compiler.distance import make_triangles, nearest_triangles, nondegenerate, squared_distances
 from navi_compiler.farfield import NO_SITE, squared_edt
 from navi_compiler.gmdag import quant_step_for
 from navi_compiler.murmur import murmur3_32
@@ -44,6 +44,18 @@ def test_nearest_distances_match_and_are_exact() -> None:
     within = exact <= 5.0
     assert np.array_equal(got[within], exact[within].astype(np.float32))
     assert np.isinf(got[~within]).all()
+
+
+def test_nearest_agrees_on_slivers() -> None:
+    # The C++ loop prunes candidates by box and plane distance; near-degenerate slivers must not fool it.
+    rng = np.random.default_rng(5)
+    corners = _random_triangles(rng, 80, 32)  # (80, 3, 3)
+    t = rng.uniform(0.2, 0.8, (40, 1))  # (40, 1)
+    corners[:40, 2] = corners[:40, 0] + t * (corners[:40, 1] - corners[:40, 0]) + rng.normal(0, 1e-7, (40, 3))
+    corners = np.ascontiguousarray(corners[nondegenerate(corners)])
+    ref = nearest_triangles(make_triangles(corners), 32, 5.0)
+    dist, near = _core.nearest(corners, 32, 5.0, 2)
+    assert np.array_equal(dist, ref.distance) and np.array_equal(near, ref.triangle)
 
 
 def test_squared_edt_matches_brute_force() -> None:

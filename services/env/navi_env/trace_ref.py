@@ -123,18 +123,15 @@ def descend(s: RefScene, cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return word, shift
 
 
-def brick_distance(s: RefScene, brick: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-    """Trilinear distance (K,) float32 voxels in bricks (K,) at local points q (K, 3) in [0, 8]^3."""
-    zero, one, seven = torch.zeros_like(q), torch.ones_like(q), torch.full_like(q, 7.0)
-    f0 = torch.minimum(torch.maximum(torch.floor(q), zero), seven)  # (K, 3)
-    fr = torch.minimum(torch.maximum(q - f0, zero), one)  # (K, 3)
-    i = f0.long()  # (K, 3)
-    base = brick.clamp(min=0) * 729 + i[:, 0] + 9 * i[:, 1] + 81 * i[:, 2]  # (K,)
+def brick_distance(s: RefScene, brick: torch.Tensor, local: torch.Tensor, frac: torch.Tensor) -> torch.Tensor:
+    """Trilinear distance (K,) float32 voxels in bricks (K,) at cells local (K, 3) int64 in [0, 7]^3 of
+    the brick with fractions frac (K, 3) float32 in [0, 1]."""
+    base = brick.clamp(min=0) * 729 + local[:, 0] + 9 * local[:, 1] + 81 * local[:, 2]  # (K,)
 
     def c(off: int) -> torch.Tensor:
-        return s.bricks[base + off] if len(s.bricks) else torch.zeros_like(q[:, 0])  # (K,)
+        return s.bricks[base + off] if len(s.bricks) else torch.zeros_like(frac[:, 0])  # (K,)
 
-    fx, fy, fz = fr[:, 0], fr[:, 1], fr[:, 2]
+    fx, fy, fz = frac[:, 0], frac[:, 1], frac[:, 2]
     c000, c100, c010, c110 = c(0), c(1), c(9), c(10)
     c001, c101, c011, c111 = c(81), c(82), c(90), c(91)
     x00 = c000 + fx * (c100 - c000)
@@ -159,7 +156,8 @@ def field_at(s: RefScene, p: torch.Tensor, cells: torch.Tensor) -> Field:
         tag == TAG_FAR_SOLID, -far, torch.where(tag == TAG_FAR_FREE, far, torch.zeros_like(far))
     )
     if bool(is_brick.any()):
-        inside = brick_distance(s, brick, p - corner.to(F32))  # (K,)
+        frac = torch.clamp(p - cells.to(F32), 0.0, 1.0)  # (K, 3) position inside the cell
+        inside = brick_distance(s, brick, (cells - corner).clamp(0, 7), frac)  # (K,)
         dist = torch.where(is_brick, inside, dist)
     return Field(dist, tag == TAG_FAR_SOLID, ~is_brick & (tag != TAG_FAR_SOLID), brick, corner, shift)
 

@@ -31,8 +31,11 @@ inline Triangles make_triangles(const double* corners, int64_t count) {
     t.hi[i] = {std::max(std::max(a.x, b.x), c.x), std::max(std::max(a.y, b.y), c.y), std::max(std::max(a.z, b.z), c.z)};
     const V3 nrm{t.ab[i].y * t.ac[i].z - t.ab[i].z * t.ac[i].y, t.ab[i].z * t.ac[i].x - t.ab[i].x * t.ac[i].z,
                  t.ab[i].x * t.ac[i].y - t.ab[i].y * t.ac[i].x};
-    const double len = std::sqrt(norm2(nrm));
-    t.unit_normal[i] = len > 0.0 ? mul(nrm, 1.0 / len) : V3{0.0, 0.0, 0.0};
+    // Only well-conditioned triangles (sin of the corner angle at a >= 1e-3) get a plane test: on
+    // slivers the cross product loses too many digits. A zero normal never prunes.
+    const double len2 = norm2(nrm);
+    const bool sharp = len2 > 1e-6 * norm2(t.ab[i]) * norm2(t.ac[i]);
+    t.unit_normal[i] = sharp ? mul(nrm, 1.0 / std::sqrt(len2)) : V3{0.0, 0.0, 0.0};
   }
   return t;
 }

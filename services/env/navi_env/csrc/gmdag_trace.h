@@ -198,15 +198,9 @@ NAVI_HD bool leaf_contains(const Leaf& leaf, int ix, int iy, int iz) {
          ((iz - leaf.cz) >> leaf.shift) == 0;
 }
 
-// Trilinear interpolation of a brick's 8 corner samples around local point q in [0, 8]^3, voxels.
-NAVI_HD float brick_distance(const int8_t* brick, float quant, float qx, float qy, float qz) {
-  const float fx0 = fminf(fmaxf(floorf(qx), 0.0f), 7.0f);
-  const float fy0 = fminf(fmaxf(floorf(qy), 0.0f), 7.0f);
-  const float fz0 = fminf(fmaxf(floorf(qz), 0.0f), 7.0f);
-  const float fx = fminf(fmaxf(qx - fx0, 0.0f), 1.0f);
-  const float fy = fminf(fmaxf(qy - fy0, 0.0f), 1.0f);
-  const float fz = fminf(fmaxf(qz - fz0, 0.0f), 1.0f);
-  const int8_t* c = brick + static_cast<int>(fx0) + 9 * static_cast<int>(fy0) + 81 * static_cast<int>(fz0);
+// Trilinear interpolation inside a brick: cell (i, j, k) in [0, 7]^3 of the brick, fractions in [0, 1].
+NAVI_HD float brick_distance(const int8_t* brick, float quant, int i, int j, int k, float fx, float fy, float fz) {
+  const int8_t* c = brick + i + 9 * j + 81 * k;
   const float c000 = load_ro(c), c100 = load_ro(c + 1), c010 = load_ro(c + 9), c110 = load_ro(c + 10);
   const float c001 = load_ro(c + 81), c101 = load_ro(c + 82), c011 = load_ro(c + 90), c111 = load_ro(c + 91);
   const float x00 = c000 + fx * (c100 - c000);
@@ -218,28 +212,35 @@ NAVI_HD float brick_distance(const int8_t* brick, float quant, float qx, float q
   return (y0 + fz * (y1 - y0)) * quant;
 }
 
-// The field at a voxel-space point inside the cube, given the leaf holding it.
+NAVI_HD float unit_clamp(float x) { return fminf(fmaxf(x, 0.0f), 1.0f); }
+
+constexpr uint32_t kNoBrick = 0xFFFFFFFFu;
+
+// The field at a voxel-space point p inside the cube whose cell (ix, iy, iz) lies in `leaf`.
 // Far codes give their lower bound (negative for solid); `solid` marks a far-solid cube.
 struct FieldSample {
   float dist;      // voxels
   bool solid;      // inside a far-solid cube
   bool far_free;   // inside a far-free cube (dist is its lower bound)
-  int64_t brick;   // corpus brick index, or -1
+  uint32_t brick;  // corpus brick index, or kNoBrick
 };
 
-NAVI_HD FieldSample leaf_field(const int8_t* bricks, const Scene& s, const Leaf& leaf, float px, float py,
-                               float pz) {
+NAVI_HD FieldSample leaf_field(const int8_t* bricks, const Scene& s, const Leaf& leaf, float px, float py, float pz,
+                               int ix, int iy, int iz) {
   FieldSample f;
   const uint32_t tag = leaf.word >> 30;
   const uint32_t payload = leaf.word & kPayloadMask;
   f.solid = tag == kTagFarSolid;
   f.far_free = tag != kTagBrick && tag != kTagFarSolid;
-  f.brick = -1;
+  f.brick = kNoBrick;
   if (tag == kTagBrick) {
-    f.brick = static_cast<int64_t>(s.brick_offset) + payload;
-    const int8_t* brick = bricks + f.brick * kBrickSamples;
-    f.dist = brick_distance(brick, s.quant, px - static_cast<float>(leaf.cx), py - static_cast<float>(leaf.cy),
-                            pz - static_cast<float>(leaf.cz));
+    f.brick = s.brick_offset + payload;
+    const int8_t* brick = bricks + static_cast<uint64_t>(f.brick) * kBrickSamples;
+    // The cell lies in this brick, so its local index is in [0, 7]; the fraction is clamped for
+    // points on (or, after a forced exit, just outside) the cell's faces.
+    f.dist = brick_distance(brick, s.quant, ix - leaf.cx, iy - leaf.cy, iz - leaf.cz,
+                            unit_clamp(px - static_cast<float>(ix)), unit_clamp(py - static_cast<float>(iy)),
+                            unit_clamp(pz - static_cast<float>(iz)));
   } else if (tag == kTagFarSolid) {
     f.dist = -(static_cast<float>(payload) * kFarUnit);
   } else {
@@ -258,23 +259,22 @@ struct Walker {
   int force_sign;   // +1 or -1: direction along force_axis
 };
 
-NAVI_HD int apply_force(int cell, int axis, const Walker& w) {
-  if (w.force_axis != axis) return cell;
-  return w.force_sign > 0 ? (cell > w.force_cell ? cell : w.force_cell)
-                          : (cell < w.force_cell ? cell : w.force_cell);
-}
-
 // Samples the field at voxel-space p, reusing the cached leaf when p's cell lies in it.
 NAVI_HD FieldSample walk_sample(const uint32_t* nodes, const int8_t* bricks, const Scene& s, Walker& w, float px,
                                 float py, float pz) {
-  const int ix = apply_force(cell_of(px, s.resolution), 0, w);
-  const int iy = apply_force(cell_of(py, s.resolution), 1, w);
-  const int iz = apply_force(cell_of(pz, s.resolution), 2, w);
+  int ix = cell_of(px, s.resolution), iy = cell_of(py, s.resolution), iz = cell_of(pz, s.resolution);
+  if (w.force_axis >= 0) {
+    const int c = w.force_axis == 0 ? ix : (w.force_axis == 1 ? iy : iz);
+    const int forced = w.force_sign > 0 ? (c > w.force_cell ? c : w.force_cell) : (c < w.force_cell ? c : w.force_cell);
+    if (w.force_axis == 0) ix = forced;
+    if (w.force_axis == 1) iy = forced;
+    if (w.force_axis == 2) iz = forced;
+  }
   if (!(w.cached && leaf_contains(w.leaf, ix, iy, iz))) {
     w.leaf = descend(nodes, s, ix, iy, iz);
     w.cached = true;
   }
-  return leaf_field(bricks, s, w.leaf, px, py, pz);
+  return leaf_field(bricks, s, w.leaf, px, py, pz, ix, iy, iz);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -305,8 +305,8 @@ struct RayResult {
   int32_t steps;
 };
 
-NAVI_HD int32_t class_semantic(const uint8_t* brick_class, int64_t brick) {
-  return brick >= 0 ? 1 + static_cast<int32_t>(load_ro(brick_class + brick)) : 1;
+NAVI_HD int32_t class_semantic(const uint8_t* brick_class, uint32_t brick) {
+  return brick != kNoBrick ? 1 + static_cast<int32_t>(load_ro(brick_class + brick)) : 1;
 }
 
 // One ray in flight: everything the main loop carries from one step to the next.
@@ -318,7 +318,7 @@ struct Ray {
   float eps;                 // hit epsilon, voxels
   float t, t1;               // current time and the clip end (cube exit or horizon), voxels
   float prev_t, prev_d;      // previous sample
-  int64_t last_brick;        // last brick sampled (class of a hit), or -1
+  uint32_t last_brick;       // last brick sampled (class of a hit), or kNoBrick
   int64_t out;               // output element b * R + r
   Walker w;
   RayResult res;
@@ -378,7 +378,7 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t r) {
   ray.t1 = t1;
   ray.prev_t = t0;
   ray.prev_d = 0.0f;
-  ray.last_brick = -1;
+  ray.last_brick = kNoBrick;
   ray.w.cached = false;
   ray.w.force_axis = -1;
   ray.w.force_cell = 0;
@@ -402,7 +402,7 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   const float px = ray.ox + t * ray.dx, py = ray.oy + t * ray.dy, pz = ray.oz + t * ray.dz;
   const FieldSample f = walk_sample(a.nodes, a.bricks, s, w, px, py, pz);
   w.force_axis = -1;
-  if (f.brick >= 0) ray.last_brick = f.brick;
+  if (f.brick != kNoBrick) ray.last_brick = f.brick;
   if (f.solid || f.dist < 0.0f) {
     float hit = t;
     if (step > 0) {
@@ -412,7 +412,7 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
         const float mid = 0.5f * (lo + hi);
         const FieldSample m =
             walk_sample(a.nodes, a.bricks, s, w, ray.ox + mid * ray.dx, ray.oy + mid * ray.dy, ray.oz + mid * ray.dz);
-        if (m.brick >= 0) ray.last_brick = m.brick;
+        if (m.brick != kNoBrick) ray.last_brick = m.brick;
         if (m.solid || m.dist < 0.0f) {
           hi = mid;
           fhi = m.dist;
@@ -522,9 +522,9 @@ NAVI_HD void sample_point(const SampleArgs& a, int64_t i) {
     a.out_distance[i] = sqrtf(ex * ex + ey * ey + ez * ez) * s.voxel;
     return;
   }
-  const Leaf leaf = descend(a.nodes, s, cell_of(px, s.resolution), cell_of(py, s.resolution),
-                            cell_of(pz, s.resolution));
-  a.out_distance[i] = leaf_field(a.bricks, s, leaf, px, py, pz).dist * s.voxel;
+  const int ix = cell_of(px, s.resolution), iy = cell_of(py, s.resolution), iz = cell_of(pz, s.resolution);
+  const Leaf leaf = descend(a.nodes, s, ix, iy, iz);
+  a.out_distance[i] = leaf_field(a.bricks, s, leaf, px, py, pz, ix, iy, iz).dist * s.voxel;
 }
 
 }  // namespace navi
