@@ -3,11 +3,13 @@ step and horizon semantics, and strict validation."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 import torch
 
-from navi_env.analytic_scenes import AnalyticScene, Box, Room, demo_room, random_directions, slab_scene
+from navi_env.analytic_scenes import AnalyticScene, Box, Room, Slab, demo_room, random_directions, slab_scene
 from navi_env.scene import SceneCorpus, load_corpus, load_scene
 from navi_env.trace import trace
 
@@ -15,7 +17,7 @@ THICKNESSES = (0.25, 0.5, 1.0, 1.5, 2.0)  # voxels
 
 
 def _depth(corpus: SceneCorpus, origins: np.ndarray, dirs: np.ndarray, ids: np.ndarray | None = None,
-           **kw: object) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+           **kw: Any) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Depth and semantic (B, R) for origins (B, 3) and dirs (R, 3) or (B, R, 3)."""
     b, r = len(origins), dirs.shape[-2]
     depth = torch.empty(b, r)  # (B, R) float32
@@ -34,18 +36,19 @@ def test_thin_walls_are_never_passed_through() -> None:
     corpus = load_corpus([s.gmdag(dilate_voxels=0.5) for s in scenes])
     per_scene, rays = 12, 120
     ids = np.repeat(np.arange(len(scenes)), per_scene)  # (B,)
-    origins, dirs, exact = [], [], []
+    origins: list[np.ndarray] = []
+    dirs: list[np.ndarray] = []
+    exact: list[np.ndarray] = []
+    centre = np.full(3, 16.0)  # cube centre, voxels = meters
     for s in scenes:
         slab = s.solids[0]
+        assert isinstance(slab, Slab)
         n = np.array(slab.normal)
-        side = rng.choice([-1.0, 1.0], size=(per_scene, 1))  # (P, 1)
-        o = slab.offset * n + side * rng.uniform(1.5, 10.0, size=(per_scene, 1)) * n  # (P, 3) centre line
-        o = (
-            o
-            + rng.uniform(-8, 8, size=(per_scene, 3))
-            - (rng.uniform(-8, 8, size=(per_scene, 3)) @ n)[:, None] * n
-        )
-        o = o + (s.resolution / 2) * (1 - n * n.sum() / (n @ n)) * 0.0
+        on_plate = centre - (centre @ n - slab.offset) * n  # (3,) the cube centre projected on the plate
+        side = rng.choice([-1.0, 1.0], size=(per_scene, 1))  # (P, 1) which side of the plate
+        jitter = rng.uniform(-8, 8, size=(per_scene, 3))  # (P, 3)
+        jitter -= (jitter @ n)[:, None] * n  # (P, 3) along the plate only
+        o = on_plate + jitter + side * rng.uniform(1.5, 10.0, size=(per_scene, 1)) * n  # (P, 3)
         d = random_directions(per_scene * rays, seed=len(origins)).reshape(per_scene, rays, 3)  # (P, R, 3)
         toward = np.einsum("prk,k->pr", d, n) * side < -0.05  # (P, R) rays heading at the plate
         d = np.where(toward[..., None], d, -d)  # (P, R, 3)
@@ -97,13 +100,15 @@ def test_origins_inside_solid_return_zero_and_a_hit() -> None:
 def test_rays_starting_on_a_surface_see_what_they_face() -> None:
     scene = demo_room(32, 8.0)
     corpus = load_scene(scene.gmdag())
-    floor_z = scene.solids[0].lo[2]
+    room = scene.solids[0]
+    assert isinstance(room, Room)
+    floor_z = room.lo[2]
     origin = np.array([[4.0, 2.0, floor_z]])  # exactly on the floor
     up = np.array([[0.0, 0.0, 1.0]])
     down = np.array([[0.0, 0.0, -1.0]])
     d_up, s_up = _depth(corpus, origin, up)
     d_down, s_down = _depth(corpus, origin, down)
-    ceiling = scene.solids[0].hi[2] - floor_z
+    ceiling = room.hi[2] - floor_z
     assert abs(d_up[0, 0] - ceiling) <= scene.voxel_size and s_up[0, 0] > 0
     assert d_down[0, 0] <= 0.25 * scene.voxel_size and s_down[0, 0] > 0
 
