@@ -13,8 +13,7 @@ from navi_env.trace import sample_distance, trace
 from navi_env.trace_ref import sample_distance_ref, trace_ref
 
 REL_TOL = 1e-4
-CUDA = torch.cuda.is_available()
-gpu = pytest.mark.skipif(not CUDA, reason="needs a CUDA device (torch.cuda.is_available() is False)")
+gpu = pytest.mark.gpu  # skipped without CUDA by tests/conftest.py
 
 
 def _scenes() -> list[AnalyticScene]:

@@ -10,7 +10,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from services_testlib import Services, services_fixture  # noqa: E402
+from services_testlib import Services, services_fixture
 
 
 @pytest.fixture

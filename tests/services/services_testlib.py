@@ -11,6 +11,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 # `navi` with the mesh commands registered (until navi.cli lists navi_mesh.cli itself).
 NAVI_CODE = (
@@ -45,7 +46,12 @@ class Service:
         self.log = cwd / f"{name}.log"
         self._log = self.log.open("ab")
         self.proc = subprocess.Popen(
-            [*NAVI, *args], cwd=cwd, env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True
+            [*NAVI, *args],
+            cwd=cwd,
+            env=env,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
         )
 
     def alive(self) -> bool:
@@ -70,7 +76,19 @@ class Services:
     """Starts services in one working folder with one environment; stops them all at the end."""
 
     def __init__(self, cwd: Path, env: dict[str, str]) -> None:
-        self.cwd, self.env, self.started = cwd, env, []
+        self.cwd, self.env = cwd, env
+        self.started: list[Service] = []
+        self.sessions: list[Any] = []
+
+    def session(self) -> Any:
+        """A Zenoh client session of the test, closed before the services stop."""
+        from navi_mesh.session import SessionConfig, open_new_session
+
+        sess = open_new_session(
+            SessionConfig(connect=(self.env["NAVI_ZENOH_CONNECT"],), connect_timeout_s=10.0)
+        )
+        self.sessions.append(sess)
+        return sess
 
     def start(self, name: str, *args: str) -> Service:
         svc = Service(name, list(args), self.cwd, self.env)
@@ -78,6 +96,8 @@ class Services:
         return svc
 
     def stop_all(self) -> None:
+        for sess in self.sessions:
+            sess.close()
         for svc in reversed(self.started):
             svc.stop(signal.SIGKILL if svc.name.startswith("router") else signal.SIGTERM, 10.0)
 

@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 import typer
 import yaml
+
 from navi_mesh import cli as mesh_cli
 from navi_mesh import metrics
 
@@ -57,7 +58,9 @@ def test_every_command_is_a_real_navi_subcommand(name: str) -> None:
         path.append(args[0])
         group = group.commands[args.pop(0)]
     assert path == ["serve", name] and not hasattr(group, "commands")
-    ctx = group.make_context(" ".join(["navi", *path]), list(args))  # raises on an unknown option or bad value
+    ctx = group.make_context(
+        " ".join(["navi", *path]), list(args)
+    )  # raises on an unknown option or bad value
     assert ctx.params
 
 
@@ -98,11 +101,16 @@ def test_ports_agree_with_the_config() -> None:
     assert connect == f"tcp/router:{listen[0]}"
     assert f"{listen[0]}:{listen[0]}" in SERVICES["router"]["ports"]
     rest_port = re.search(r"http_port:\s*(\d+)", router_json)
-    assert rest_port and f"localhost:{rest_port.group(1)}/" in " ".join(SERVICES["router"]["healthcheck"]["test"])
+    assert rest_port and f"localhost:{rest_port.group(1)}/" in " ".join(
+        SERVICES["router"]["healthcheck"]["test"]
+    )
 
     api_port = settings["NAVI_API_PORT"]
     learner = SERVICES["learner"]["command"]
-    assert option_value(learner, "--port") == api_port and f"{api_port}:{api_port}" in SERVICES["learner"]["ports"]
+    assert (
+        option_value(learner, "--port") == api_port
+        and f"{api_port}:{api_port}" in SERVICES["learner"]["ports"]
+    )
     metrics_port = settings["NAVI_METRICS_PORT"]
     for name in ("env", "compiler"):
         assert option_value(SERVICES[name]["command"], "--metrics-port") == metrics_port
@@ -132,8 +140,16 @@ def test_every_service_has_a_health_check_and_the_learner_a_gpu() -> None:
     slim = (ROOT / "deploy" / "slim.Dockerfile").read_text()
     assert re.search(r"^FROM nvidia/cuda:\S+-runtime-", cuda, re.M)
     assert re.search(r"^FROM python:3\.11-slim", slim, re.M)
-    assert SERVICES["learner"]["build"]["dockerfile"] == SERVICES["env"]["build"]["dockerfile"] == "deploy/cuda.Dockerfile"
-    assert SERVICES["compiler"]["build"]["dockerfile"] == SERVICES["auditor"]["build"]["dockerfile"] == "deploy/slim.Dockerfile"
+    assert (
+        SERVICES["learner"]["build"]["dockerfile"]
+        == SERVICES["env"]["build"]["dockerfile"]
+        == "deploy/cuda.Dockerfile"
+    )
+    assert (
+        SERVICES["compiler"]["build"]["dockerfile"]
+        == SERVICES["auditor"]["build"]["dockerfile"]
+        == "deploy/slim.Dockerfile"
+    )
 
 
 def test_grafana_provisioning_and_dashboard_use_real_metrics() -> None:
@@ -150,6 +166,12 @@ def test_grafana_provisioning_and_dashboard_use_real_metrics() -> None:
     known = {f.name + s for f in metrics.REGISTRY.collect() for s in suffixes.get(f.type, ("",))}
     used = set(re.findall(r"\bnavi_[a-z_]+", exprs))
     assert used and used <= known, used - known
-    for needed in ("navi_steps_per_second", "navi_reward_ema", "navi_loss", "navi_gpu_memory_bytes",
-                   "navi_compile_jobs_total", "navi_dropped_messages_total"):
+    for needed in (
+        "navi_steps_per_second",
+        "navi_reward_ema",
+        "navi_loss",
+        "navi_gpu_memory_bytes",
+        "navi_compile_jobs_total",
+        "navi_dropped_messages_total",
+    ):
         assert needed in used, needed

@@ -8,11 +8,12 @@ from pathlib import Path
 import pytest
 import torch
 from fastapi.testclient import TestClient
+from prometheus_client.parser import text_string_to_metric_families
+
 from navi_contracts.models import ModelPromoted
 from navi_learner.checkpoint import CheckpointMeta, save_checkpoint
 from navi_learner.config import TrainConfig
 from navi_learner.control_plane import ControlPlaneConfig, create_app
-from prometheus_client.parser import text_string_to_metric_families
 
 TOKEN = "s3cret-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -57,7 +58,13 @@ def test_mutations_need_the_bearer_token(plane: tuple[TestClient, list[ModelProm
     assert move["model"]["step_id"] == 1000 and move["model"]["aliases"] == ["champion"]
     assert len(announced) == 1
     msg = announced[0]
-    assert (msg.alias, msg.version, msg.previous_version, msg.notes, msg.tags) == ("champion", "v001", None, "first", ("rl",))
+    assert (msg.alias, msg.version, msg.previous_version, msg.notes, msg.tags) == (
+        "champion",
+        "v001",
+        None,
+        "first",
+        ("rl",),
+    )
     assert Path(msg.checkpoint).is_file() and Path(msg.checkpoint).name == "v001.pt"
 
 
@@ -120,4 +127,11 @@ def test_metrics_health_and_docs(plane: tuple[TestClient, list[ModelPromoted], P
     assert client.get("/healthz").json()["mutations_enabled"] is True
     assert client.get("/docs").status_code == 200
     paths = client.get("/openapi.json").json()["paths"]
-    assert {"/models", "/models/{version}", "/models/promote", "/models/rollback", "/healthz", "/metrics"} <= set(paths)
+    assert {
+        "/models",
+        "/models/{version}",
+        "/models/promote",
+        "/models/rollback",
+        "/healthz",
+        "/metrics",
+    } <= set(paths)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import zenoh
 from services_testlib import free_port, wait_for
+
 from navi_contracts.codec import encode
 from navi_contracts.models import CompileJob, CompileResult, Message, StepRequest, TelemetryEvent
 from navi_contracts.topics import ALL_TOPICS, COMPILE_JOBS, STEP, TELEMETRY, Topic
@@ -152,15 +153,19 @@ def test_request_reply_with_progress_and_typed_errors(mesh: tuple[zenoh.Session,
                 continue
             for frac in (0.25, 0.5):
                 item.progress(telemetry("compiler.progress.sdf", frac, 0, item.message.job_id))
-            item.reply(CompileResult(job_id=item.message.job_id, ok=True, output="out.gmdag", stats={"x": 1.0}))
+            item.reply(
+                CompileResult(job_id=item.message.job_id, ok=True, output="out.gmdag", stats={"x": 1.0})
+            )
 
     worker = threading.Thread(target=serve, daemon=True)
     worker.start()
     seen: list[float] = []
-    result = request(client, f"{COMPILE_JOBS.key}/w1", _compile_job(), CompileResult, 5.0, lambda e: seen.append(e.value))
+    result = request(
+        client, f"{COMPILE_JOBS.key}/w1", _compile_job(), CompileResult, 5.0, lambda e: seen.append(e.value)
+    )
     assert result.ok and result.output == "out.gmdag" and result.stats == {"x": 1.0}
     assert seen == [0.25, 0.5]
-    with pytest.raises(RequestError, match="no reply"):
+    with pytest.raises(RequestError, match="without a reply"):
         request(client, f"{COMPILE_JOBS.key}/nobody", _compile_job(), CompileResult, 0.5)
     stop.set()
     worker.join(2.0)
@@ -191,7 +196,9 @@ def _swallow(sess: zenoh.Session, req: StepRequest) -> None:
 def test_liveliness_tokens_come_and_go(mesh: tuple[zenoh.Session, zenoh.Session]) -> None:
     a, b = mesh
     token = declare_alive(a, "compiler", "host-1")
-    wait_for(lambda: [t.key for t in live_tokens(b, timeout_s=0.5)] == ["navi/alive/compiler/host-1"], 5.0, "token")
+    wait_for(
+        lambda: [t.key for t in live_tokens(b, timeout_s=0.5)] == ["navi/alive/compiler/host-1"], 5.0, "token"
+    )
     token.undeclare()
     wait_for(lambda: not live_tokens(b, timeout_s=0.5), 5.0, "the token to disappear")
     assert parse_token("navi/alive/env/x") is not None and parse_token("navi/alive/env") is None

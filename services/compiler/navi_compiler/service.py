@@ -24,7 +24,7 @@ from pathlib import Path
 import zenoh
 
 from navi_contracts.models import CompileJob, CompileResult, TelemetryEvent
-from navi_contracts.topics import COMPILE_JOBS
+from navi_contracts.topics import COMPILE_JOBS, alive_key
 from navi_mesh import metrics
 from navi_mesh.liveliness import declare_alive, instance_id, live_tokens
 from navi_mesh.pubsub import Incoming, RequestError, RequestQueue, request
@@ -212,4 +212,18 @@ def submit_compile_job(
             on_progress(event.key.removeprefix("compiler.progress."), event.value)
 
     worker = pick_worker(sess)
-    return request(sess, f"{COMPILE_JOBS.key}/{worker}", job, CompileResult, timeout_s, relay)
+    died = zenoh.CancellationToken()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            died.cancel()
+
+    watch = sess.liveliness().declare_subscriber(alive_key(SERVICE, worker), on_token)
+    try:
+        return request(sess, f"{COMPILE_JOBS.key}/{worker}", job, CompileResult, timeout_s, relay, died)
+    except RequestError as err:
+        if died.is_cancelled or worker not in {t.instance for t in live_tokens(sess, SERVICE, timeout_s=1.0)}:
+            raise RequestError(f"compiler worker {worker} died before answering job {job.job_id}") from err
+        raise
+    finally:
+        watch.undeclare()

@@ -183,7 +183,7 @@ def move_alias(
     try:
         move()
     except RegistryError as err:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, str(err)) from err
+        raise HTTPException(422, str(err)) from err
     aliases = registry.aliases()
     version = aliases[alias]
     entry = registry.get(version)

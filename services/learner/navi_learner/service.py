@@ -347,7 +347,10 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
             summary = run_inference(cfg, tap, pubs, sess, stop)
         log.info("run finished: %s", json.dumps(summary, default=str))
         if not cfg.exit_when_done:
-            stop.wait()
+            try:
+                stop.wait()
+            except KeyboardInterrupt:
+                log.info("stopping")
     finally:
         if plane is not None:
             server, thread = plane

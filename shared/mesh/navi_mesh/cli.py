@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import signal
 import sys
 import threading
@@ -376,15 +375,11 @@ def stack_up(
     ] = 120.0,
 ) -> None:
     """Start router, compiler, env, learner (and auditor) as local processes (pid files in artifacts/stack)."""
-    from navi_mesh.stack import STACK_DIR, StackConfig, api_token, read_states, service_specs, start
+    from navi_mesh.stack import STACK_DIR, StackConfig, StackError, up
 
     settings = _settings()
-    root = STACK_DIR
-    root.mkdir(parents=True, exist_ok=True)
-    if any(s.running for s in read_states(root)):
-        raise fail(f"the stack is already running (see `navi stack status`; pid files in {root})")
     cfg = StackConfig(
-        root=root,
+        root=STACK_DIR,
         router_port=router_port,
         api_port=api_port or settings.api_port,
         auditor_port=settings.auditor_port,
@@ -394,57 +389,11 @@ def stack_up(
         device=device,
         auditor=auditor,
     )
-    if not any(corpus.glob("*.gmdag")):
-        from navi_env.corpus import build_default_corpus
-
-        typer.echo(f"building the procedural default corpus into {corpus} (once)", err=True)
-        build_default_corpus(corpus, progress=lambda line: typer.echo(f"  {line}", err=True))
-    token, generated = api_token(root)
-    if generated:
-        typer.echo(
-            f"NAVI_API_TOKEN was unset; generated one for this stack (stored in {root / 'api_token'}):"
-        )
-        typer.echo(f"  {token}")
-    env = {**os.environ, "NAVI_API_TOKEN": token, "NAVI_ZENOH_CONNECT": f"tcp/127.0.0.1:{router_port}"}
-    with_auditor = auditor and _has_auditor()
-    for spec in service_specs(cfg, with_auditor):
-        state = start(spec, root, env)
-        typer.echo(f"started {state.name:<9} pid {state.pid}  log {state.log}", err=True)
-        if spec.name == "router":
-            time.sleep(0.5)
-    _wait_for_tokens(settings, router_port, [s.name for s in service_specs(cfg, with_auditor)], wait_s)
-    _print_status(root, (f"tcp/127.0.0.1:{router_port}",), False, 2.0)
-
-
-def _has_auditor() -> bool:
-    import importlib.util
-
-    return importlib.util.find_spec("navi_auditor.server") is not None
-
-
-def _wait_for_tokens(settings: NaviSettings, router_port: int, names: list[str], wait_s: float) -> None:
-    from navi_mesh.liveliness import live_tokens
-    from navi_mesh.session import MeshError, SessionConfig, open_new_session
-
-    deadline = time.monotonic() + wait_s
-    cfg = SessionConfig(
-        connect=(f"tcp/127.0.0.1:{router_port}",), connect_timeout_s=max(1.0, min(10.0, wait_s))
-    )
     try:
-        sess = open_new_session(cfg)
-    except MeshError as err:
-        typer.echo(f"warning: the router did not answer: {err}", err=True)
-        return
-    try:
-        while time.monotonic() < deadline:
-            alive = {t.service for t in live_tokens(sess, timeout_s=1.0)}
-            missing = [n for n in names if n not in alive]
-            if not missing:
-                return
-            time.sleep(1.0)
-        typer.echo(f"warning: no liveliness token yet from {', '.join(missing)} (see their logs)", err=True)
-    finally:
-        sess.close()
+        up(cfg, wait_s, lambda line: typer.echo(line, err=True), typer.echo)
+    except StackError as err:
+        raise fail(str(err)) from err
+    _print_status(cfg.root, (f"tcp/127.0.0.1:{router_port}",), False, 2.0)
 
 
 @stack_app.command("down")

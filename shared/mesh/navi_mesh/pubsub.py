@@ -278,11 +278,13 @@ def request(
     reply_type: type[R],
     timeout_s: float,
     on_progress: Callable[[TelemetryEvent], None] | None = None,
+    cancel: zenoh.CancellationToken | None = None,
 ) -> R:
     """Send `message` to the queryable at `key` and return its final reply as `reply_type`.
 
     Progress replies go to `on_progress`. Raises RequestError on an error reply or when no final
-    reply arrives within timeout_s, ContractError when the reply does not decode.
+    reply arrives within timeout_s (or `cancel` fired first), ContractError when the reply does not
+    decode.
     """
     replies = sess.get(
         key,
@@ -291,8 +293,10 @@ def request(
         target=zenoh.QueryTarget.BEST_MATCHING,
         consolidation=zenoh.ConsolidationMode.NONE,
         congestion_control=zenoh.CongestionControl.BLOCK,
+        cancellation_token=cancel,
     )
     result: R | None = None
+    t0 = time.monotonic()
     for reply in replies:
         if reply.err is not None:
             raise RequestError(f"{key}: {reply.err.payload.to_bytes().decode(errors='replace')}")
@@ -305,6 +309,10 @@ def request(
                 on_progress(decode(sample.payload.to_bytes(), TelemetryEvent))
         elif result is None:
             result = decode(sample.payload.to_bytes(), reply_type)
+    if result is None and cancel is not None and cancel.is_cancelled:
+        raise RequestError(f"{key}: cancelled before the reply")
+    if result is None and time.monotonic() - t0 < timeout_s * 0.9:
+        raise RequestError(f"{key}: the request ended without a reply (the service went away)")
     if result is None:
         raise RequestError(f"{key}: no reply within {timeout_s:g} s (is the service running?)")
     return result

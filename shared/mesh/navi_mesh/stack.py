@@ -15,10 +15,18 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 STACK_DIR = Path("artifacts/stack")
+
+
+def navi_argv() -> tuple[str, ...]:
+    """How to run the `navi` command from this interpreter."""
+    return (sys.executable, "-m", "navi")
+
+
 TOKEN_FILE = "api_token"
 ORDER = ("router", "compiler", "env", "learner", "auditor")
 
@@ -50,7 +58,13 @@ class StackConfig:
     total_steps: int = 10_000_000
     """Learner training budget."""
     auditor: bool = True
-    """Start the auditor dashboard when `navi serve auditor` exists."""
+    """Start the auditor dashboard when navi_auditor is installed."""
+    navi: tuple[str, ...] = field(default_factory=navi_argv)
+    """The `navi` command line prefix the services run with (default: this interpreter's `-m navi`)."""
+
+
+class StackError(RuntimeError):
+    """The stack cannot be started (already running, no corpus, ...)."""
 
 
 @dataclass(frozen=True)
@@ -72,14 +86,9 @@ class ProcessState:
     log: str
 
 
-def navi_argv() -> tuple[str, ...]:
-    """How to run the `navi` command from this interpreter."""
-    return (sys.executable, "-m", "navi")
-
-
 def service_specs(cfg: StackConfig, with_auditor: bool) -> list[ServiceSpec]:
     """The processes of the stack in start order: the same `navi serve` commands compose runs."""
-    navi = (*navi_argv(), "serve")
+    navi = (*cfg.navi, "serve")
     specs = [
         ServiceSpec("router", (*navi, "router", "--listen", f"tcp/127.0.0.1:{cfg.router_port}")),
         ServiceSpec("compiler", (*navi, "compiler", "--metrics-port", str(cfg.compiler_metrics_port))),
@@ -210,3 +219,74 @@ def stop_all(root: Path, grace_s: float = 20.0) -> list[ProcessState]:
     for st in states:
         pid_file(root, st.name).unlink(missing_ok=True)
     return [ProcessState(st.name, st.pid, is_running(st.pid), st.started_at, st.log) for st in states]
+
+
+def has_auditor() -> bool:
+    """navi_auditor's dashboard is installed."""
+    import importlib.util
+
+    return (
+        importlib.util.find_spec("navi_auditor") is not None
+        and importlib.util.find_spec("navi_auditor.server") is not None
+    )
+
+
+def ensure_corpus(corpus: Path, progress: Callable[[str], None]) -> None:
+    """Build the procedural default corpus into `corpus` once (before env and learner start)."""
+    if (corpus / "manifest.json").is_file():
+        return
+    from navi_env.corpus import build_default_corpus
+
+    progress(f"building the procedural default corpus into {corpus} (once)")
+    build_default_corpus(corpus, progress=lambda line: progress(f"  {line}"))
+
+
+def wait_for_tokens(router_port: int, names: list[str], wait_s: float) -> list[str]:
+    """Wait until every named service holds a liveliness token; returns the names still missing."""
+    from navi_mesh.liveliness import live_tokens
+    from navi_mesh.session import MeshError, SessionConfig, open_new_session
+
+    deadline = time.monotonic() + wait_s
+    cfg = SessionConfig(
+        connect=(f"tcp/127.0.0.1:{router_port}",), connect_timeout_s=max(1.0, min(10.0, wait_s))
+    )
+    try:
+        sess = open_new_session(cfg)
+    except MeshError:
+        return list(names)
+    try:
+        missing = list(names)
+        while missing and time.monotonic() < deadline:
+            alive = {t.service for t in live_tokens(sess, timeout_s=1.0)}
+            missing = [n for n in names if n not in alive]
+            if missing:
+                time.sleep(0.5)
+        return missing
+    finally:
+        sess.close()
+
+
+def up(
+    cfg: StackConfig, wait_s: float, progress: Callable[[str], None], announce: Callable[[str], None]
+) -> list[ProcessState]:
+    """Start the stack: corpus first, a token when NAVI_API_TOKEN is unset (announced once), then the
+    services in order; waits up to wait_s for their liveliness tokens."""
+    cfg.root.mkdir(parents=True, exist_ok=True)
+    if any(s.running for s in read_states(cfg.root)):
+        raise StackError(f"the stack is already running (see `navi stack status`; pid files in {cfg.root})")
+    ensure_corpus(cfg.corpus, progress)
+    token, generated = api_token(cfg.root)
+    if generated:
+        announce(f"NAVI_API_TOKEN was unset; generated one for this stack (also in {cfg.root / TOKEN_FILE}):")
+        announce(f"  {token}")
+    env = {**os.environ, "NAVI_API_TOKEN": token, "NAVI_ZENOH_CONNECT": f"tcp/127.0.0.1:{cfg.router_port}"}
+    specs = service_specs(cfg, cfg.auditor and has_auditor())
+    states = []
+    for spec in specs:
+        state = start(spec, cfg.root, env)
+        states.append(state)
+        progress(f"started {state.name:<9} pid {state.pid}  log {state.log}")
+    missing = wait_for_tokens(cfg.router_port, [s.name for s in specs], wait_s)
+    if missing:
+        progress(f"warning: no liveliness token yet from {', '.join(missing)} (see their logs in {cfg.root})")
+    return states

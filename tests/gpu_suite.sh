@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# The GPU checks and benchmarks in one go, for a CUDA host without a package registry (our lent
+# H100/H200 machines): builds the extensions in place, runs the gpu-marked tests, then the benchmarks.
+#   tests/gpu_suite.sh tests CORPUS_DIR   # gpu tests only
+#   tests/gpu_suite.sh bench CORPUS_DIR   # navi bench trace / env / train (+ the learner anchor if present)
+# Needs torch (CUDA), numpy, nvcc, pybind11, setuptools, typer; pytest may come from artifacts/pytest-vendor.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+what=${1:-tests}; corpus=${2:-artifacts/bench-corpus}
+out=${OUT:-artifacts/gpu-suite}; mkdir -p "$out"
+export PYTHONPATH=$PWD:$PWD/services/compiler:$PWD/services/env:$PWD/services/learner:$PWD/artifacts/pytest-vendor:${PYTHONPATH:-}
+export PYTHONUNBUFFERED=1
+for pkg in compiler env; do (cd services/$pkg && python setup.py -q build_ext --inplace >/dev/null); done
+navi() { python -c "from navi_compiler.cli import register as rc; from navi_env.cli import register as re; from navi_learner.cli import register as rl; import typer; app=typer.Typer(); bench=typer.Typer(); [r(app, bench) for r in (rc, re, rl)]; app.add_typer(bench, name='bench'); app()" "$@"; }
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+if [ "$what" = tests ]; then
+  python -m pytest -q -p no:cacheprovider -m gpu tests/env/test_env_gpu.py tests/env/test_env_trace_parity.py \
+    tests/env/test_env_trace_edges.py tests/learner/test_learner_gpu.py 2>&1 | tee "$out/gpu_tests.log"
+  exit "${PIPESTATUS[0]}"
+fi
+scene=$(ls "$corpus"/*.gmdag | head -n 1)
+for n in 4096 8192; do
+  navi bench trace --gmdag "$scene" --agents $n --device cuda --json | tee -a "$out/bench_trace.jsonl"
+done
+navi bench env --corpus "$corpus" --actors 8192 --steps 100 --device cuda --json | tee -a "$out/bench_env.jsonl"
+for core in mamba2 gru; do
+  navi bench train --corpus "$corpus" --actors 8192 --temporal-core $core --device cuda --json \
+    | tee -a "$out/bench_train.jsonl"
+done
+if [ -f artifacts/anchors/learner_ceiling.py ]; then
+  sed "s/for layers in (2, 4)/for layers in (2,)/" artifacts/anchors/learner_ceiling.py > "$out/ceiling2.py"
+  python "$out/ceiling2.py" 2>&1 | tee "$out/anchor_learner_ceiling.jsonl"
+fi

@@ -1,0 +1,332 @@
+"""Real processes, real Zenoh on loopback: router + compiler + learner (CPU, tiny) + env + this test as
+the subscriber/client. Every service is started with the same `navi serve ...` command the stack uses."""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import torch
+import zenoh
+from prometheus_client.parser import text_string_to_metric_families
+from services_testlib import Services, free_port, wait_for
+
+from navi_contracts.codec import encode
+from navi_contracts.models import CompileJob, CompileResult, Message, ModelPromoted, StepRequest, StepResult
+from navi_contracts.topics import ACTIONS, COMPILE_JOBS, MODEL_PROMOTED, OBSERVATIONS, STEP, TELEMETRY
+from navi_mesh.liveliness import live_tokens
+from navi_mesh.pubsub import RequestError, request, subscribe
+
+pytestmark = pytest.mark.integration
+
+
+def client(services: Services) -> zenoh.Session:
+    sess: zenoh.Session = services.session()
+    return sess
+
+
+def router(services: Services, name: str = "router") -> None:
+    services.start(name, "serve", "router")
+
+
+def scrape(port: int) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+    return {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for family in text_string_to_metric_families(text)
+        for s in family.samples
+    }
+
+
+def alive(sess: zenoh.Session, service: str) -> list[str]:
+    return [t.instance for t in live_tokens(sess, service, timeout_s=0.5)]
+
+
+def source_mesh(tmp: Path) -> Path:
+    from navi_compiler.scenes import generate_corpus
+
+    return generate_corpus(tmp / "sources", 1, 0)[0]
+
+
+def raw_query(sess: zenoh.Session, key: str, payload: bytes) -> str:
+    """Send raw bytes to a queryable; the text of its error reply ('' when it answered ok)."""
+    for reply in sess.get(key, payload=payload, timeout=5.0):
+        if reply.err is not None:
+            return reply.err.payload.to_bytes().decode()
+    return ""
+
+
+def test_compiler_service(services: Services, tmp_path: Path) -> None:
+    from navi_compiler.gmdag import read_gmdag
+    from navi_compiler.service import BUSY_PREFIX, submit_compile_job
+
+    router(services)
+    metrics_port = free_port()
+    compiler = services.start(
+        "compiler", "serve", "compiler", "--workers", "2", "--metrics-port", str(metrics_port)
+    )
+    sess = client(services)
+    wait_for(lambda: len(alive(sess, "compiler")) == 2, 30.0, "two compiler workers")
+    src = source_mesh(tmp_path)
+    out = tmp_path / "out"
+
+    stages: list[tuple[str, float]] = []
+    job = CompileJob(job_id="good", source=str(src), output=str(out / "good.gmdag"), resolution=64)
+    result = submit_compile_job(job, 60.0, lambda s, f: stages.append((s, f)), sess=sess)
+    assert result.ok, result.error
+    read_gmdag(out / "good.gmdag")  # validates the whole file (magic, counts, references, checksum)
+    assert (
+        result.stats["resolution"] == 64 and result.stats["file_bytes"] == (out / "good.gmdag").stat().st_size
+    )
+    assert stages and stages[-1][1] == 1.0 and [f for _, f in stages] == sorted(f for _, f in stages)
+
+    bad = submit_compile_job(
+        CompileJob(
+            job_id="bad", source=str(tmp_path / "missing.obj"), output=str(out / "bad.gmdag"), resolution=64
+        ),
+        60.0,
+        sess=sess,
+    )
+    assert not bad.ok and bad.error_type == "IngestError" and "not found" in (bad.error or "")
+    assert not (out / "bad.gmdag").exists()
+
+    # Garbage to a worker: an error reply, counted; the worker keeps serving.
+    worker = alive(sess, "compiler")[0]
+    assert "ContractError" in raw_query(sess, f"{COMPILE_JOBS.key}/{worker}", b"\x00not msgpack")
+    after = [
+        submit_compile_job(
+            CompileJob(
+                job_id=f"again{i}", source=str(src), output=str(out / f"again{i}.gmdag"), resolution=64
+            ),
+            60.0,
+            sess=sess,
+        )
+        for i in range(2)
+    ]
+    assert all(r.ok for r in after)
+    samples = scrape(metrics_port)
+    assert samples[("navi_decode_errors_total", (("topic", COMPILE_JOBS.key),))] == 1.0
+    assert samples[("navi_compile_jobs_total", (("outcome", "ok"),))] == 3.0
+    assert samples[("navi_compile_jobs_total", (("outcome", "error"),))] == 1.0
+    assert samples[("navi_compile_duration_seconds_count", ())] == 4.0
+
+    # Load sharing: while one worker is busy with a long job, the next job goes to the other one.
+    long_job = CompileJob(job_id="long", source=str(src), output=str(out / "long.gmdag"), resolution=512)
+    results: list[CompileResult | RequestError] = []
+
+    def run_long() -> None:
+        try:
+            results.append(submit_compile_job(long_job, 120.0, sess=sess))
+        except RequestError as err:
+            results.append(err)
+
+    runner = threading.Thread(target=run_long)
+    runner.start()
+    wait_for(lambda: bool(live_tokens(sess, "compiler", 0.5, prefix=BUSY_PREFIX)), 20.0, "a busy worker")
+    busy = live_tokens(sess, "compiler", 0.5, prefix=BUSY_PREFIX)[0].instance
+    short = submit_compile_job(
+        CompileJob(job_id="short", source=str(src), output=str(out / "short.gmdag"), resolution=64),
+        60.0,
+        sess=sess,
+    )
+    assert short.ok and short.worker_id != busy
+
+    # Killed half-way: no partial .gmdag is left behind, and the client gets a clear error.
+    assert runner.is_alive(), "the long job finished before the kill; raise its resolution"
+    compiler.stop(signal.SIGKILL)
+    runner.join(30.0)
+    assert not runner.is_alive(), "the client must notice that its worker died"
+    assert isinstance(results[0], RequestError) and "died" in str(results[0])
+    assert not (out / "long.gmdag").exists()
+    finished = ["again0.gmdag", "again1.gmdag", "good.gmdag", "short.gmdag"]
+    assert sorted(p.name for p in out.glob("*.gmdag")) == finished
+
+
+def test_learner_service_telemetry_control_plane_and_router_restart(
+    services: Services, tmp_path: Path
+) -> None:
+    from navi_learner.checkpoint import CheckpointMeta, save_checkpoint
+    from navi_learner.config import TrainConfig
+
+    token = "integration-token"
+    services.env["NAVI_API_TOKEN"] = token
+    router(services)
+    sess = client(services)
+    received: dict[str, list[Message]] = {
+        TELEMETRY.key: [],
+        OBSERVATIONS.key: [],
+        ACTIONS.key: [],
+        MODEL_PROMOTED.key: [],
+    }
+    subs = [
+        subscribe(sess, t, received[t.key].append) for t in (TELEMETRY, OBSERVATIONS, ACTIONS, MODEL_PROMOTED)
+    ]
+    api = free_port()
+    actors, rollout, updates = 4, 32, 96
+    total = actors * rollout * updates
+    learner = services.start(
+        "learner",
+        "serve",
+        "learner",
+        "--env",
+        "toy",
+        "--actors",
+        str(actors),
+        "--temporal-core",
+        "gru",
+        "--rollout-length",
+        str(rollout),
+        "--total-steps",
+        str(total),
+        "--device",
+        "cpu",
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(api),
+    )
+
+    def training_steps() -> list[int]:
+        return [e.step for e in received[TELEMETRY.key] if getattr(e, "key", "") == "actor.training.sps"]
+
+    wait_for(lambda: len(training_steps()) >= 3, 90.0, "training telemetry")
+    keys = {e.key for e in received[TELEMETRY.key] if hasattr(e, "key")}
+    assert {"actor.training.sps", "actor.training.reward_ema", "actor.training.policy_loss"} <= keys
+    wait_for(lambda: bool(received[OBSERVATIONS.key]) and bool(received[ACTIONS.key]), 20.0, "observations")
+    obs = received[OBSERVATIONS.key][-1]
+    assert obs.depth.shape == (1, 16, 8) and list(obs.env_ids) == [0]
+    assert received[ACTIONS.key][-1].command.shape == (actors, 4)
+
+    # The router dies mid-training and comes back: training goes on, the session reconnects.
+    before = max(training_steps())
+    services.started[0].stop(signal.SIGKILL)
+    time.sleep(2.0)
+    router(services, "router2")
+    wait_for(
+        lambda: max(training_steps()) > before + 2 * actors * rollout, 60.0, "telemetry after the restart"
+    )
+    assert learner.alive()
+    wait_for(
+        lambda: "learner" in [t.service for t in live_tokens(sess, timeout_s=0.5)], 10.0, "learner token back"
+    )
+
+    # Control plane: 401 without the token, 200 with it, and ModelPromoted on the mesh.
+    wait_for(lambda: _up(api), 30.0, "the control plane")
+    ckpt = save_checkpoint(
+        tmp_path / "external.pt",
+        {"w": torch.ones(1)},
+        None,
+        CheckpointMeta(1, 0, 0.5, 0.0, "gru", "ext", TrainConfig().to_dict(), [3, 16, 8]),
+    )
+    body = {"checkpoint": str(ckpt), "alias": "champion", "notes": "integration"}
+    url = f"http://127.0.0.1:{api}"
+    assert httpx.post(f"{url}/models/promote", json=body).status_code == 401
+    ok = httpx.post(f"{url}/models/promote", json=body, headers={"Authorization": f"Bearer {token}"})
+    assert ok.status_code == 200, ok.text
+    wait_for(lambda: bool(received[MODEL_PROMOTED.key]), 10.0, "ModelPromoted")
+    promoted = received[MODEL_PROMOTED.key][0]
+    assert (
+        isinstance(promoted, ModelPromoted)
+        and promoted.alias == "champion"
+        and promoted.version == ok.json()["version"]
+    )
+    metrics = httpx.get(f"{url}/metrics")
+    families = {f.name: f for f in text_string_to_metric_families(metrics.text)}
+    assert families["navi_steps"].samples[0].value > 0
+    assert "navi_steps_per_second" in families and "navi_promotions" in families
+
+    # The run completes every step; its metrics log has one row per update, none lost.
+    wait_for(
+        lambda: (
+            any(getattr(e, "key", "") == "actor.training.done" for e in received[TELEMETRY.key])
+            or not learner.alive()
+        ),
+        120.0,
+        "the end of training",
+    )
+    assert learner.stop(signal.SIGTERM) == 0
+    summary = json.loads(learner.text().strip().splitlines()[-1])
+    assert summary["steps"] == total and summary["interrupted"] is False
+    rows = [
+        json.loads(line)
+        for line in Path(
+            services.env["NAVI_ARTIFACTS_DIR"], "runs", summary["run_id"], "metrics", "metrics.jsonl"
+        )
+        .read_text()
+        .splitlines()
+    ]
+    assert [r["step"] for r in rows] == [float(actors * rollout * (i + 1)) for i in range(updates)]
+    for s in subs:
+        s.undeclare()
+
+
+def _up(port: int) -> bool:
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -> None:
+    from navi_env.corpus import build_corpus
+
+    corpus = tmp_path / "corpus"
+    build_corpus([source_mesh(tmp_path)], corpus, resolution=64)
+    services.env.update({"NAVI_AZIMUTH_BINS": "32", "NAVI_ELEVATION_BINS": "8"})
+    router(services)
+    port = free_port()
+    services.start(
+        "env",
+        "serve",
+        "env",
+        "--corpus",
+        str(corpus),
+        "--actors",
+        "3",
+        "--device",
+        "cpu",
+        "--metrics-port",
+        str(port),
+    )
+    sess = client(services)
+    observations: list[Message] = []
+    sub = subscribe(sess, OBSERVATIONS, observations.append)
+    wait_for(lambda: bool(alive(sess, "env")), 60.0, "the env service")
+
+    def step(ids: list[int], actions: np.ndarray, reset: bool = False) -> StepResult:
+        req = StepRequest(
+            request_id=f"r{time.monotonic_ns()}",
+            env_ids=np.array(ids, np.int32),
+            actions=actions.astype(np.float32),
+            reset=reset,
+        )
+        return request(sess, STEP.key, req, StepResult, 20.0)
+
+    first = step([0, 1, 2], np.zeros((3, 4)), reset=True)
+    assert first.step_id == 0 and first.observation is not None
+    assert first.observation.depth.shape == (3, 32, 8)
+    assert float(first.observation.depth.min()) >= 0.0 and float(first.observation.depth.max()) <= 1.0
+    results = [step([2, 0], np.array([[1.0, 0, 0, 0], [0.5, 0, 0, 0.5]])) for _ in range(5)]
+    assert [r.step_id for r in results] == [1, 2, 3, 4, 5]
+    last = results[-1]
+    assert list(last.env_ids) == [2, 0] and last.reward.shape == (2,) and np.isfinite(last.reward).all()
+    assert last.observation is not None and last.observation.depth.shape == (2, 32, 8)
+    with pytest.raises(RequestError, match="StepError"):
+        step([7], np.zeros((1, 4)))
+    assert "ContractError" in raw_query(
+        sess, STEP.key, encode(CompileJob(job_id="x", source="s", output="o"))
+    )
+    assert step([1], np.zeros((1, 4))).step_id == 6  # still serving
+    wait_for(lambda: bool(observations), 10.0, "a published observation")
+    samples = scrape(port)
+    assert samples[("navi_decode_errors_total", (("topic", STEP.key),))] == 1.0
+    assert samples[("navi_step_requests_total", (("outcome", "ok"),))] == 7.0
+    assert samples[("navi_steps_total", (("mode", "env"),))] == 3.0 * 6
+    sub.undeclare()
