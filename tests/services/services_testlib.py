@@ -13,14 +13,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-# `navi` with the mesh commands registered (until navi.cli lists navi_mesh.cli itself).
-NAVI_CODE = (
-    "import navi.cli as c\n"
-    "if 'navi_mesh.cli' not in c.COMMAND_MODULES:\n"
-    "    c.COMMAND_MODULES = (*c.COMMAND_MODULES, 'navi_mesh.cli')\n"
-    "c.main()\n"
-)
-NAVI = (sys.executable, "-c", NAVI_CODE)
+NAVI = (sys.executable, "-m", "navi")
 
 
 def free_port() -> int:

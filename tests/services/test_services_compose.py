@@ -12,7 +12,6 @@ import pytest
 import typer
 import yaml
 
-from navi_mesh import cli as mesh_cli
 from navi_mesh import metrics
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -25,10 +24,7 @@ def navi_click() -> Any:
     """The root command as typer builds it (a group: `.commands` maps names to commands)."""
     from navi import cli as root
 
-    app = root.build_app()
-    if "navi_mesh.cli" not in root.COMMAND_MODULES:
-        mesh_cli.register(app, typer.Typer())
-    return typer.main.get_command(app)
+    return typer.main.get_command(root.build_app())
 
 
 def env_file() -> dict[str, str]:

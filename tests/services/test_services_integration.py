@@ -330,3 +330,69 @@ def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -
     assert samples[("navi_step_requests_total", (("outcome", "ok"),))] == 7.0
     assert samples[("navi_steps_total", (("mode", "env"),))] == 3.0 * 6
     sub.undeclare()
+
+
+def test_inference_follows_promotions(services: Services, tmp_path: Path) -> None:
+    from navi_learner.config import EngineConfig, TrainConfig
+    from navi_learner.toy_env import ToyEnv
+    from navi_learner.train import train
+
+    def trained(seed: int) -> Path:
+        cfg = TrainConfig(
+            n_actors=2,
+            rollout_length=16,
+            total_steps=32,
+            device="cpu",
+            seed=seed,
+            engine=EngineConfig(temporal_core="gru"),
+        )
+        return train(
+            ToyEnv(2, seed=seed), cfg, run_dir=tmp_path / f"run{seed}", progress=False
+        ).final_checkpoint
+
+    first, second = trained(0), trained(1)
+    token = "infer-token"
+    services.env["NAVI_API_TOKEN"] = token
+    router(services)
+    sess = client(services)
+    events: list[Message] = []
+    sub = subscribe(sess, TELEMETRY, events.append)
+    api = free_port()
+    learner = services.start(
+        "learner",
+        "serve",
+        "learner",
+        "--mode",
+        "infer",
+        "--env",
+        "toy",
+        "--actors",
+        "2",
+        "--model",
+        str(first),
+        "--follow-alias",
+        "champion",
+        "--device",
+        "cpu",
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(api),
+    )
+
+    def keys() -> set[str]:
+        return {getattr(e, "key", "") for e in events}
+
+    wait_for(lambda: "actor.inference.sps" in keys(), 60.0, "inference telemetry")
+    assert not any(k.startswith("actor.training.") for k in keys())
+    wait_for(lambda: _up(api), 30.0, "the control plane")
+    body = {"checkpoint": str(second), "alias": "champion"}
+    r = httpx.post(
+        f"http://127.0.0.1:{api}/models/promote", json=body, headers={"Authorization": f"Bearer {token}"}
+    )
+    assert r.status_code == 200, r.text
+    wait_for(lambda: "actor.inference.model_reloaded" in keys(), 30.0, "the model reload")
+    assert learner.alive()
+    assert learner.stop(signal.SIGTERM) == 0
+    assert "loaded" in learner.text() and f"champion -> {r.json()['version']}" in learner.text()
+    sub.undeclare()

@@ -27,6 +27,7 @@ class EngineChoice(StrEnum):
 
     cpp = "cpp"
     ref = "ref"
+    torch = "torch"
 
 
 def _parse_seed(raw: str) -> tuple[float, float, float]:
@@ -71,6 +72,26 @@ def _summary(stats: dict[str, object], out: str | None, load_seconds: float) -> 
     return {"output": out, "load_seconds": load_seconds, **stats}
 
 
+def _check_device(engine: EngineChoice, device: str) -> None:
+    """--device must name a usable torch device, and only goes with --engine torch."""
+    if device == "cpu":
+        return
+    if engine != EngineChoice.torch:
+        raise _fail(f"--device {device} needs --engine torch")
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise _fail(f"--device {device!r} is not a torch device") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise _fail(f"--device {device}: CUDA is not available here")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise _fail(f"--device {device}: only {torch.cuda.device_count()} CUDA device(s) here")
+    if dev.type not in ("cpu", "cuda"):
+        raise _fail(f"--device {device}: only cpu and cuda are supported")
+
+
 def register(app: typer.Typer, bench: typer.Typer) -> None:
     """Add compile and check to the root app, `compile` to the bench group, and the scenes group."""
 
@@ -97,9 +118,10 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             str | None, typer.Option("--map", help="Map name inside a .pk3 (e.g. oa_dm1).")
         ] = None,
         engine: Annotated[
-            EngineChoice, typer.Option(help="cpp (fast) or ref (NumPy); same bytes.")
+            EngineChoice, typer.Option(help="cpp (fast), ref (NumPy) or torch (CPU/CUDA); same bytes.")
         ] = EngineChoice.cpp,
         threads: Annotated[int, typer.Option(help="C++ worker threads (0: all cores).", min=0)] = 0,
+        device: Annotated[str, typer.Option(help="Torch device for --engine torch (cpu, cuda).")] = "cpu",
         json_out: Annotated[
             bool, typer.Option("--json", help="Print one JSON summary object on stdout.")
         ] = False,
@@ -108,13 +130,19 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         from navi_compiler.compile import compile_scene
         from navi_compiler.gmdag import write_gmdag
 
+        _check_device(engine, device)
         t0 = time.perf_counter()
         scene = _load(src, map_name, scale, repair, seed)
         load_seconds = time.perf_counter() - t0
         show = sys.stderr.isatty() and not json_out
         try:
             g, stats = compile_scene(
-                scene, resolution=resolution, engine=engine.value, threads=threads, progress=_progress(show)
+                scene,
+                resolution=resolution,
+                engine=engine.value,
+                threads=threads,
+                progress=_progress(show),
+                device=device,
             )
         except ValueError as exc:
             raise _fail(str(exc)) from None
@@ -180,20 +208,30 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         resolution: Annotated[int, typer.Option(help="Cells per cube edge.")] = 512,
         map_name: Annotated[str | None, typer.Option("--map", help="Map name inside a .pk3.")] = None,
         scale: Annotated[float | None, typer.Option(help="Meters per source unit.")] = None,
-        engine: Annotated[EngineChoice, typer.Option(help="cpp or ref.")] = EngineChoice.cpp,
+        engine: Annotated[EngineChoice, typer.Option(help="cpp, ref or torch.")] = EngineChoice.cpp,
         threads: Annotated[int, typer.Option(help="C++ worker threads (0: all cores).", min=0)] = 0,
+        device: Annotated[str, typer.Option(help="Torch device for --engine torch (cpu, cuda).")] = "cpu",
         json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object (always on).")] = True,
     ) -> None:
-        """Time one compile (nothing written) and print the stats as one JSON object."""
+        """Time one compile (nothing written) and print the stats as one JSON object. With --engine
+        torch a first (warm-up) compile runs before the timed one; its time is `warmup_seconds`."""
         import os
 
         from navi_compiler.compile import compile_scene
 
+        _check_device(engine, device)
         t0 = time.perf_counter()
         scene = _load(src, map_name, scale, False, None)
         load_seconds = time.perf_counter() - t0
+        warmup: float | None = None
         try:
-            _, stats = compile_scene(scene, resolution=resolution, engine=engine.value, threads=threads)
+            if engine == EngineChoice.torch:
+                t1 = time.perf_counter()
+                compile_scene(scene, resolution=resolution, engine="torch", device=device)
+                warmup = time.perf_counter() - t1
+            _, stats = compile_scene(
+                scene, resolution=resolution, engine=engine.value, threads=threads, device=device
+            )
         except ValueError as exc:
             raise _fail(str(exc)) from None
         except MemoryError:
@@ -201,7 +239,16 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 f"not enough memory for resolution {resolution} (about 20 bytes per lattice point)"
             ) from None
         result = _summary(asdict(stats), None, load_seconds)
-        result.update({"source": src, "map": map_name, "cpu_count": os.cpu_count(), "json": json_out})
+        result.update(
+            {
+                "source": src,
+                "map": map_name,
+                "cpu_count": os.cpu_count(),
+                "json": json_out,
+                "device": device if engine == EngineChoice.torch else "cpu",
+                "warmup_seconds": warmup,
+            }
+        )
         typer.echo(json.dumps(result))
 
     cli_scenes.register(app)

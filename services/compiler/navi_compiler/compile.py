@@ -1,7 +1,8 @@
 """The compiler: Scene -> Gmdag. Placement (grid.py), signed field (sdf.py / the C++ core), DAG (dag.py).
 
 `engine="cpp"` runs the C++17 core (navi_compiler._core), `engine="ref"` the NumPy reference; both
-produce byte-identical files for the same scene and options.
+produce byte-identical files for the same scene and options. `engine="torch"` runs the PyTorch stages
+(sdf_torch.py) on `device` (CPU or CUDA), also to the same bytes.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from navi_compiler.sdf import SdfInput, SdfResult, signed_field_ref
 
 log = logging.getLogger(__name__)
 
-Engine = Literal["cpp", "ref"]
+Engine = Literal["cpp", "ref", "torch"]
 Progress = Callable[[str, float], None]  # (stage name, fraction of the whole compile done)
 
 
@@ -45,11 +46,11 @@ class CompileStats:
     file_bytes: int  # size of the encoded .gmdag
     dense_bytes: int  # R^3 * 4, a dense float32 grid
     compression: float  # dense_bytes / file_bytes
-    seconds_sdf: float  # signed field stage
-    seconds_dag: float  # DAG stage
+    seconds_sdf: float  # signed field stage (engine torch: also its DAG, stage_seconds["dag"])
+    seconds_dag: float  # DAG stage (engine torch: the file assembly only)
     seconds_total: float
-    stage_seconds: dict[str, float]  # signed-field stages (distance, barrier, fill, sign, ..., classes)
-    engine: str  # "cpp" or "ref"
+    stage_seconds: dict[str, float]  # signed-field stages (distance, ..., classes; torch: + upload, dag)
+    engine: str  # "cpp", "ref" or "torch"
 
 
 def _corners(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -75,6 +76,24 @@ def _dag_cpp(sdf: SdfResult, band: float, threads: int) -> DagArrays:
     return DagArrays(root, levels, nodes, bricks, brick_class)
 
 
+def _compile_torch(inp: SdfInput, device: str) -> tuple[SdfResult, DagArrays]:
+    """The torch engine runs the DAG's device half too; its lattice is not kept (an empty array)."""
+    from navi_compiler.sdf_torch import TorchConfig, compile_torch
+
+    out = compile_torch(inp, TorchConfig(device=device))
+    empty = np.zeros((0, 0, 0), np.float32)  # (0, 0, 0) float32
+    sdf = SdfResult(
+        empty,
+        np.zeros((0, 0, 0), np.uint8),
+        out.flags,
+        out.seeds_used,
+        out.wall_points,
+        out.free_points,
+        out.stage_seconds,
+    )
+    return sdf, out.arrays
+
+
 def compile_scene(
     scene: Scene,
     *,
@@ -85,14 +104,15 @@ def compile_scene(
     engine: Engine = "cpp",
     threads: int = 0,
     progress: Progress | None = None,
+    device: str = "cpu",
 ) -> tuple[Gmdag, CompileStats]:
     """Compile a scene into a validated Gmdag.
 
     resolution: cells per cube edge, rounded up to a power of two. padding: free cells kept on each
     side of the scene's longest axis. band: voxels of quantised distance kept around the surface.
-    seeds: extra known-free points (meters) added to scene.seeds. engine: "cpp" or "ref".
+    seeds: extra known-free points (meters) added to scene.seeds. engine: "cpp", "ref" or "torch".
     threads: C++ worker threads (0: all cores; the output does not depend on it).
-    progress: called with (stage, fraction done).
+    progress: called with (stage, fraction done). device: torch device of engine="torch".
     """
     report = progress or (lambda stage, frac: None)
     t0 = time.perf_counter()
@@ -108,7 +128,10 @@ def compile_scene(
         band=band,
     )
     report("signed distance field", 0.0)
-    sdf = _signed_field_cpp(inp, threads) if engine == "cpp" else signed_field_ref(inp)
+    if engine == "torch":
+        sdf, arrays = _compile_torch(inp, device)
+    else:
+        sdf = _signed_field_cpp(inp, threads) if engine == "cpp" else signed_field_ref(inp)
     if sdf.flags & FLAG_LEAK_FALLBACK:
         log.warning(
             "scene %r: the fill from %d inside seed(s) reached the cube border (the scene leaks); "
@@ -125,7 +148,7 @@ def compile_scene(
     inside = ((all_seeds >= cube_lo) & (all_seeds <= cube_hi)).all(axis=1)  # (S,)
     if engine == "cpp":
         arrays = _dag_cpp(sdf, band, threads)
-    else:
+    elif engine == "ref":
         arrays = build_dag(sdf.lattice, band, sdf.brick_class)
     g = make_gmdag(
         arrays,

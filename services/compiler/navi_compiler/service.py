@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import zenoh
 
@@ -47,6 +48,8 @@ class CompilerServiceConfig:
     """Worker threads in this process; each takes one job at a time."""
     threads: int = 0
     """C++ threads per job (0: all cores)."""
+    device: str = "cpu"
+    """cpu: the C++ core; cuda or cuda:N: the GPU (torch) engine, same output format."""
     metrics_port: int = 9100
     """Port of GET /metrics (Prometheus)."""
     metrics_host: str = "0.0.0.0"
@@ -64,7 +67,11 @@ def _stats_dict(stats: object) -> dict[str, float]:
 
 
 def run_compile_job(
-    job: CompileJob, worker_id: str = "", progress: Progress | None = None, threads: int = 0
+    job: CompileJob,
+    worker_id: str = "",
+    progress: Progress | None = None,
+    threads: int = 0,
+    device: str = "cpu",
 ) -> CompileResult:
     """Load, compile and atomically write one job's scene; any failure becomes an error result."""
     from navi_compiler.compile import compile_scene
@@ -76,7 +83,10 @@ def run_compile_job(
         scene = load_scene(
             job.source, map_name=job.map_name, scale=job.scale, repair=job.repair, seeds=list(job.seeds)
         )
-        gmdag, stats = compile_scene(scene, resolution=job.resolution, threads=threads, progress=progress)
+        engine: Literal["cpp", "torch"] = "torch" if device.startswith("cuda") else "cpp"
+        gmdag, stats = compile_scene(
+            scene, resolution=job.resolution, threads=threads, progress=progress, engine=engine, device=device
+        )
         out = Path(job.output)
         out.parent.mkdir(parents=True, exist_ok=True)
         write_gmdag(gmdag, out)
@@ -129,7 +139,9 @@ def _progress_sender(item: Incoming[CompileJob]) -> Progress:
     return send
 
 
-def serve_worker(sess: zenoh.Session, worker_id: str, threads: int, stop: threading.Event) -> None:
+def serve_worker(
+    sess: zenoh.Session, worker_id: str, cfg: CompilerServiceConfig, stop: threading.Event
+) -> None:
     """Serve jobs at navi/compiler/jobs/<worker_id> until `stop` is set."""
     token = declare_alive(sess, SERVICE, worker_id)
     jobs: RequestQueue[CompileJob] = RequestQueue(sess, COMPILE_JOBS, key=f"{COMPILE_JOBS.key}/{worker_id}")
@@ -141,7 +153,9 @@ def serve_worker(sess: zenoh.Session, worker_id: str, threads: int, stop: thread
                 continue
             busy = sess.liveliness().declare_token(f"{BUSY_PREFIX}/{SERVICE}/{worker_id}")
             try:
-                result = run_compile_job(item.message, worker_id, _progress_sender(item), threads)
+                result = run_compile_job(
+                    item.message, worker_id, _progress_sender(item), cfg.threads, cfg.device
+                )
                 item.reply(result)
             except zenoh.ZError as err:
                 log.warning("reply to job %s not delivered: %s", item.message.job_id, err)
@@ -162,7 +176,7 @@ def serve_compiler(cfg: CompilerServiceConfig, stop: threading.Event) -> None:
     workers = [
         threading.Thread(
             target=serve_worker,
-            args=(sess, f"{base}-w{i}", cfg.threads, stop),
+            args=(sess, f"{base}-w{i}", cfg, stop),
             name=f"compiler w{i}",
             daemon=True,
         )

@@ -104,7 +104,12 @@ class MeshPublishers:
 
 
 class TelemetryTap:
-    """A BatchedEnv that forwards to `env` and samples observations and actions for the mesh."""
+    """A BatchedEnv that forwards to `env` and samples observations and actions for the mesh.
+
+    When a sample is due, actor 0's observation and the actions are copied into pinned host buffers
+    with non_blocking copies and a CUDA event is recorded; a later step publishes them once the event
+    has completed (`event.query()`, no synchronisation). On the CPU the copy is immediate.
+    """
 
     def __init__(self, env: BatchedEnv, pubs: MeshPublishers, hz: float, run_id: str = "") -> None:
         self.env = env
@@ -112,8 +117,14 @@ class TelemetryTap:
         self.period = 1.0 / hz
         self.run_id = run_id
         self.steps = 0  # batched steps
-        self.publish_s = 0.0  # time spent building and queueing samples
+        self.publish_s = 0.0  # time the loop spent in the tap's sampling and publishing
         self._next = 0.0
+        cuda = env.device.type == "cuda"
+        c, az, el = env.obs_shape
+        self._obs_host = torch.zeros(1, c, az, el, pin_memory=cuda)  # (1, 3, Az, El) float32
+        self._act_host = torch.zeros(env.n_actors, 4, pin_memory=cuda)  # (N, 4) float32
+        self._event: torch.cuda.Event | None = torch.cuda.Event() if cuda else None
+        self._pending_step: int | None = None
 
     @property
     def n_actors(self) -> int:
@@ -134,18 +145,31 @@ class TelemetryTap:
         out = self.env.step(actions)
         self.steps += 1
         now = time.monotonic()
-        if now >= self._next:
+        if self._pending_step is not None and (self._event is None or self._event.query()):
+            self.publish(self._pending_step)
+        if now >= self._next and self._pending_step is None:
             self._next = now + self.period
             self.sample(out.obs, actions)
-            self.publish_s += time.monotonic() - now
+            if self._event is None:
+                self.publish(self.steps * self.env.n_actors)
+        self.publish_s += time.monotonic() - now
         return out
 
     def sample(self, obs: torch.Tensor, actions: torch.Tensor) -> None:
-        """Queue actor 0's observation (1, 3, Az, El) and all actions (N, 4)."""
-        step = self.steps * self.env.n_actors
-        first = obs[:1].detach().float().cpu().numpy()  # (1, 3, Az, El) float32
+        """Start copying actor 0's observation and all actions to the host buffers."""
+        self._obs_host.copy_(obs[:1], non_blocking=True)
+        self._act_host.copy_(actions, non_blocking=True)
+        self._pending_step = self.steps * self.env.n_actors
+        if self._event is not None:
+            self._event.record()
+
+    def publish(self, step: int) -> None:
+        """Queue the copied sample (the buffers are reused, so the messages get their own copies)."""
+        first = self._obs_host.numpy().copy()  # (1, 3, Az, El) float32
+        acts = self._act_host.numpy().copy()  # (N, 4) float32
         self.pubs.observations.publish(distance_matrix(first, np.zeros(1, np.int32), step, self.run_id))
-        self.pubs.actions.publish(action_message(actions.detach().float().cpu().numpy(), step, self.run_id))
+        self.pubs.actions.publish(action_message(acts, step, self.run_id))
+        self._pending_step = None
 
 
 def telemetry_rows(prefix: str, row: dict[str, float], run_id: str) -> list[TelemetryEvent]:
@@ -163,17 +187,14 @@ class TrainingMetrics:
 
     def __init__(self, pubs: MeshPublishers, tap: TelemetryTap, device: torch.device) -> None:
         self.pubs, self.tap, self.device = pubs, tap, device
-        self.last_step = 0
-        self.last_episodes = 0
+        self.counted_steps = 0  # actor-steps of this process already added to navi_steps_total
         self.t0 = time.monotonic()
 
     def __call__(self, run_id: str, row: dict[str, float]) -> None:
-        step, episodes = int(row.get("step", 0)), int(row.get("episode_count", 0))
-        if self.last_step == 0:
-            self.last_step, self.last_episodes = step - self.tap.steps * self.tap.n_actors, episodes
-        metrics.STEPS.labels("train").inc(max(0, step - self.last_step))
-        metrics.EPISODES.labels("train").inc(max(0, episodes - self.last_episodes))
-        self.last_step, self.last_episodes = step, episodes
+        taken = self.tap.steps * self.tap.n_actors
+        metrics.STEPS.labels("train").inc(taken - self.counted_steps)
+        self.counted_steps = taken
+        metrics.EPISODES.labels("train").inc(max(0.0, row.get("episodes", 0.0)))  # this log window's
         metrics.STEPS_PER_SECOND.labels("train").set(row.get("sps", 0.0))
         metrics.REWARD_EMA.set(row.get("reward_ema", 0.0))
         for name, value in row.items():
@@ -322,6 +343,11 @@ def start_control_plane(
     server = uvicorn.Server(uvicorn.Config(app, host=cfg.api_host, port=cfg.api_port, log_level="warning"))
     thread = threading.Thread(target=server.run, name="control plane", daemon=True)
     thread.start()
+    deadline = time.monotonic() + 30.0
+    while not server.started and thread.is_alive() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    if not server.started:
+        raise RuntimeError(f"the control plane did not start on {cfg.api_host}:{cfg.api_port}")
     return server, thread
 
 
@@ -336,10 +362,10 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
         cfg.corpus if cfg.env_kind == "sdfdag" else None, n, cfg.train.device, cfg.train.seed, cfg.env_kind
     )
     sess = session(cfg.session)
-    token = declare_alive(sess, SERVICE)
     pubs = MeshPublishers(sess, cfg.telemetry_capacity)
     tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
     plane = start_control_plane(cfg, pubs)
+    token = declare_alive(sess, SERVICE)  # after the control plane listens: the token means ready
     try:
         if cfg.mode == "train":
             summary = run_training(cfg, tap, pubs)

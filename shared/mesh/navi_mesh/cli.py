@@ -149,6 +149,9 @@ def serve_compiler(
         int, typer.Option("--workers", min=1, help="Worker threads; each takes one job at a time.")
     ] = 1,
     threads: Annotated[int, typer.Option("--threads", min=0, help="C++ threads per job (0: all cores).")] = 0,
+    device: Annotated[
+        str, typer.Option("--device", help="cpu (C++ core) or cuda[:N] (GPU engine); auto picks.")
+    ] = "cpu",
     metrics_port: MetricsPortOpt = None,
     connect: ConnectOpt = None,
     zenoh_config: ZenohConfigOpt = None,
@@ -161,6 +164,7 @@ def serve_compiler(
     cfg = CompilerServiceConfig(
         workers=workers,
         threads=threads,
+        device=_device(device),
         metrics_port=metrics_port or settings.metrics_port,
         session=_session_config(settings, connect, zenoh_config),
     )

@@ -1,0 +1,105 @@
+"""The learner service's tap on the training loop: transparent, rate-limited, exact samples."""
+
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+from typing import Any
+
+import torch
+
+from navi_learner.service import TelemetryTap, TrainingMetrics, telemetry_rows
+from navi_learner.toy_env import ToyEnv
+from navi_mesh import metrics
+
+
+class Sink:
+    def __init__(self) -> None:
+        self.items: list[Any] = []
+
+    def publish(self, message: Any) -> None:
+        self.items.append(message)
+
+
+def pubs() -> Any:
+    return SimpleNamespace(observations=Sink(), actions=Sink(), telemetry=Sink())
+
+
+def test_tap_forwards_the_env_unchanged_and_samples_exact_values() -> None:
+    plain, tapped_env = ToyEnv(3, seed=5), ToyEnv(3, seed=5)
+    sinks = pubs()
+    tap = TelemetryTap(tapped_env, sinks, hz=1e6)
+    assert (tap.n_actors, tap.device, tap.obs_shape) == (3, torch.device("cpu"), plain.obs_shape)
+    assert torch.equal(plain.reset(1), tap.reset(1))
+    gen = torch.Generator().manual_seed(0)
+    for i in range(5):
+        actions = torch.rand(3, 4, generator=gen) * 2 - 1  # (N, 4)
+        a, b = plain.step(actions), tap.step(actions)
+        assert torch.equal(a.obs, b.obs) and torch.equal(a.reward, b.reward)
+        sample = sinks.observations.items[i]
+        assert sample.step_id == (i + 1) * 3 and list(sample.env_ids) == [0]
+        assert torch.equal(torch.from_numpy(sample.depth[0]), b.obs[0, 0])
+        assert torch.equal(torch.from_numpy(sample.delta_depth[0]), b.obs[0, 2])
+        assert torch.equal(torch.from_numpy(sinks.actions.items[i].command), actions)
+
+
+def test_tap_publishes_at_most_at_its_rate() -> None:
+    sinks = pubs()
+    tap = TelemetryTap(ToyEnv(2), sinks, hz=5.0)
+    tap.reset()
+    t0 = time.monotonic()
+    steps = 0
+    while time.monotonic() - t0 < 0.5:
+        tap.step(torch.zeros(2, 4))
+        steps += 1
+    assert steps > 20
+    assert 2 <= len(sinks.observations.items) <= 4  # 5 Hz over 0.5 s, plus the first sample
+    assert len(sinks.actions.items) == len(sinks.observations.items)
+
+
+def test_log_rows_become_training_telemetry_and_metrics() -> None:
+    sinks = pubs()
+    tap = TelemetryTap(ToyEnv(2), sinks, hz=1.0)
+    on_log = TrainingMetrics(sinks, tap, torch.device("cpu"))
+    before = metrics.REGISTRY.get_sample_value("navi_steps_total", {"mode": "train"}) or 0.0
+    episodes = metrics.REGISTRY.get_sample_value("navi_episodes_total", {"mode": "train"}) or 0.0
+    tap.reset()
+    for _ in range(4):
+        tap.step(torch.zeros(2, 4))
+    on_log(
+        "run-1",
+        {
+            "step": 256.0,
+            "sps": 1000.0,
+            "reward_ema": 0.25,
+            "policy_loss": -0.1,
+            "value_loss": 0.5,
+            "episode_count": 3.0,
+            "episodes": 3.0,
+            "bad": float("nan"),
+        },
+    )
+    on_log(
+        "run-1",
+        {
+            "step": 512.0,
+            "sps": 1100.0,
+            "reward_ema": 0.3,
+            "policy_loss": -0.2,
+            "value_loss": 0.4,
+            "episode_count": 5.0,
+            "episodes": 2.0,
+        },
+    )
+    events = {e.key: e for e in sinks.telemetry.items}
+    assert events["actor.training.sps"].value == 1100.0 and events["actor.training.sps"].step == 512
+    assert events["actor.training.sps"].run_id == "run-1"
+    assert "actor.training.bad" not in events and "actor.training.publish_fraction" in events
+    assert all(k.startswith("actor.training.") for k in events)
+    assert metrics.REGISTRY.get_sample_value("navi_steps_per_second", {"mode": "train"}) == 1100.0
+    assert metrics.REGISTRY.get_sample_value("navi_reward_ema") == 0.3
+    assert metrics.REGISTRY.get_sample_value("navi_loss", {"name": "value_loss"}) == 0.4
+    assert metrics.REGISTRY.get_sample_value("navi_steps_total", {"mode": "train"}) - before == 4 * 2
+    assert metrics.REGISTRY.get_sample_value("navi_episodes_total", {"mode": "train"}) - episodes == 5.0
+    rows = telemetry_rows("actor.inference", {"step": 8.0, "sps": 2.0}, "")
+    assert [(e.key, e.value, e.step) for e in rows] == [("actor.inference.sps", 2.0, 8)]
