@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
+import sys
 import threading
 import time
 import urllib.request
@@ -87,6 +89,22 @@ def test_compiler_service(services: Services, tmp_path: Path) -> None:
     )
     assert stages and stages[-1][1] == 1.0 and [f for _, f in stages] == sorted(f for _, f in stages)
 
+    # The same through the command line: `navi compile --remote` waits for a worker's result.
+    cli = subprocess.run(
+        [sys.executable, "-m", "navi", "compile", str(src), "-o", str(out / "cli.gmdag"), "--resolution", "64",
+         "--remote", "--timeout", "60", "--json"],
+        cwd=services.cwd, env=services.env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert cli.returncode == 0, cli.stderr
+    assert json.loads(cli.stdout)["output"] == str(out / "cli.gmdag")
+    assert (out / "cli.gmdag").read_bytes() == (out / "good.gmdag").read_bytes()
+    missing = subprocess.run(
+        [sys.executable, "-m", "navi", "compile", str(tmp_path / "nope.obj"), "-o", str(out / "x.gmdag"),
+         "--remote", "--timeout", "60"],
+        cwd=services.cwd, env=services.env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert missing.returncode == 2 and "IngestError" in missing.stderr and "Traceback" not in missing.stderr
+
     bad = submit_compile_job(
         CompileJob(
             job_id="bad", source=str(tmp_path / "missing.obj"), output=str(out / "bad.gmdag"), resolution=64
@@ -113,9 +131,13 @@ def test_compiler_service(services: Services, tmp_path: Path) -> None:
     assert all(r.ok for r in after)
     samples = scrape(metrics_port)
     assert samples[("navi_decode_errors_total", (("topic", COMPILE_JOBS.key),))] == 1.0
-    assert samples[("navi_compile_jobs_total", (("outcome", "ok"),))] == 3.0
-    assert samples[("navi_compile_jobs_total", (("outcome", "error"),))] == 1.0
-    assert samples[("navi_compile_duration_seconds_count", ())] == 4.0
+    assert (
+        samples[("navi_compile_jobs_total", (("outcome", "ok"),))] == 4.0
+    )  # good, the CLI job, two after the garbage
+    assert (
+        samples[("navi_compile_jobs_total", (("outcome", "error"),))] == 2.0
+    )  # the missing source, twice (API and CLI)
+    assert samples[("navi_compile_duration_seconds_count", ())] == 6.0
 
     # Load sharing: while one worker is busy with a long job, the next job goes to the other one.
     long_job = CompileJob(job_id="long", source=str(src), output=str(out / "long.gmdag"), resolution=512)
@@ -145,7 +167,7 @@ def test_compiler_service(services: Services, tmp_path: Path) -> None:
     assert not runner.is_alive(), "the client must notice that its worker died"
     assert isinstance(results[0], RequestError) and "died" in str(results[0])
     assert not (out / "long.gmdag").exists()
-    finished = ["again0.gmdag", "again1.gmdag", "good.gmdag", "short.gmdag"]
+    finished = ["again0.gmdag", "again1.gmdag", "cli.gmdag", "good.gmdag", "short.gmdag"]
     assert sorted(p.name for p in out.glob("*.gmdag")) == finished
 
 
@@ -320,6 +342,23 @@ def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -
     assert last.observation is not None and last.observation.depth.shape == (2, 32, 8)
     with pytest.raises(RequestError, match="StepError"):
         step([7], np.zeros((1, 4)))
+    # `navi infer --remote` flies the same drones with a checkpoint, through the same queryable.
+    from navi_learner.config import EngineConfig, TrainConfig
+    from navi_learner.toy_env import ToyEnv
+    from navi_learner.train import train
+
+    cfg = TrainConfig(n_actors=2, rollout_length=8, total_steps=16, device="cpu", seed=0,
+                      engine=EngineConfig(temporal_core="gru"))  # fmt: skip
+    ckpt = train(ToyEnv(2, az=32, el=8), cfg, run_dir=tmp_path / "run", progress=False).final_checkpoint
+    infer = subprocess.run(
+        [sys.executable, "-m", "navi", "infer", "--checkpoint", str(ckpt), "--remote", "--actors", "3",
+         "--total-steps", "4", "--device", "cpu", "--json"],
+        cwd=services.cwd, env=services.env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert infer.returncode == 0, infer.stderr
+    assert json.loads(infer.stdout)
+    after_infer = step([0], np.zeros((1, 4)))
+    assert after_infer.step_id == 5  # the remote run reset the env (0) and stepped it 4 times; this is 5
     assert "ContractError" in raw_query(
         sess, STEP.key, encode(CompileJob(job_id="x", source="s", output="o"))
     )
@@ -327,8 +366,10 @@ def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -
     wait_for(lambda: bool(observations), 10.0, "a published observation")
     samples = scrape(port)
     assert samples[("navi_decode_errors_total", (("topic", STEP.key),))] == 1.0
-    assert samples[("navi_step_requests_total", (("outcome", "ok"),))] == 7.0
-    assert samples[("navi_steps_total", (("mode", "env"),))] == 3.0 * 6
+    assert (
+        samples[("navi_step_requests_total", (("outcome", "ok"),))] == 13.0
+    )  # 1 reset + 5 steps, the remote run (1 reset + 4 steps), 2 more
+    assert samples[("navi_steps_total", (("mode", "env"),))] == 3.0 * 11  # 11 steps of 3 actors
     sub.undeclare()
 
 

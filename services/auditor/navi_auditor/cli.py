@@ -63,7 +63,7 @@ def record_command(
         raise fail("--duration must be positive")
     stop = _stop_on_signals()
     typer.echo("waiting for the Zenoh router (Ctrl+C to give up)", err=True)
-    session = open_until(NaviSettings(), stop)  # type: ignore[call-arg]
+    session = open_until(NaviSettings(), stop)
     if session is None:
         raise typer.Exit(1)
 
@@ -101,7 +101,7 @@ def replay_command(
     except SessionFormatError as exc:
         raise fail(str(exc)) from exc
     stop = _stop_on_signals()
-    session = open_until(NaviSettings(), stop)  # type: ignore[call-arg]
+    session = open_until(NaviSettings(), stop)
     if session is None:
         raise typer.Exit(1)
     span = entries[-1][0] - entries[0][0] if entries else 0.0

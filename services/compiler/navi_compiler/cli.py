@@ -92,6 +92,68 @@ def _check_device(engine: EngineChoice, device: str) -> None:
         raise _fail(f"--device {device}: only cpu and cuda are supported")
 
 
+def _compile_remote(
+    src: str,
+    out: Path,
+    resolution: int,
+    scale: float | None,
+    seed: list[str] | None,
+    repair: bool,
+    map_name: str | None,
+    timeout: float,
+    json_out: bool,
+) -> None:
+    """`navi compile --remote`: one CompileJob to a worker, its progress on stderr, its result."""
+    import uuid
+
+    from navi_compiler.service import submit_compile_job
+    from navi_contracts.models import CompileJob
+    from navi_mesh.pubsub import RequestError
+
+    seeds = tuple(_parse_seed(s) for s in seed or ())
+    try:
+        job = CompileJob(
+            job_id=uuid.uuid4().hex,
+            source=src,
+            output=str(out),
+            resolution=resolution,
+            scale=scale,
+            map_name=map_name,
+            seeds=seeds,
+            repair=repair,
+        )
+    except ValueError as exc:
+        raise _fail(f"invalid job: {exc}") from None
+    show = sys.stderr.isatty() and not json_out
+
+    def on_progress(stage: str, fraction: float) -> None:
+        if show:
+            sys.stderr.write(f"\r[remote] {stage:<24} {100 * fraction:5.1f}%")
+            sys.stderr.flush()
+
+    try:
+        result = submit_compile_job(job, timeout_s=timeout, on_progress=on_progress)
+    except RequestError as exc:
+        raise _fail(f"remote compile failed: {exc}") from None
+    if show:
+        sys.stderr.write("\n")
+    if not result.ok:
+        raise _fail(f"remote compile failed: {result.error_type}: {result.error}")
+    if json_out:
+        typer.echo(
+            json.dumps(
+                {
+                    "output": result.output,
+                    "worker": result.worker_id,
+                    "seconds": result.duration_s,
+                    **result.stats,
+                }
+            )
+        )
+        return
+    typer.echo(f"{result.output}: compiled by worker {result.worker_id} in {result.duration_s:.1f} s")
+
+
 def register(app: typer.Typer, bench: typer.Typer) -> None:
     """Add compile and check to the root app, `compile` to the bench group, and the scenes group."""
 
@@ -125,12 +187,26 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         json_out: Annotated[
             bool, typer.Option("--json", help="Print one JSON summary object on stdout.")
         ] = False,
+        remote: Annotated[
+            bool,
+            typer.Option(
+                "--remote",
+                help="Submit the job to a `navi serve compiler` worker over Zenoh (NAVI_ZENOH_CONNECT) "
+                "and wait for it; paths are as the worker sees them.",
+            ),
+        ] = False,
+        timeout: Annotated[
+            float, typer.Option(help="With --remote: seconds to wait for the worker's answer.", min=1.0)
+        ] = 3600.0,
     ) -> None:
         """Compile a scene into a .gmdag signed-distance DAG."""
         from navi_compiler.compile import compile_scene
         from navi_compiler.gmdag import write_gmdag
 
         _check_device(engine, device)
+        if remote:
+            _compile_remote(src, out, resolution, scale, seed, repair, map_name, timeout, json_out)
+            return
         t0 = time.perf_counter()
         scene = _load(src, map_name, scale, repair, seed)
         load_seconds = time.perf_counter() - t0

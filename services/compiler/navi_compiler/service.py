@@ -219,7 +219,7 @@ def submit_compile_job(
         from navi_contracts.settings import NaviSettings
         from navi_mesh.session import config_from_settings
 
-        sess = session(config_from_settings(NaviSettings()))  # type: ignore[call-arg]
+        sess = session(config_from_settings(NaviSettings()))
 
     def relay(event: TelemetryEvent) -> None:
         if on_progress is not None:

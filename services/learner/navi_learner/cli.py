@@ -247,12 +247,29 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         seed: SeedOpt = 0,
         env: EnvOpt = "sdfdag",
         as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+        remote: Annotated[
+            bool,
+            typer.Option(
+                "--remote",
+                help="Fly the drones of a `navi serve env` over Zenoh (NAVI_ZENOH_CONNECT) instead of an "
+                "in-process env; --actors of its drones are driven.",
+            ),
+        ] = False,
     ) -> None:
-        """Run a checkpoint in-process (no PPO) and report its metrics."""
+        """Run a checkpoint (no PPO) in-process, or against a remote env service, and report its metrics."""
         from navi_learner.evaluate import evaluate
 
         dev = pick_device(device)
         policy = eval_policy(str(checkpoint), dev, seed, deterministic)
+        if remote:
+            from navi_learner.remote_env import RemoteEnv, RemoteEnvError
+
+            try:
+                metrics = evaluate(RemoteEnv(actors, dev), policy, total_steps, seed, progress=True)
+            except RemoteEnvError as err:
+                raise fail(str(err)) from err
+            print_metrics([metrics], as_json)
+            return
         environment = build_env(env, corpus, actors, dev, seed)
         print_metrics([evaluate(environment, policy, total_steps, seed, progress=True)], as_json)
 

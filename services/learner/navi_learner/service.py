@@ -347,7 +347,7 @@ def start_control_plane(
     while not server.started and thread.is_alive() and time.monotonic() < deadline:
         time.sleep(0.02)
     if not server.started:
-        raise RuntimeError(f"the control plane did not start on {cfg.api_host}:{cfg.api_port}")
+        raise OSError(f"the control plane did not start on {cfg.api_host}:{cfg.api_port} (port in use?)")
     return server, thread
 
 

@@ -61,7 +61,7 @@ def _settings() -> NaviSettings:
     from navi_contracts.settings import NaviSettings
 
     try:
-        return NaviSettings()  # type: ignore[call-arg]  # pydantic-settings fills the fields
+        return NaviSettings()
     except ValidationError as err:
         raise fail(f"invalid NAVI_* setting: {err.errors()[0]['loc']}: {err.errors()[0]['msg']}") from err
 
@@ -97,7 +97,9 @@ def _logging() -> None:
     )
 
 
-def run_service(body: Callable[[threading.Event], Any], interrupt: bool = False) -> Any:
+def run_service(
+    body: Callable[[threading.Event], Any], interrupt: bool = False, errors: tuple[type[Exception], ...] = ()
+) -> Any:
     """Run body(stop) with SIGTERM/SIGINT setting `stop` (and raising KeyboardInterrupt when
     `interrupt`, so a training loop saves its checkpoint); clear errors exit 2."""
     from navi_mesh.session import MeshError, close_session
@@ -117,7 +119,9 @@ def run_service(body: Callable[[threading.Event], Any], interrupt: bool = False)
         return body(stop)
     except KeyboardInterrupt:
         return None
-    except (MeshError, FileNotFoundError, ValueError) as err:
+    except (MeshError, OSError, ValueError) as err:
+        raise fail(str(err)) from err
+    except errors as err:
         raise fail(str(err)) from err
     finally:
         close_session()
@@ -212,7 +216,9 @@ def serve_env(
 
         typer.echo(f"building the procedural default corpus into {corpus}", err=True)
         build_default_corpus(corpus)
-    run_service(lambda stop: serve(cfg, stop))
+    from navi_env.corpus import CorpusError
+
+    run_service(lambda stop: serve(cfg, stop), errors=(CorpusError,))
 
 
 @serve_app.command("learner")
@@ -297,7 +303,9 @@ def serve_learner(
         exit_when_done=exit_when_done,
         session=_session_config(settings, connect, zenoh_config),
     )
-    summary = run_service(lambda stop: serve(cfg, stop), interrupt=True)
+    from navi_learner.envs import EnvUnavailable
+
+    summary = run_service(lambda stop: serve(cfg, stop), interrupt=True, errors=(EnvUnavailable,))
     if summary is not None:
         typer.echo(json.dumps(summary, default=str))
 

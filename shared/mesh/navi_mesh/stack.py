@@ -174,7 +174,7 @@ def api_token(root: Path) -> tuple[str, bool]:
     """NAVI_API_TOKEN when set (or in .env), else a new random token; True when it was generated."""
     from navi_contracts.settings import NaviSettings
 
-    token = NaviSettings().api_token.get_secret_value()  # type: ignore[call-arg]
+    token = NaviSettings().api_token.get_secret_value()
     if token:
         return token, False
     token = secrets.token_urlsafe(24)
