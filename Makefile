@@ -9,7 +9,7 @@ PY := $(VENV)/bin/python
 PIP := $(PY) -m pip --disable-pip-version-check -q
 # Kept as a range so that an installed CPU or CUDA build of torch is reused, never replaced.
 TORCH_SPEC ?= torch>=2.5
-PACKAGES := shared/contracts shared/mesh services/compiler services/env services/learner services/auditor
+PACKAGES := shared/contracts shared/mesh services/compiler services/env services/learner[plots,tensorboard] services/auditor
 PYTEST_ARGS ?=
 STAMP := $(VENV)/.navi-setup
 SOURCES := $(wildcard pyproject.toml requirements-dev.txt */*/pyproject.toml */*/setup.py */*/*/csrc/*)

@@ -96,7 +96,12 @@ def test_run_folder_and_resume_continue_counters_and_optimizer(tmp_path: Path) -
     assert logged and logged[-1][0] == "r1"
     assert json.loads((tmp_path / "r1" / "manifests" / "run.json").read_text())["run_id"] == "r1"
     assert "r1" in (tmp_path / "r1" / "logs" / "train.log").read_text()
-    assert (tmp_path / "r1" / "reports" / "report.md").read_text().startswith("# Training run r1")
+    report = (tmp_path / "r1" / "reports" / "report.md").read_text()
+    assert report.startswith("# Training run r1")
+    png = tmp_path / "r1" / "reports" / "report.png"  # matplotlib comes with `make setup` (learner[plots])
+    assert "![reward and SPS](report.png)" in report and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    events = list((tmp_path / "r1" / "logs" / "tensorboard").glob("events.out.tfevents.*"))
+    assert events and events[0].stat().st_size > 0  # TensorBoard scalars (learner[tensorboard])
     c1 = load_checkpoint(first.final_checkpoint)
     assert c1.meta.run_id == "r1" and c1.meta.step_id == 2 * per_update
     assert c1.optimizer is not None
