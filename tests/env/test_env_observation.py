@@ -7,7 +7,7 @@ import math
 import torch
 
 from navi_env.config import EnvConfig, SensorConfig
-from navi_env.observation import view_stats, write_observation
+from navi_env.observation import observe, observe_ref, semantic_table, view_stats, write_observation
 from navi_env.rays import spherical_directions
 from navi_env.sensor import apply_sensor, dome_lidar, ray_pattern
 
@@ -101,3 +101,54 @@ def test_dropped_rays_read_as_misses_in_the_observation() -> None:
     assert 0 < int(dropped.sum()) < 8
     assert torch.all(ch0[dropped] == 1.0) and torch.all(ch1[dropped] == 0.0)
     assert torch.allclose(ch1[~dropped], torch.full_like(ch1[~dropped], 0.5 + 0.5 / 255))
+
+
+def random_frame(n: int, az: int, el: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth (N, R) float32 and semantic (N, R) uint8 with misses, hits of every class and rays exactly
+    on the near and mid-range band edges."""
+    g = torch.Generator().manual_seed(seed)
+    r = az * el
+    depth = torch.rand(n, r, generator=g) * 30.0  # (N, R) meters
+    edges = torch.tensor([CFG.reward.near_distance, CFG.reward.mid_range_min, CFG.reward.mid_range_max])
+    pick = torch.randint(0, 8, (n, r), generator=g)  # (N, R) int64
+    depth = torch.where(pick < 3, edges[pick.clamp(max=2)], depth)
+    semantic = torch.randint(1, 256, (n, r), generator=g, dtype=torch.uint8)  # (N, R) uint8
+    miss = torch.rand(n, r, generator=g) < 0.3  # (N, R) bool
+    return torch.where(miss, CFG.horizon, depth), semantic.masked_fill(miss, 0)
+
+
+def test_fused_observation_matches_the_reference_on_cpu() -> None:
+    """observe (torch.compile on CPU) against observe_ref over three frames: exact channels 0 and 1 and
+    statistics; channel 2 within one float32 rounding (ATen's CPU kernel fuses an FMA, inductor's CPU
+    code does not; the CUDA parity test in test_env_gpu.py is bit-exact)."""
+    n, az, el = 6, 16, 4
+    table = semantic_table("cpu")
+    fast = torch.rand(n, 3, az, el, generator=torch.Generator().manual_seed(9))
+    ref = fast.clone()
+    fresh = [
+        torch.ones(n, dtype=torch.bool),
+        torch.tensor([False, True] * 3),
+        torch.zeros(n, dtype=torch.bool),
+    ]
+    for step in range(3):
+        depth, sem = random_frame(n, az, el, step)
+        sensed, sensed_sem = (depth, sem) if step < 2 else random_frame(n, az, el, 10)  # sensor on
+        a = observe(fast, sensed, sensed_sem, fresh[step], depth, sem, table, CFG.horizon, CFG.reward)
+        b = observe_ref(ref, sensed, sensed_sem, fresh[step], depth, sem, CFG.horizon, CFG.reward)
+        assert torch.equal(fast[:, :2], ref[:, :2])
+        assert torch.allclose(fast[:, 2], ref[:, 2], rtol=0.0, atol=2.0**-22)
+        assert torch.all(fast[fresh[step], 2] == 0.0) and bool((fast[~fresh[step], 2] != 0.0).any()) == (
+            step > 0
+        )
+        for name in ("void", "near", "mid", "mid_balance"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        assert float(a.mid_balance.abs().max()) > 0.0
+        fast.copy_(ref)  # the next delta starts from the same previous frame
+
+
+def test_semantic_table_is_channel_one() -> None:
+    codes = torch.arange(256, dtype=torch.uint8)[None]  # (1, 256)
+    obs = torch.zeros(1, 3, 64, 4)
+    write_observation(obs, torch.zeros(1, 256), codes, codes > 0, torch.ones(1, dtype=torch.bool), 100.0)
+    assert torch.equal(semantic_table("cpu"), obs[0, 1].reshape(-1))
+    assert float(semantic_table("cpu")[0]) == 0.0 and float(semantic_table("cpu")[1]) == 0.5

@@ -124,6 +124,10 @@ class EnvConfig:
     cuda_graph: bool = True
     """On CUDA, record one step as a CUDA graph after two eager steps and replay it (same results,
     far less launch overhead). Steps with a StageTimer attached always run eagerly."""
+    fused_observation: bool = True
+    """On CUDA, compute the observation and the view statistics in one torch.compile'd pass
+    (navi_env.observation.observe; bit-identical to the eager kernels, compiled by the first `reset`
+    or `step`, before the CUDA graph is recorded). False, and always on CPU: the eager kernels."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """Optional noise, dropout and ray pattern; off by default."""
     reward: RewardConfig = field(default_factory=RewardConfig)

@@ -23,7 +23,7 @@ import torch
 
 from navi_env import episodes, physics, rewards
 from navi_env.config import EnvConfig
-from navi_env.observation import CHANNELS, view_stats, write_observation
+from navi_env.observation import CHANNELS, observe, observe_ref, semantic_table
 from navi_env.rays import tiled_ray_order
 from navi_env.scene import SceneCorpus
 from navi_env.sensor import apply_sensor, ray_pattern
@@ -164,6 +164,8 @@ class SdfDagEnv:
         self.depth = f32(n, r)  # (N, R) traced distance, meters
         self.semantic = torch.zeros(n, r, dtype=torch.uint8, device=dev)  # (N, R) 0 miss, 1 + class on a hit
         self.obs = f32(n, CHANNELS, cfg.azimuth_bins, cfg.elevation_bins)  # (N, 3, Az, El)
+        self._fused_observation = cfg.fused_observation and dev.type == "cuda"
+        self._semantic_table = semantic_table(dev)  # (256,) float32 channel 1 per semantic code
         self.void = f32(n)  # (N,) view statistics of the current observation
         self.near = f32(n)  # (N,)
         self.mid = f32(n)  # (N,)
@@ -360,16 +362,27 @@ class SdfDagEnv:
         )
 
     def _observe_from_trace(self) -> None:
+        """Sensor model, then obs from the sensed rays and the view statistics from the exact ones."""
         cfg = self.config
-        hit = self.semantic > 0  # (N, R) bool
+        depth, semantic = self.depth, self.semantic  # (N, R) float32, (N, R) uint8
         if cfg.sensor.enabled:
-            depth, semantic = apply_sensor(
-                self.depth, self.semantic, cfg.sensor, cfg.horizon, self.seed, self.tick
+            depth, semantic = apply_sensor(depth, semantic, cfg.sensor, cfg.horizon, self.seed, self.tick)
+        if self._fused_observation:
+            stats = observe(
+                self.obs,
+                depth,
+                semantic,
+                self.fresh,
+                self.depth,
+                self.semantic,
+                self._semantic_table,
+                cfg.horizon,
+                cfg.reward,
             )
-            write_observation(self.obs, depth, semantic, semantic > 0, self.fresh, cfg.horizon)
         else:
-            write_observation(self.obs, self.depth, self.semantic, hit, self.fresh, cfg.horizon)
-        stats = view_stats(self.depth, hit, cfg.azimuth_bins, cfg.reward)
+            stats = observe_ref(
+                self.obs, depth, semantic, self.fresh, self.depth, self.semantic, cfg.horizon, cfg.reward
+            )
         self.mid_prev.copy_(torch.where(self.fresh, stats.mid, self.mid))
         self.mid.copy_(stats.mid)
         self.void.copy_(stats.void)

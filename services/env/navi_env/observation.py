@@ -3,10 +3,16 @@
 Channels: 0 depth / horizon in [0, 1] (1 = miss); 1 semantic: 0 for a miss, 0.5 + 0.5 * class / 255
 for a hit (so any hit reads >= 0.5, class 0 "unknown" reads 0.5); 2 delta depth: channel 0 minus its
 value one step earlier, 0 right after a reset. Layout of (Az, El): see navi_env.sensor.
+
+Two ways to compute a step's observation and view statistics with the same results: `observe_ref`
+(eager kernels, about ten passes over (N, R); the CPU path) and `observe` (one torch.compile'd pass
+that writes the three channels and counts the rays of the statistics; the CUDA path).
 """
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -47,9 +53,23 @@ def write_observation(
     torch.sub(depth, ch0, alpha=horizon, out=ch2)  # depth - horizon * previous
     ch2.mul_(scale)  # depth / horizon - previous, 0 where fresh
     torch.mul(depth, 1.0 / horizon, out=ch0)
+    _semantic_channel(ch1, semantic, hit)
+
+
+def _semantic_channel(out: torch.Tensor, semantic: torch.Tensor, hit: torch.Tensor) -> None:
+    """Channel 1 into out (N, R) float32 from semantic (N, R) uint8 and hit (N, R) bool."""
     # hit: 0.5 + 0.5 * (semantic - 1) / 255 = semantic * 0.5/255 + (0.5 - 0.5/255) * hit; miss: 0
-    torch.mul(semantic, 0.5 / 255.0, out=ch1)
-    ch1.add_(hit, alpha=0.5 - 0.5 / 255.0)
+    torch.mul(semantic, 0.5 / 255.0, out=out)
+    out.add_(hit, alpha=0.5 - 0.5 / 255.0)
+
+
+def semantic_table(device: torch.device | str) -> torch.Tensor:
+    """Channel 1 of each of the 256 semantic codes, (256,) float32 on `device`, computed by the same
+    eager kernels as write_observation (so a lookup in it gives exactly their values)."""
+    codes = torch.arange(256, dtype=torch.uint8, device=device)[None]  # (1, 256) uint8
+    table = torch.empty(1, 256, dtype=torch.float32, device=device)  # (1, 256) float32
+    _semantic_channel(table, codes, codes > 0)
+    return table[0]
 
 
 def view_stats(depth: torch.Tensor, hit: torch.Tensor, azimuth_bins: int, cfg: RewardConfig) -> ViewStats:
@@ -71,3 +91,120 @@ def view_stats(depth: torch.Tensor, hit: torch.Tensor, azimuth_bins: int, cfg: R
         mid=mid_az.sum(dim=1) / r,
         mid_balance=left - right,
     )
+
+
+def observe_ref(
+    obs: torch.Tensor,
+    depth: torch.Tensor,
+    semantic: torch.Tensor,
+    fresh: torch.Tensor,
+    stats_depth: torch.Tensor,
+    stats_semantic: torch.Tensor,
+    horizon: float,
+    cfg: RewardConfig,
+) -> ViewStats:
+    """One step's observation stage with eager kernels: obs (N, 3, Az, El) in place from the sensed
+    depth (N, R) float32 and semantic (N, R) uint8 (see write_observation), and the view statistics of
+    the exact trace, stats_depth (N, R) float32 and stats_semantic (N, R) uint8 (see view_stats)."""
+    hit = semantic > 0  # (N, R) bool
+    write_observation(obs, depth, semantic, hit, fresh, horizon)
+    stats_hit = hit if stats_semantic is semantic else stats_semantic > 0  # (N, R) bool
+    return view_stats(stats_depth, stats_hit, obs.shape[2], cfg)
+
+
+def observe(
+    obs: torch.Tensor,
+    depth: torch.Tensor,
+    semantic: torch.Tensor,
+    fresh: torch.Tensor,
+    stats_depth: torch.Tensor,
+    stats_semantic: torch.Tensor,
+    table: torch.Tensor,
+    horizon: float,
+    cfg: RewardConfig,
+) -> ViewStats:
+    """observe_ref in one compiled pass over (N, R) (plus a few (N,) kernels); `table` is
+    semantic_table(device). Compiled on the first call for each shape (seconds to a minute): make that
+    call before recording a CUDA graph. Same results as observe_ref, except that on CPU channel 2 may
+    differ by one float32 rounding (inductor's CPU code rounds the product that ATen's CPU kernel fuses
+    into an FMA); on CUDA both use the FMA and every value is bit-identical."""
+    n, r = depth.shape
+    az = obs.shape[2]
+    ch = obs.view(n, CHANNELS, r)  # (N, 3, R) view of obs
+    with torch.no_grad():  # one grad mode for every call: the compiled code is never re-specialised
+        counts = _compiled_pass()(
+            ch[:, 0],
+            ch[:, 1],
+            ch[:, 2],
+            depth,
+            semantic,
+            fresh,
+            stats_depth,
+            stats_semantic,
+            table,
+            horizon,
+            az,
+            cfg.near_distance,
+            cfg.mid_range_min,
+            cfg.mid_range_max,
+        )
+    return _stats_from_counts(counts, r, az)
+
+
+@functools.cache
+def _compiled_pass() -> Callable[..., torch.Tensor]:
+    """_fused_pass compiled once per process (torch.compile caches one program per input shape)."""
+    return torch.compile(_fused_pass, fullgraph=True, dynamic=False)
+
+
+def _fused_pass(
+    ch0: torch.Tensor,
+    ch1: torch.Tensor,
+    ch2: torch.Tensor,
+    depth: torch.Tensor,
+    semantic: torch.Tensor,
+    fresh: torch.Tensor,
+    stats_depth: torch.Tensor,
+    stats_semantic: torch.Tensor,
+    table: torch.Tensor,
+    horizon: float,
+    azimuth_bins: int,
+    near_distance: float,
+    mid_min: float,
+    mid_max: float,
+) -> torch.Tensor:
+    """Writes the channels ch0, ch1, ch2 (N, R) float32 (views into obs) in place and returns the ray
+    counts (N, 5) int32 [hits, near, mid, mid on the left, mid on the right] of stats_depth and
+    stats_semantic. Every value is computed by the same float32 operation as in write_observation."""
+    r = depth.shape[1]
+    el = r // azimuth_bins
+    half = azimuth_bins // 2
+    scale = (~fresh).to(depth.dtype)[:, None] * (1.0 / horizon)  # (N, 1) 1/horizon, 0 where fresh
+    ch2.copy_(torch.add(depth, ch0, alpha=-horizon) * scale)  # the same add-with-alpha as torch.sub
+    ch0.copy_(depth * (1.0 / horizon))
+    ch1.copy_(table[semantic.to(torch.int64)])
+    azimuth = torch.arange(r, device=depth.device) // el  # (R,) int64 azimuth bin of each ray
+    mid = (stats_depth >= mid_min) & (stats_depth <= mid_max)  # (N, R) bool
+    left = mid & (azimuth >= 1) & (azimuth < half)  # (N, R) bool
+    right = mid & (azimuth > half)  # (N, R) bool
+    return torch.stack(
+        (
+            (stats_semantic > 0).sum(dim=1, dtype=torch.int32),
+            (stats_depth < near_distance).sum(dim=1, dtype=torch.int32),
+            mid.sum(dim=1, dtype=torch.int32),
+            left.sum(dim=1, dtype=torch.int32),
+            right.sum(dim=1, dtype=torch.int32),
+        ),
+        dim=1,
+    )  # (N, 5) int32
+
+
+def _stats_from_counts(counts: torch.Tensor, r: int, azimuth_bins: int) -> ViewStats:
+    """ViewStats from the ray counts (N, 5) int32 of _fused_pass, with view_stats' float32 operations
+    (counts below 2^24 are exact in float32, so the results are identical)."""
+    el = r // azimuth_bins
+    half = azimuth_bins // 2
+    f = counts.to(torch.float32)  # (N, 5)
+    left = f[:, 3] / ((half - 1) * el)  # (N,)
+    right = f[:, 4] / ((azimuth_bins - half - 1) * el)  # (N,)
+    return ViewStats(void=1.0 - f[:, 0] / r, near=f[:, 1] / r, mid=f[:, 2] / r, mid_balance=left - right)
