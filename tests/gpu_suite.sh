@@ -3,6 +3,7 @@
 # H100/H200 machines): builds the extensions in place, runs the gpu-marked tests, then the benchmarks.
 #   tests/gpu_suite.sh tests CORPUS_DIR   # gpu tests only
 #   tests/gpu_suite.sh bench CORPUS_DIR   # navi bench trace / env / train (+ the learner anchor if present)
+#   tests/gpu_suite.sh all CORPUS_DIR     # both, in one job
 # Needs torch (CUDA), numpy, nvcc, pybind11, setuptools, typer; pytest may come from artifacts/pytest-vendor.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -13,10 +14,12 @@ export PYTHONUNBUFFERED=1
 for pkg in compiler env; do (cd services/$pkg && python setup.py -q build_ext --inplace >/dev/null); done
 navi() { python -c "from navi_compiler.cli import register as rc; from navi_env.cli import register as re; from navi_learner.cli import register as rl; import typer; app=typer.Typer(); bench=typer.Typer(); [r(app, bench) for r in (rc, re, rl)]; app.add_typer(bench, name='bench'); app()" "$@"; }
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
-if [ "$what" = tests ]; then
+if [ "$what" = tests ] || [ "$what" = all ]; then
   python -m pytest -q -p no:cacheprovider -m gpu tests/env/test_env_gpu.py tests/env/test_env_trace_parity.py \
-    tests/env/test_env_trace_edges.py tests/learner/test_learner_gpu.py 2>&1 | tee "$out/gpu_tests.log"
-  exit "${PIPESTATUS[0]}"
+    tests/env/test_env_trace_edges.py tests/learner/test_learner_gpu.py tests/compiler/test_compiler_torch.py \
+    2>&1 | tee "$out/gpu_tests.log"
+  [ "${PIPESTATUS[0]}" = 0 ] || exit 1
+  [ "$what" = all ] || exit 0
 fi
 scene=$(ls "$corpus"/*.gmdag | head -n 1)
 for n in 4096 8192; do
