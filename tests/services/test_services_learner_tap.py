@@ -8,7 +8,7 @@ from typing import Any
 
 import torch
 
-from navi_learner.service import TelemetryTap, TrainingMetrics, telemetry_rows
+from navi_learner.service import FrameRepeater, TelemetryTap, TrainingMetrics, telemetry_rows
 from navi_learner.toy_env import ToyEnv
 from navi_mesh import metrics
 
@@ -55,6 +55,38 @@ def test_tap_publishes_at_most_at_its_rate() -> None:
     assert steps > 20
     assert 2 <= len(sinks.observations.items) <= 4  # 5 Hz over 0.5 s, plus the first sample
     assert len(sinks.actions.items) == len(sinks.observations.items)
+
+
+def test_repeater_keeps_the_stream_at_rate_while_the_loop_is_busy() -> None:
+    sinks = pubs()
+    tap = TelemetryTap(ToyEnv(2), sinks, hz=20.0)
+    tap.reset()
+    repeater = FrameRepeater(tap, sinks)
+    try:
+        time.sleep(0.3)
+        assert sinks.observations.items == []  # nothing to repeat before the first frame
+        tap.step(torch.zeros(2, 4))  # one live frame, then a 1 s "PPO update" without env steps
+        time.sleep(1.0)
+    finally:
+        repeater.close()
+    frames = sinks.observations.items
+    assert 12 <= len(frames) <= 22  # ~20 Hz kept up through the update
+    assert all(f is frames[0] for f in frames)  # the same frame: same step id and timestamp
+    count = len(frames)
+    time.sleep(0.2)
+    assert len(sinks.observations.items) == count  # closed: nothing more
+    # While the loop steps, the tap's own frames go out and the repeater stays quiet.
+    sinks2 = pubs()
+    tap2 = TelemetryTap(ToyEnv(2), sinks2, hz=20.0)
+    tap2.reset()
+    repeater2 = FrameRepeater(tap2, sinks2)
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 0.5:
+            tap2.step(torch.zeros(2, 4))
+    finally:
+        repeater2.close()
+    assert repeater2.repeats <= 1 and len({f.step_id for f in sinks2.observations.items}) >= 8
 
 
 def test_log_rows_become_training_telemetry_and_metrics() -> None:

@@ -64,7 +64,7 @@ def main_job(
     dev = torch.device(device)
     ensure_corpus(corpus, dev)
     n = default_actors(dev)
-    budget = total_steps or (1_024 if dev.type == "cpu" else 2_000_000)
+    budget = total_steps or (6_144 if dev.type == "cpu" else 2_000_000)  # a few minutes on 2 cores
     rollout = 128 if dev.type == "cpu" else 0
     cfg = TrainConfig(n_actors=n, rollout_length=rollout, total_steps=budget, device=device, seed=seed)
     registry = ModelRegistry(models_dir)

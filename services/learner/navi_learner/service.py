@@ -125,6 +125,8 @@ class TelemetryTap:
         self._act_host = torch.zeros(env.n_actors, 4, pin_memory=cuda)  # (N, 4) float32
         self._event: torch.cuda.Event | None = torch.cuda.Event() if cuda else None
         self._pending_step: int | None = None
+        self.last_observation: DistanceMatrix | None = None  # the last frame queued (read by FrameRepeater)
+        self.last_publish = 0.0  # time.monotonic() of that
 
     @property
     def n_actors(self) -> int:
@@ -167,9 +169,39 @@ class TelemetryTap:
         """Queue the copied sample (the buffers are reused, so the messages get their own copies)."""
         first = self._obs_host.numpy().copy()  # (1, 3, Az, El) float32
         acts = self._act_host.numpy().copy()  # (N, 4) float32
-        self.pubs.observations.publish(distance_matrix(first, np.zeros(1, np.int32), step, self.run_id))
+        frame = distance_matrix(first, np.zeros(1, np.int32), step, self.run_id)
+        self.pubs.observations.publish(frame)
         self.pubs.actions.publish(action_message(acts, step, self.run_id))
+        self.last_observation, self.last_publish = frame, time.monotonic()
         self._pending_step = None
+
+
+class FrameRepeater:
+    """Keeps actor 0's observation stream at the tap's rate while the loop steps no env (PPO updates).
+
+    Once per period, when the tap has queued no frame for a whole period, its last frame is queued
+    again, unchanged: same step id and timestamp, so a dashboard's freshness shows the frame's true
+    age. A daemon thread; `close()` stops it.
+    """
+
+    def __init__(self, tap: TelemetryTap, pubs: MeshPublishers) -> None:
+        self.tap, self.pubs = tap, pubs
+        self.repeats = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="navi-frame-repeater", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        period = self.tap.period
+        while not self._stop.wait(period):
+            frame = self.tap.last_observation
+            if frame is not None and time.monotonic() - self.tap.last_publish >= period:
+                self.pubs.observations.publish(frame)
+                self.repeats += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
 
 
 def telemetry_rows(prefix: str, row: dict[str, float], run_id: str) -> list[TelemetryEvent]:
@@ -364,6 +396,7 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
     sess = session(cfg.session)
     pubs = MeshPublishers(sess, cfg.telemetry_capacity)
     tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
+    repeater = FrameRepeater(tap, pubs)
     plane = start_control_plane(cfg, pubs)
     token = declare_alive(sess, SERVICE)  # after the control plane listens: the token means ready
     try:
@@ -371,6 +404,7 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
             summary = run_training(cfg, tap, pubs)
         else:
             summary = run_inference(cfg, tap, pubs, sess, stop)
+        repeater.close()  # the run is over: no frame is repeated as if it were live
         log.info("run finished: %s", json.dumps(summary, default=str))
         if not cfg.exit_when_done:
             try:
@@ -378,6 +412,7 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
             except KeyboardInterrupt:
                 log.info("stopping")
     finally:
+        repeater.close()
         if plane is not None:
             server, thread = plane
             server.should_exit = True
