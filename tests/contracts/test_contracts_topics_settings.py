@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from navi_contracts import NaviSettings, topics
@@ -52,3 +54,12 @@ def test_settings_read_environment_and_dotenv(monkeypatch: pytest.MonkeyPatch, t
     monkeypatch.setenv("NAVI_AZIMUTH_BINS", "-1")
     with pytest.raises(ValueError):
         NaviSettings()
+
+
+def test_env_example_holds_the_defaults(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    example = Path(__file__).resolve().parents[2] / ".env.example"
+    (tmp_path / ".env").write_text(example.read_text())
+    monkeypatch.chdir(tmp_path)
+    from_file = NaviSettings()
+    (tmp_path / ".env").unlink()
+    assert from_file == NaviSettings()
