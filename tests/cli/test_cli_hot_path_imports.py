@@ -1,0 +1,32 @@
+"""The training core imports with torch + numpy (+ Navi's own extensions) alone."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+SERVICE_ONLY = ("pydantic", "pydantic_settings", "zenoh", "fastapi", "uvicorn", "zarr", "prometheus_client",
+                "trimesh", "msgpack", "typer")  # fmt: skip
+HOT_PATH = (
+    "navi_compiler.compile", "navi_compiler.gmdag", "navi_compiler.ingest", "navi_compiler.scenes",
+    "navi_env.env", "navi_env.trace", "navi_env.corpus", "navi_env.qualify",
+    "navi_learner.train", "navi_learner.policy", "navi_learner.evaluate", "navi_learner.checkpoint",
+    "navi_learner.registry", "navi_learner.main_job", "navi_learner.envs",
+)  # fmt: skip
+
+PROGRAM = f"""
+import importlib, importlib.abc, sys
+class Blocker(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name.split(".")[0] in {SERVICE_ONLY!r}:
+            raise ImportError("service-only package imported: " + name)
+sys.meta_path.insert(0, Blocker())
+for module in {HOT_PATH!r}:
+    importlib.import_module(module)
+print("ok")
+"""
+
+
+def test_hot_path_needs_no_service_packages() -> None:
+    out = subprocess.run([sys.executable, "-c", PROGRAM], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
