@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -20,6 +19,7 @@ from navi_env.bench_trace import TraceBenchConfig, place_agents, rays_for_warp
 from navi_env.rays import spherical_directions
 from navi_env.scene import SceneCorpus
 from navi_env.trace import trace
+from navi_env.warp_kernel import ray_kernel
 
 
 class WarpUnavailable(RuntimeError):
@@ -36,27 +36,6 @@ def load_mesh_npz(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
         raise ValueError(f"{path}: vertices must be (V, 3) and triangles (F, 3), got {v.shape} and {f.shape}")
     return v, f
-
-
-def _ray_kernel(wp: Any) -> Any:
-    """The Warp kernel: first hit distance along each ray, `horizon` on a miss."""
-
-    @wp.kernel
-    def cast(
-        mesh: wp.uint64,
-        origins: wp.array(dtype=wp.vec3),  # type: ignore[valid-type]
-        dirs: wp.array(dtype=wp.vec3),  # type: ignore[valid-type]
-        horizon: float,
-        depth: wp.array(dtype=float),  # type: ignore[valid-type]
-    ) -> None:
-        i = wp.tid()
-        q = wp.mesh_query_ray(mesh, origins[i], dirs[i], horizon)
-        if q.result:
-            depth[i] = q.t
-        else:
-            depth[i] = horizon
-
-    return cast
 
 
 def bench_warp(
@@ -80,7 +59,7 @@ def bench_warp(
     o = wp.array(origins, dtype=wp.vec3, device=wp_device)
     d = wp.array(dirs, dtype=wp.vec3, device=wp_device)
     out = wp.zeros(len(origins), dtype=float, device=wp_device)
-    kernel = _ray_kernel(wp)
+    kernel = ray_kernel(wp)
 
     def launch() -> None:
         wp.launch(kernel, dim=len(origins), inputs=[mesh.id, o, d, cfg.horizon, out], device=wp_device)
