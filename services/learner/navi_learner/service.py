@@ -179,7 +179,7 @@ class TelemetryTap:
 class FrameRepeater:
     """Keeps actor 0's observation stream at the tap's rate while the loop steps no env (PPO updates).
 
-    Once per period, when the tap has queued no frame for a whole period, its last frame is queued
+    Once per period, when the tap has queued no frame for 1.5 periods (a gap, not jitter), its last frame is queued
     again, unchanged: same step id and timestamp, so a dashboard's freshness shows the frame's true
     age. A daemon thread; `close()` stops it.
     """
@@ -195,7 +195,7 @@ class FrameRepeater:
         period = self.tap.period
         while not self._stop.wait(period):
             frame = self.tap.last_observation
-            if frame is not None and time.monotonic() - self.tap.last_publish >= period:
+            if frame is not None and time.monotonic() - self.tap.last_publish >= 1.5 * period:
                 self.pubs.observations.publish(frame)
                 self.repeats += 1
 
