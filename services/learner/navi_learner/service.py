@@ -179,9 +179,9 @@ class TelemetryTap:
 class FrameRepeater:
     """Keeps actor 0's observation stream at the tap's rate while the loop steps no env (PPO updates).
 
-    Once per period, when the tap has queued no frame for 1.5 periods (a gap, not jitter), its last frame is queued
-    again, unchanged: same step id and timestamp, so a dashboard's freshness shows the frame's true
-    age. A daemon thread; `close()` stops it.
+    Once per period, when the tap has queued no frame for 1.5 periods (a gap, not jitter), its last
+    frame is queued again, unchanged: same step id and timestamp, so a dashboard's freshness shows the
+    frame's true age. A daemon thread; `close()` stops it.
     """
 
     def __init__(self, tap: TelemetryTap, pubs: MeshPublishers) -> None:
