@@ -9,7 +9,6 @@ reward than a random policy, and be fine-tunable by `navi train --checkpoint` wi
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -36,14 +35,7 @@ ENGINE = EngineConfig(
     rnd_dim=16,
 )
 
-
-@pytest.fixture(autouse=True)
-def one_thread() -> Iterator[None]:
-    """Small tensors: one intra-op thread is several times faster than contended threads on 2 cores."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def reactive_flights(folder: Path, actors: int, steps: int, seed: int) -> None:

@@ -60,6 +60,16 @@ def _check_float(name: str, t: torch.Tensor, shape: tuple[int, ...]) -> None:
         raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
 
 
+def _check_scene_ids(scene_ids: torch.Tensor, dev: torch.device, letter: str) -> int:
+    """scene_ids must be a 1-d int32/int64 tensor on `dev`; returns its length."""
+    scene_ids = _check_tensor("scene_ids", scene_ids, dev)
+    if scene_ids.dtype not in (torch.int32, torch.int64):
+        raise _fail_type("scene_ids", "int32 or int64", scene_ids)
+    if scene_ids.dim() != 1:
+        raise ValueError(f"scene_ids must be ({letter},), got shape {tuple(scene_ids.shape)}")
+    return int(scene_ids.shape[0])
+
+
 def validate_trace(
     scenes: SceneCorpus,
     scene_ids: torch.Tensor,
@@ -79,15 +89,10 @@ def validate_trace(
     if not isinstance(scenes, SceneCorpus):
         raise TypeError(f"scenes must be a SceneCorpus, got {type(scenes).__name__}")
     dev = scenes.device
-    scene_ids = _check_tensor("scene_ids", scene_ids, dev)
+    b = _check_scene_ids(scene_ids, dev, "B")
     origins = _check_tensor("origins", origins, dev)
     directions = _check_tensor("directions", directions, dev)
     out_depth = _check_tensor("out_depth", out_depth, dev)
-    if scene_ids.dtype not in (torch.int32, torch.int64):
-        raise _fail_type("scene_ids", "int32 or int64", scene_ids)
-    if scene_ids.dim() != 1:
-        raise ValueError(f"scene_ids must be (B,), got shape {tuple(scene_ids.shape)}")
-    b = scene_ids.shape[0]
     _check_float("origins", origins, (b, 3))
     if directions.dim() == 2:
         r, shared = directions.shape[0], True
@@ -284,13 +289,8 @@ def validate_sample(
     if not isinstance(scenes, SceneCorpus):
         raise TypeError(f"scenes must be a SceneCorpus, got {type(scenes).__name__}")
     dev = scenes.device
-    scene_ids = _check_tensor("scene_ids", scene_ids, dev)
+    n = _check_scene_ids(scene_ids, dev, "N")
     points = _check_tensor("points", points, dev)
-    if scene_ids.dtype not in (torch.int32, torch.int64):
-        raise _fail_type("scene_ids", "int32 or int64", scene_ids)
-    if scene_ids.dim() != 1:
-        raise ValueError(f"scene_ids must be (N,), got shape {tuple(scene_ids.shape)}")
-    n = scene_ids.shape[0]
     _check_float("points", points, (n, 3))
     if out is not None:
         _check_float("out", _check_tensor("out", out, dev), (n,))
