@@ -36,6 +36,8 @@ def test_compile_then_check_round_trip(tmp_path: Path) -> None:
     assert summary["resolution"] == g.resolution == 32
     assert summary["file_bytes"] == out.stat().st_size
     assert summary["compression"] == 32**3 * 4 / out.stat().st_size
+    raw = 32 * len(g.nodes) + 730 * len(g.bricks)  # the octree uncompressed (docs/GMDAG.md)
+    assert summary["payload_bytes"] == raw and summary["memory_compression"] == 32**3 * 4 / raw
     assert summary["leaked"] is False and summary["node_count"] == len(g.nodes)
     human = runner.invoke(
         build_app(), ["compile", str(src), "-o", str(out), "--resolution", "16", "--seed", "0,0,2"]
@@ -50,6 +52,7 @@ def test_compile_then_check_round_trip(tmp_path: Path) -> None:
     entry = report["files"][0]
     assert entry["resolution"] == 16 and entry["voxel_size"] > 0 and entry["degenerate"] is None
     assert entry["non_finite"] == 0 and entry["has_free"] and entry["has_solid"]
+    assert entry["version"] == 2 and entry["compression"] > entry["memory_compression"]
 
 
 def test_check_fails_on_any_invalid_file(tmp_path: Path) -> None:

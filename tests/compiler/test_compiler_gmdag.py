@@ -96,22 +96,46 @@ def test_round_trip_is_byte_exact_and_lossless(tmp_path: Path) -> None:
     assert back.spawns.dtype == np.float32 and back.spawns.shape == (2, 3)
 
 
-def test_layout_matches_the_spec() -> None:
+def test_version_1_files_stay_readable_and_decode_to_the_same_scene() -> None:
     g = _sample()
-    data = encode_gmdag(g)
+    v1, v2 = encode_gmdag(g, version=1), encode_gmdag(g)
+    assert len(v2) < len(v1)
+    back = decode_gmdag(v1)
+    assert encode_gmdag(back, version=1) == v1 and encode_gmdag(back) == v2
+    with pytest.raises(ValueError, match="version"):
+        encode_gmdag(g, version=3)
+
+
+def _raw_payload(g: Gmdag) -> bytes:
+    return g.nodes.astype("<u4").tobytes() + g.bricks.tobytes() + g.brick_class.tobytes()
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_layout_matches_the_spec(version: int) -> None:
+    g = _sample()
+    data = encode_gmdag(g, version=version)
     assert data[:8] == b"GMDAG\x00\r\n"
-    version, header_bytes, res, brick_cells, levels, root = struct.unpack_from("<6I", data, 8)
-    assert (version, header_bytes, res, brick_cells, levels, root) == (1, 128, 32, 8, 2, g.root)
+    fields = struct.unpack_from("<6I", data, 8)
+    assert fields == (version, 128, 32, 8, 2, g.root)
     assert struct.unpack_from("<3dd", data, 32) == (*g.origin, g.voxel_size)
     band, step = struct.unpack_from("<2f", data, 64)
     assert band == 4.0 and step == np.float32(4.0 / 127)
     counts = struct.unpack_from("<4I", data, 72)
     assert counts == (len(g.nodes), len(g.bricks), 2, 3)
-    assert struct.unpack_from("<I", data, 112)[0] == FLAG_INSIDE_SEEDS
+    flags, packed, reserved = struct.unpack_from("<II8s", data, 112)
+    assert flags == FLAG_INSIDE_SEEDS and reserved == bytes(8)
+    raw = _raw_payload(g)
+    assert len(raw) == 32 * counts[0] + 730 * counts[1]
+    if version == 1:
+        assert packed == 0 and data[HEADER_BYTES : HEADER_BYTES + len(raw)] == raw
+        stored = len(raw)
+    else:
+        assert zlib.decompress(data[HEADER_BYTES : HEADER_BYTES + packed]) == raw
+        stored = packed
     names = b"\x07unknown\x04wall\x05floor"
-    expected = HEADER_BYTES + 32 * counts[0] + 730 * counts[1] + 12 * 2 + len(names) + 4
-    assert len(data) == expected
-    assert data[-4 - len(names) : -4] == names
+    spawns = g.spawns.astype("<f4").tobytes()
+    assert data[HEADER_BYTES + stored :] == spawns + names + data[-4:]
+    assert len(data) == HEADER_BYTES + stored + 12 * 2 + len(names) + 4
     assert struct.unpack("<I", data[-4:])[0] == zlib.crc32(data[:-4])
 
 
@@ -135,7 +159,7 @@ def test_header_defects_are_rejected_with_one_clear_error() -> None:
     data = encode_gmdag(_sample())
     _expect(data[:100], "truncated")
     _expect(b"XMDAG\x00\r\n" + data[8:], "bad magic")
-    _expect(_patch(data, 8, "<I", 2), "version")
+    _expect(_patch(data, 8, "<I", 3), "version")
     _expect(_patch(data, 12, "<I", 64), "header_bytes")
     _expect(data[:-1] + bytes([data[-1] ^ 1]), "checksum")
     _expect(data[:200] + bytes([data[200] ^ 0x10]) + data[201:], "checksum")
@@ -155,10 +179,11 @@ def test_header_defects_are_rejected_with_one_clear_error() -> None:
     _expect(_patch(data, 100, "<f", 100.0), "inside the cube")
     _expect(_patch(data, 112, "<I", 4), "flag")
     _expect(_patch(data, 120, "<I", 1), "reserved")
+    _expect(_patch(encode_gmdag(_sample(), version=1), 116, "<I", 1), "reserved")  # no payload_bytes in v1
 
 
 def test_size_defects_are_rejected() -> None:
-    data = encode_gmdag(_sample())
+    data = encode_gmdag(_sample(), version=1)
     _expect(_refresh_crc(data[:-4] + b"\x00" + data[-4:]), "trailing")
     _expect(_refresh_crc(data[:-5] + data[-4:]), "truncated")
     _expect(_patch(data, 72, "<I", 0xFFFFFFFF), "truncated")
@@ -173,7 +198,7 @@ def _with_node_word(data: bytes, node: int, child: int, word: int) -> bytes:
 
 def test_structure_defects_are_rejected() -> None:
     g = _sample()
-    data = encode_gmdag(g)
+    data = encode_gmdag(g, version=1)  # raw payload: node words can be patched in place
     assert child_tag(g.root) == TAG_NODE and len(g.nodes) >= 2
     n, b = len(g.nodes), len(g.bricks)
     node_child = next(c for c in range(8) if child_tag(int(g.nodes[0, c])) == TAG_NODE)
@@ -223,7 +248,7 @@ def test_hand_made_dags_reach_each_node_at_one_depth() -> None:
 
 def test_payload_defects_are_rejected() -> None:
     g = _sample()
-    data = encode_gmdag(g)
+    data = encode_gmdag(g, version=1)
     off_class = HEADER_BYTES + 32 * len(g.nodes) + 729 * len(g.bricks)
     _expect(_patch(data, off_class, "<B", 3), "class id")
     off_spawns = off_class + len(g.bricks)
@@ -232,6 +257,39 @@ def test_payload_defects_are_rejected() -> None:
     off_names = off_spawns + 24
     _expect(_patch(data, off_names + 1, "<B", 0xFF), "UTF-8")
     _expect(_patch(data, off_names, "<B", 200), "class name")
+
+
+def _with_stream(data: bytes, stream: bytes, **counts: int) -> bytes:
+    """A version 2 file with its payload stream replaced (payload_bytes and the given counts patched)."""
+    packed = struct.unpack_from("<I", data, 116)[0]
+    out = bytearray(data[:HEADER_BYTES] + stream + data[HEADER_BYTES + packed :])
+    struct.pack_into("<I", out, 116, len(stream))
+    for name, value in counts.items():
+        struct.pack_into("<I", out, {"nodes": 72, "bricks": 76}[name], value)
+    return _refresh_crc(bytes(out))
+
+
+def test_compressed_payload_defects_are_rejected() -> None:
+    g = _sample()
+    data = encode_gmdag(g)
+    raw = _raw_payload(g)
+    stream = zlib.compress(raw)
+    assert decode_gmdag(_with_stream(data, stream)).bricks.shape == g.bricks.shape  # any zlib level reads
+    broken = bytearray(stream)
+    broken[-2] ^= 0x55  # the stream's Adler-32
+    _expect(_with_stream(data, bytes(broken)), "corrupt")
+    _expect(_with_stream(data, stream[:-6]), "ends early")
+    _expect(_with_stream(data, zlib.compress(raw[:-730])), "ends early")
+    _expect(_with_stream(data, zlib.compress(raw + bytes(730))), "more than")
+    _expect(_with_stream(data, stream + b"\x00\x01"), "stray bytes")
+    _expect(_with_stream(data, stream, bricks=len(g.bricks) + 1), "ends early")
+    _expect(_with_stream(data, stream, bricks=0xFFFFFFF), "more than a")  # a bomb is refused up front
+    _expect(_patch(data, 116, "<I", 0xFFFFFFF), "truncated")
+    # a defect inside the compressed payload is found by the same checks as in version 1
+    nodes = g.nodes.copy()
+    nodes[0, 0] = make_child(TAG_NODE, len(g.nodes))
+    bad = nodes.astype("<u4").tobytes() + raw[32 * len(g.nodes) :]
+    _expect(_with_stream(data, zlib.compress(bad)), "out of range")
 
 
 def test_encoder_refuses_invalid_gmdags() -> None:

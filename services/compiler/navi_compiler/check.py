@@ -18,6 +18,7 @@ from navi_compiler.gmdag import (
     GmdagError,
     decode_gmdag,
     leaf_cubes,
+    payload_bytes,
 )
 
 
@@ -44,7 +45,10 @@ class CheckReport:
     class_names: tuple[str, ...] | None = None
     inside_seeded: bool | None = None  # flags bit 0
     leak_fallback: bool | None = None  # flags bit 1: the fill leaked when the file was compiled
+    version: int | None = None  # format version (1: raw payload, 2: zlib payload)
+    payload_bytes: int | None = None  # the octree (nodes, bricks, classes) uncompressed, as held in memory
     compression: float | None = None  # dense float32 bytes (R^3 * 4) / file bytes
+    memory_compression: float | None = None  # dense float32 bytes / payload_bytes
     non_finite: int | None = None  # non-finite header floats or spawn coordinates (0 in a valid file)
     has_free: bool | None = None  # some stored sample > 0 or a far-free code
     has_solid: bool | None = None  # some stored sample < 0 or a far-solid code
@@ -61,8 +65,8 @@ def _non_finite(g: Gmdag) -> int:
     return int((~np.isfinite(floats)).sum() + (~np.isfinite(g.spawns)).sum())
 
 
-def describe(g: Gmdag, path: str, size: int) -> CheckReport:
-    """The report of a decoded (hence valid) file."""
+def describe(g: Gmdag, path: str, size: int, version: int) -> CheckReport:
+    """The report of a decoded (hence valid) file of `size` bytes in format `version`."""
     words, _, _ = leaf_cubes(g)
     tags = words >> 30  # (M,)
     used = np.unique(words[tags == TAG_BRICK] & ((1 << 30) - 1))  # (U,) referenced bricks
@@ -92,7 +96,10 @@ def describe(g: Gmdag, path: str, size: int) -> CheckReport:
         class_names=g.class_names,
         inside_seeded=bool(g.flags & FLAG_INSIDE_SEEDS),
         leak_fallback=bool(g.flags & FLAG_LEAK_FALLBACK),
+        version=version,
+        payload_bytes=payload_bytes(len(g.nodes), len(g.bricks)),
         compression=g.resolution**3 * 4 / size,
+        memory_compression=g.resolution**3 * 4 / payload_bytes(len(g.nodes), len(g.bricks)),
         non_finite=_non_finite(g),
         has_free=has_free,
         has_solid=has_solid,
@@ -113,4 +120,4 @@ def check_file(path: str | os.PathLike[str]) -> CheckReport:
         g = decode_gmdag(data)
     except GmdagError as exc:
         return CheckReport(path=str(p), valid=False, error=str(exc), size_bytes=len(data))
-    return describe(g, str(p), len(data))
+    return describe(g, str(p), len(data), int.from_bytes(data[8:12], "little"))

@@ -242,7 +242,8 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         )
         typer.echo(
             f"{out}: {stats.file_bytes / 1e6:.2f} MB, {stats.compression:.1f}x smaller than dense float32 "
-            f"({stats.dense_bytes / 1e6:.0f} MB)\n"
+            f"({stats.dense_bytes / 1e6:.0f} MB); octree in memory {stats.payload_bytes / 1e6:.2f} MB "
+            f"({stats.memory_compression:.1f}x)\n"
             f"  resolution {stats.resolution}^3, voxel {stats.voxel_size:.4f} m, "
             f"{stats.node_count} nodes, {stats.brick_count} bricks\n"
             f"  leak check: {leak}\n"
@@ -272,7 +273,8 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 typer.echo(
                     f"{r.path}: valid, resolution {r.resolution}, voxel_size {r.voxel_size:.6g} m, "
                     f"origin {tuple(round(v, 4) for v in r.origin or ())}, {r.node_count} nodes, "
-                    f"{r.brick_count} bricks, {r.spawn_count} spawns, {r.compression:.1f}x vs dense float32, "
+                    f"{r.brick_count} bricks, {r.spawn_count} spawns, format v{r.version}, "
+                    f"{r.compression:.1f}x vs dense float32 ({r.memory_compression:.1f}x in memory), "
                     f"non-finite values {r.non_finite}, leak fallback {r.leak_fallback}{note}"
                 )
         if not all(r.valid for r in reports):

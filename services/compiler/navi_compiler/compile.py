@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 
 from navi_compiler.dag import DagArrays, build_dag, make_gmdag
-from navi_compiler.gmdag import FLAG_LEAK_FALLBACK, Gmdag, encode_gmdag, quant_step_for
+from navi_compiler.gmdag import FLAG_LEAK_FALLBACK, Gmdag, encode_gmdag, payload_bytes, quant_step_for
 from navi_compiler.grid import place, to_voxels
 from navi_compiler.scene import Scene
 from navi_compiler.sdf import SdfInput, SdfResult, signed_field_ref
@@ -43,9 +43,11 @@ class CompileStats:
     free_fraction: float  # share of lattice points with a positive sign
     node_count: int
     brick_count: int
-    file_bytes: int  # size of the encoded .gmdag
+    file_bytes: int  # size of the encoded .gmdag (format version 2: zlib payload)
+    payload_bytes: int  # the octree (nodes, bricks, classes) uncompressed, as a tracer holds it
     dense_bytes: int  # R^3 * 4, a dense float32 grid
     compression: float  # dense_bytes / file_bytes
+    memory_compression: float  # dense_bytes / payload_bytes
     seconds_sdf: float  # signed field stage (engine torch: also its DAG, stage_seconds["dag"])
     seconds_dag: float  # DAG stage (engine torch: the file assembly only)
     seconds_total: float
@@ -162,6 +164,7 @@ def compile_scene(
     )
     t2 = time.perf_counter()
     file_bytes = len(encode_gmdag(g))
+    raw_bytes = payload_bytes(len(g.nodes), len(g.bricks))
     dense = placement.resolution**3 * 4
     report("done", 1.0)
     n_lattice = (placement.resolution + 1) ** 3
@@ -179,8 +182,10 @@ def compile_scene(
         node_count=len(g.nodes),
         brick_count=len(g.bricks),
         file_bytes=file_bytes,
+        payload_bytes=raw_bytes,
         dense_bytes=dense,
         compression=dense / file_bytes,
+        memory_compression=dense / raw_bytes,
         seconds_sdf=t1 - t0,
         seconds_dag=t2 - t1,
         seconds_total=time.perf_counter() - t0,

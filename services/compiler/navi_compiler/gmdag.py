@@ -1,8 +1,12 @@
-"""The .gmdag file: reader, writer and validator (docs/GMDAG.md, format version 1).
+"""The .gmdag file: reader, writer and validator (docs/GMDAG.md, format versions 1 and 2).
+
+Version 2 (what `encode_gmdag` writes) stores the octree payload (nodes, bricks, brick classes) as
+one zlib stream; version 1 stores it raw and stays readable. Both decode to the same `Gmdag`.
 
 `decode_gmdag` never trusts its input: every size is checked against the byte count before an
-array is made, every check is vectorised, and every failure is one `GmdagError` with a clear message.
-`encode_gmdag` runs the same validation, so an invalid `Gmdag` is never written.
+array is made, the zlib stream is inflated with a hard output limit, every check is vectorised, and
+every failure is one `GmdagError` with a clear message. `encode_gmdag` runs the same validation, so
+an invalid `Gmdag` is never written.
 """
 
 from __future__ import annotations
@@ -18,7 +22,10 @@ from pathlib import Path
 import numpy as np
 
 MAGIC = b"GMDAG\x00\r\n"
-VERSION = 1
+VERSION = 2  # what encode_gmdag writes
+VERSIONS = (1, 2)  # what decode_gmdag reads: 1 raw payload, 2 zlib-compressed payload
+ZLIB_LEVEL = 6  # compression level of the payload stream (zlib's default: ~8x on bricks, ~15 ms/MB)
+MAX_INFLATE_RATIO = 1032  # deflate cannot expand a stream by more than this (RFC 1951 bound, rounded up)
 HEADER_BYTES = 128
 BRICK_CELLS = 8  # B: cells per brick edge
 BRICK_SIDE = BRICK_CELLS + 1  # 9 samples per brick edge
@@ -39,8 +46,8 @@ FAR_UNITS = 16  # far-code payloads count 1/16 voxel
 
 # magic, version, header_bytes, resolution, brick_cells, levels, root, origin(3), voxel_size, band,
 # quant_step, node_count, brick_count, spawn_count, class_count, bounds_min(3), bounds_max(3), flags,
-# reserved
-_HEADER = struct.Struct("<8s6I3dd2f4I3f3fI12s")
+# payload_bytes (version 2; zero in version 1), reserved
+_HEADER = struct.Struct("<8s6I3dd2f4I3f3fII8s")
 assert _HEADER.size == HEADER_BYTES
 
 
@@ -220,12 +227,34 @@ def _names_bytes(names: tuple[str, ...]) -> bytes:
     return bytes(out)
 
 
-def encode_gmdag(g: Gmdag) -> bytes:
-    """Serialise a valid Gmdag to bytes (raises GmdagError if it is not valid)."""
+def _payload(g: Gmdag) -> bytes:
+    """The octree payload: nodes | bricks | brick_class, raw (what version 2 compresses)."""
+    return b"".join(
+        [
+            np.ascontiguousarray(g.nodes, "<u4").tobytes(),
+            np.ascontiguousarray(g.bricks, np.int8).tobytes(),
+            np.ascontiguousarray(g.brick_class, np.uint8).tobytes(),
+        ]
+    )
+
+
+def payload_bytes(node_count: int, brick_count: int) -> int:
+    """Size of the raw octree payload (also what a version 2 stream inflates to)."""
+    return node_count * 32 + brick_count * (BRICK_SAMPLES + 1)
+
+
+def encode_gmdag(g: Gmdag, version: int = VERSION) -> bytes:
+    """Serialise a valid Gmdag to bytes (raises GmdagError if it is not valid). `version` 2 (default)
+    compresses the octree payload with zlib; 1 writes the older raw layout."""
+    if version not in VERSIONS:
+        raise ValueError(f"version must be one of {VERSIONS}, got {version}")
     validate_gmdag(g)
+    payload = _payload(g)
+    if version == 2:
+        payload = zlib.compress(payload, ZLIB_LEVEL)
     header = _HEADER.pack(
         MAGIC,
-        VERSION,
+        version,
         HEADER_BYTES,
         g.resolution,
         BRICK_CELLS,
@@ -242,14 +271,13 @@ def encode_gmdag(g: Gmdag) -> bytes:
         *g.bounds_min,
         *g.bounds_max,
         g.flags,
-        bytes(12),
+        len(payload) if version == 2 else 0,
+        bytes(8),
     )
     body = b"".join(
         [
             header,
-            np.ascontiguousarray(g.nodes, "<u4").tobytes(),
-            np.ascontiguousarray(g.bricks, np.int8).tobytes(),
-            np.ascontiguousarray(g.brick_class, np.uint8).tobytes(),
+            payload,
             np.ascontiguousarray(g.spawns, "<f4").tobytes(),
             _names_bytes(g.class_names),
         ]
@@ -276,8 +304,28 @@ def _parse_names(data: bytes, start: int, end: int, count: int) -> tuple[str, ..
     return tuple(names)
 
 
+def _inflate(stream: memoryview, expected: int) -> bytes:
+    """Inflate a version 2 payload stream that must hold exactly `expected` bytes (never more are made)."""
+    if expected > MAX_INFLATE_RATIO * len(stream):
+        raise _fail(
+            f"the counts need a {expected}-byte payload, more than a {len(stream)}-byte zlib stream can hold"
+        )
+    inflater = zlib.decompressobj()
+    try:
+        out = inflater.decompress(stream, expected)
+    except zlib.error as exc:
+        raise _fail(f"the compressed payload is corrupt ({exc})") from exc
+    if inflater.unconsumed_tail:
+        raise _fail(f"the compressed payload holds more than the {expected} bytes the counts say")
+    if not inflater.eof or len(out) != expected:
+        raise _fail(f"the compressed payload holds {len(out)} bytes or ends early; the counts say {expected}")
+    if inflater.unused_data:
+        raise _fail(f"{len(inflater.unused_data)} stray bytes after the compressed payload")
+    return out
+
+
 def decode_gmdag(data: bytes) -> Gmdag:
-    """Parse and fully validate a .gmdag byte string; any defect raises GmdagError."""
+    """Parse and fully validate a .gmdag byte string (version 1 or 2); any defect raises GmdagError."""
     data = bytes(data)
     if len(data) < HEADER_BYTES + 4:
         raise _fail(f"truncated: {len(data)} bytes; a .gmdag file has at least {HEADER_BYTES + 4}")
@@ -288,11 +336,13 @@ def decode_gmdag(data: bytes) -> Gmdag:
     node_count, brick_count, spawn_count, class_count = fields[13:17]
     bounds_min = (float(fields[17]), float(fields[18]), float(fields[19]))
     bounds_max = (float(fields[20]), float(fields[21]), float(fields[22]))
-    flags, reserved = fields[23], fields[24]
+    flags, packed_bytes, reserved = fields[23], fields[24], fields[25]
     if magic != MAGIC:
         raise _fail(f"bad magic {magic!r}; not a .gmdag file")
-    if version != VERSION:
-        raise _fail(f"unsupported format version {version} (this reader knows {VERSION})")
+    if version not in VERSIONS:
+        raise _fail(
+            f"unsupported format version {version} (this reader knows {', '.join(map(str, VERSIONS))})"
+        )
     if header_bytes != HEADER_BYTES:
         raise _fail(f"header_bytes {header_bytes} != {HEADER_BYTES}")
     (stored_crc,) = struct.unpack_from("<I", data, len(data) - 4)
@@ -300,23 +350,29 @@ def decode_gmdag(data: bytes) -> Gmdag:
         raise _fail("checksum mismatch: the file is corrupt or truncated")
     if brick_cells != BRICK_CELLS:
         raise _fail(f"brick_cells {brick_cells} != {BRICK_CELLS}")
-    if reserved != bytes(12):
+    if reserved != bytes(8) or (version == 1 and packed_bytes != 0):
         raise _fail("reserved header bytes are not zero")
     if class_count > MAX_CLASSES:
         raise _fail(f"class_count {class_count} > {MAX_CLASSES} (class ids are u8)")
-    off_nodes = HEADER_BYTES
-    off_bricks = off_nodes + node_count * 32
-    off_class = off_bricks + brick_count * BRICK_SAMPLES
-    off_spawns = off_class + brick_count
+    raw_bytes = payload_bytes(node_count, brick_count)
+    stored = raw_bytes if version == 1 else packed_bytes  # bytes of the payload section in the file
+    off_spawns = HEADER_BYTES + stored
     off_names = off_spawns + spawn_count * 12
     end = len(data) - 4
     if off_names + class_count > end:
         raise _fail(
             f"truncated: counts (nodes {node_count}, bricks {brick_count}, spawns {spawn_count}, "
-            f"classes {class_count}) need more than the file's {len(data)} bytes"
+            f"classes {class_count}, payload {stored} bytes) need more than the file's {len(data)} bytes"
         )
     names = _parse_names(data, off_names, end, class_count)
     buf = memoryview(data)
+    payload = (
+        buf[HEADER_BYTES:off_spawns]
+        if version == 1
+        else memoryview(_inflate(buf[HEADER_BYTES:off_spawns], raw_bytes))
+    )
+    off_bricks = node_count * 32
+    off_class = off_bricks + brick_count * BRICK_SAMPLES
     g = Gmdag(
         resolution=resolution,
         levels=levels,
@@ -325,9 +381,9 @@ def decode_gmdag(data: bytes) -> Gmdag:
         voxel_size=voxel_size,
         band=band,
         quant_step=quant_step,
-        nodes=np.frombuffer(buf[off_nodes:off_bricks], "<u4").reshape(node_count, 8).astype(np.uint32),
-        bricks=np.frombuffer(buf[off_bricks:off_class], np.int8).reshape(brick_count, BRICK_SAMPLES),
-        brick_class=np.frombuffer(buf[off_class:off_spawns], np.uint8),
+        nodes=np.frombuffer(payload[:off_bricks], "<u4").reshape(node_count, 8).astype(np.uint32),
+        bricks=np.frombuffer(payload[off_bricks:off_class], np.int8).reshape(brick_count, BRICK_SAMPLES),
+        brick_class=np.frombuffer(payload[off_class:], np.uint8),
         spawns=np.frombuffer(buf[off_spawns:off_names], "<f4").reshape(spawn_count, 3).astype(np.float32),
         class_names=names,
         bounds_min=bounds_min,
