@@ -1,10 +1,32 @@
-"""Repo-wide test tiers: `gpu`-marked tests skip, with the reason, where CUDA is absent."""
+"""Repo-wide test tiers: `gpu`-marked tests skip, with the reason, where CUDA is absent; `--long`
+selects the long fuzz run."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 
 import pytest
+
+FUZZ_CASES = 3000  # the .gmdag fuzz in CI
+LONG_FUZZ_CASES = 100_000  # with --long
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--long",
+        action="store_true",
+        default=False,
+        help=f"long runs: the .gmdag reader fuzz takes {LONG_FUZZ_CASES:,} cases instead of {FUZZ_CASES:,}",
+    )
+
+
+@pytest.fixture
+def fuzz_cases(request: pytest.FixtureRequest) -> int:
+    """Cases for the .gmdag fuzz: NAVI_FUZZ_CASES if set, else 100,000 with --long, else 3,000."""
+    if "NAVI_FUZZ_CASES" in os.environ:
+        return int(os.environ["NAVI_FUZZ_CASES"])
+    return LONG_FUZZ_CASES if request.config.getoption("--long") else FUZZ_CASES
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
