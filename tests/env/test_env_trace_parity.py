@@ -205,14 +205,19 @@ def test_cuda_matches_cpu(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> No
     d1, s1, _ = _run(trace, c, ids, origins, dirs, yaw=yaw)
     d2, s2, _ = _run(trace, cuda, ids.cuda(), origins.cuda(), dirs.cuda(), yaw=yaw.cuda(), ray_order=order)
     torch.cuda.synchronize()
+    # The CUDA build fuses multiply-adds and its cosf/sinf may differ from glibc by an ulp: a rare
+    # ray decides a hit one step apart (at most about one hit epsilon); the rest agree to 1e-4.
     same = (d1 - d2.cpu()).abs() <= REL_TOL * d1.abs().clamp(min=1e-3)  # (B, R)
-    assert float(same.float().mean()) >= 0.999  # kernel cosf/sinf may differ from glibc by an ulp
+    assert float(same.float().mean()) >= 0.999
+    assert float((d1 - d2.cpu()).abs().max()) <= 0.5  # meters: one voxel of the coarsest scene
     assert float((s1 != s2.cpu()).float().mean()) <= 0.001
     p = torch.tensor(
         np.concatenate([free_points(s, 300, -1.0, seed=14) for s in scenes]), dtype=torch.float32
     )
     sid = torch.arange(len(scenes)).repeat_interleave(300)  # (N,)
-    assert torch.equal(sample_distance(cuda, sid.cuda(), p.cuda()).cpu(), sample_distance(c, sid, p))
+    got, want = sample_distance(cuda, sid.cuda(), p.cuda()).cpu(), sample_distance(c, sid, p)  # (N,) each
+    voxel = torch.tensor([s.voxel_size for s in scenes])[sid]  # (N,) meters
+    assert float(((got - want).abs() / voxel).max()) <= 1e-5  # fused multiply-adds: ulps of a voxel
 
 
 @gpu

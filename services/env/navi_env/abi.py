@@ -15,6 +15,7 @@ class TraceArgs(ctypes.Structure):
 
     _fields_ = [
         ("nodes", ctypes.c_void_p),
+        ("grid", ctypes.c_void_p),
         ("bricks", ctypes.c_void_p),
         ("brick_class", ctypes.c_void_p),
         ("scenes", ctypes.c_void_p),
@@ -47,6 +48,7 @@ class SampleArgs(ctypes.Structure):
 
     _fields_ = [
         ("nodes", ctypes.c_void_p),
+        ("grid", ctypes.c_void_p),
         ("bricks", ctypes.c_void_p),
         ("scenes", ctypes.c_void_p),
         ("scene_ids", ctypes.c_void_p),

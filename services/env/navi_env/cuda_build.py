@@ -24,7 +24,7 @@ SOURCES = ("gmdag_trace.h", "trace_launch.h", "trace_cuda.cu")
 NVCC_FLAGS = (
     "-O3",
     "-std=c++17",
-    "--fmad=false",  # bit-identical steps with the CPU build and trace_ref
+    "--fmad=true",  # fused multiply-add: ~3% faster; agrees with the CPU build to a tolerance (docs)
     "-Xcompiler=-fPIC,-fvisibility=hidden",
     "-shared",
     "-cudart=static",

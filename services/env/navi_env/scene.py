@@ -1,11 +1,20 @@
 """Scenes on a device: many .gmdag scenes resident at once, addressed by index.
 
-A `SceneCorpus` packs every scene's child words, bricks and brick classes into one buffer each, plus
-a table with one 16-word record per scene (layout `SceneWord` in csrc/gmdag_trace.h). Child-word
-payloads stay relative to their scene; the record's node and brick offsets rebase them at trace time,
-so loading is a few numpy concatenations and one host-to-device copy per buffer.
+A `SceneCorpus` packs every scene's child words, leaf grid, bricks and brick classes into one buffer
+each, plus a table with one 16-word record per scene (layout `SceneWord` in csrc/gmdag_trace.h).
+Payloads stay relative to their scene; the record's offsets rebase them at trace time, so loading is a
+few vectorised numpy passes and one host-to-device copy per buffer.
 
-Shapes: S scenes, Nn nodes (all scenes), Nb bricks (all scenes), P spawns of one scene.
+Two buffers are a runtime layout of the file's data, built here (the .gmdag format does not change):
+- the leaf grid: the octree descended once, at load, to depth D = min(L, 7); entry (z * 2^D + y) * 2^D + x
+  holds the child word there (or the leaf above it) as tag << 30 | log2(cube edge) << 26 | payload,
+  so the tracer finds a leaf with one load instead of up to L dependent ones;
+- corner-word bricks: 576 u32 per brick; word (8i + j) * 9 + k holds the samples (i, j, k),
+  (i+1, j, k), (i, j+1, k), (i+1, j+1, k) plus 128 in bytes 0..3, so a trilinear sample is two
+  adjacent 32-bit loads instead of eight scattered bytes.
+
+Shapes: S scenes, Nn nodes (all scenes), Nb bricks (all scenes), Ng grid entries (all scenes),
+P spawns of one scene.
 """
 
 from __future__ import annotations
@@ -18,13 +27,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from navi_compiler.gmdag import BRICK_SAMPLES, Gmdag, read_gmdag
+from navi_compiler.gmdag import BRICK_SIDE, PAYLOAD_MASK, TAG_NODE, Gmdag, read_gmdag
 
 SCENE_WORDS = 16  # 32-bit words per scene record
 # Word indices of a scene record (mirror of enum SceneWord in gmdag_trace.h).
 W_ROOT, W_NODE_OFFSET, W_BRICK_OFFSET, W_RESOLUTION, W_LEVELS = 0, 1, 2, 3, 4
 W_ORIGIN, W_VOXEL, W_INV_VOXEL, W_QUANT, W_BAND = 5, 8, 9, 10, 11
-MAX_OFFSET = 2**32 - 1  # node and brick offsets are u32
+W_GRID_OFFSET, W_GRID_DEPTH = 12, 13
+MAX_OFFSET = 2**32 - 1  # node, brick and grid offsets are u32
+MAX_GRID_DEPTH = 7  # the leaf grid has at most 128^3 entries (8 MiB) per scene
+GRID_SHIFT_BIT = 26  # grid entry: tag << 30 | log2(cube edge) << 26 | payload
+GRID_PAYLOAD_LIMIT = 1 << GRID_SHIFT_BIT  # node and brick indices of a scene must stay below
+BRICK_WORDS = 8 * 8 * 9  # corner words per runtime brick
 
 SceneSource = str | os.PathLike[str] | Gmdag
 
@@ -65,7 +79,8 @@ class SceneCorpus:
     """Scenes resident on one device; trace and sample_distance address them by index."""
 
     nodes: torch.Tensor  # (Nn * 8,) int32 child words (u32 bits), all scenes
-    bricks: torch.Tensor  # (Nb * 729,) int8 samples, all scenes
+    grid: torch.Tensor  # (Ng,) int32 leaf-grid entries (u32 bits), all scenes
+    bricks: torch.Tensor  # (Nb * 576,) int32 corner words (u32 bits), all scenes
     brick_class: torch.Tensor  # (Nb,) uint8 class id per brick, all scenes
     table: torch.Tensor  # (S, 16) int32 scene records
     infos: tuple[SceneInfo, ...]  # (S,) host metadata, same order as the table
@@ -83,13 +98,66 @@ class SceneCorpus:
         return [info.nbytes for info in self.infos]
 
 
-def scene_nbytes(node_count: int, brick_count: int) -> int:
-    """Device bytes of one scene: 32 per node, 729 + 1 per brick, one 64-byte record."""
-    return 32 * node_count + (BRICK_SAMPLES + 1) * brick_count + 4 * SCENE_WORDS
+def grid_depth(levels: int) -> int:
+    """D: the leaf grid of a scene with L levels has 2^D cells per axis."""
+    return min(levels, MAX_GRID_DEPTH)
 
 
-def scene_record(g: Gmdag, node_offset: int, brick_offset: int) -> np.ndarray:
-    """The (16,) int32 record of scene g whose nodes and bricks start at the given corpus offsets."""
+def scene_nbytes(node_count: int, brick_count: int, levels: int) -> int:
+    """Device bytes of one scene: 32 per node, 4 * 576 + 1 per brick, 4 per leaf-grid entry, one
+    64-byte record."""
+    return (
+        32 * node_count + (4 * BRICK_WORDS + 1) * brick_count + 4 * 8 ** grid_depth(levels) + 4 * SCENE_WORDS
+    )
+
+
+def leaf_grid(g: Gmdag) -> np.ndarray:
+    """(8^D,) uint32 leaf-grid entries of scene g, D = grid_depth(L), index (z * 2^D + y) * 2^D + x.
+
+    Descends the octree from the root one depth at a time (a leaf above depth D fills all its cells):
+    entry = tag << 30 | log2(edge of the entry's cube, voxels) << 26 | payload, where an entry still
+    holding an internal node (scenes deeper than the grid) has the grid cell's edge. Far payloads
+    above 2^26 - 1 are clamped: a smaller lower bound stays a lower bound, and 2^26 / 16 voxels is
+    beyond every cube's diagonal, so the tracer's results do not change.
+    """
+    nodes = g.nodes.reshape(-1, 8)  # (Nn, 8) uint32
+    if len(nodes) >= GRID_PAYLOAD_LIMIT or len(g.bricks) >= GRID_PAYLOAD_LIMIT:
+        raise ValueError(f"a scene may hold at most {GRID_PAYLOAD_LIMIT - 1} nodes and bricks each")
+    words = np.full((1, 1, 1), g.root, np.uint32)  # (n, n, n) child words at the current depth, [z, y, x]
+    shifts = np.full((1, 1, 1), g.levels + 3, np.uint32)  # (n, n, n) log2 cube edge of each word
+    for _ in range(grid_depth(g.levels)):
+        n = words.shape[0]
+        inner = (words >> 30) == TAG_NODE  # (n, n, n) internal nodes split into their 8 children
+        children = np.repeat(words[..., None], 8, axis=-1)  # (n, n, n, 8) leaves repeat themselves
+        if inner.any():
+            children[inner] = nodes[words[inner] & PAYLOAD_MASK]
+        child_shifts = np.repeat((shifts - inner.astype(np.uint32))[..., None], 8, axis=-1)  # (n, n, n, 8)
+        # child c = x | y << 1 | z << 2: (n, n, n, 2z, 2y, 2x) -> (2n, 2n, 2n) in [z, y, x] order
+        words = children.reshape(n, n, n, 2, 2, 2).transpose(0, 3, 1, 4, 2, 5).reshape(2 * n, 2 * n, 2 * n)
+        shifts = (
+            child_shifts.reshape(n, n, n, 2, 2, 2).transpose(0, 3, 1, 4, 2, 5).reshape(2 * n, 2 * n, 2 * n)
+        )
+    payload = np.minimum(words & PAYLOAD_MASK, GRID_PAYLOAD_LIMIT - 1)  # (n, n, n) only far bounds clamp
+    entries = (words >> 30 << 30) | (shifts << GRID_SHIFT_BIT) | payload  # (n, n, n) uint32
+    return entries.reshape(-1)
+
+
+def corner_words(bricks: np.ndarray) -> np.ndarray:
+    """(Nb, 576) uint32 corner words of bricks (Nb, 729) int8 (sample (i, j, k) at i + 9j + 81k).
+
+    Word (8i + j) * 9 + k, for i, j in [0, 7] and k in [0, 8], holds the samples (i, j, k),
+    (i+1, j, k), (i, j+1, k), (i+1, j+1, k), each plus 128 (a u8), in bytes 0, 1, 2, 3.
+    """
+    u = (bricks.view(np.uint8) ^ 0x80).reshape(-1, BRICK_SIDE, BRICK_SIDE, BRICK_SIDE)  # (Nb, 9k, 9j, 9i)
+    u = u.transpose(0, 3, 2, 1)  # (Nb, 9i, 9j, 9k) uint8 view
+    w = np.empty((len(bricks), 8, 8, BRICK_SIDE, 4), np.uint8)  # (Nb, 8i, 8j, 9k, byte)
+    w[..., 0], w[..., 1], w[..., 2], w[..., 3] = u[:, :-1, :-1], u[:, 1:, :-1], u[:, :-1, 1:], u[:, 1:, 1:]
+    words = w.view("<u4").astype(np.uint32, copy=False)  # (Nb, 8, 8, 9, 1) little-endian words
+    return words.reshape(len(bricks), BRICK_WORDS)
+
+
+def scene_record(g: Gmdag, node_offset: int, brick_offset: int, grid_offset: int) -> np.ndarray:
+    """The (16,) int32 record of scene g whose nodes, bricks and grid start at the given corpus offsets."""
     words = np.zeros(SCENE_WORDS, np.uint32)  # (16,) uint32
     floats = words.view(np.float32)  # (16,) float32 view of the same words
     words[W_ROOT] = g.root
@@ -102,6 +170,8 @@ def scene_record(g: Gmdag, node_offset: int, brick_offset: int) -> np.ndarray:
     floats[W_INV_VOXEL] = np.float32(1.0 / g.voxel_size)
     floats[W_QUANT] = np.float32(g.quant_step)
     floats[W_BAND] = np.float32(g.band)
+    words[W_GRID_OFFSET] = grid_offset
+    words[W_GRID_DEPTH] = grid_depth(g.levels)
     return words.view(np.int32)
 
 
@@ -122,13 +192,22 @@ def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cp
     gmdags: list[Gmdag] = []
     infos: list[SceneInfo] = []
     records: list[np.ndarray] = []
-    node_offset = brick_offset = 0
+    grids: list[np.ndarray] = []
+    node_offset = brick_offset = grid_offset = 0
     for i, src in enumerate(sources):
         g, stem = _as_gmdag(src)
         node_count, brick_count = len(g.nodes), len(g.bricks)
-        if node_offset + node_count > MAX_OFFSET or brick_offset + brick_count > MAX_OFFSET:
-            raise ValueError("the corpus holds more than 2^32 - 1 nodes or bricks; split it")
-        records.append(scene_record(g, node_offset, brick_offset))
+        grid = leaf_grid(g)  # (8^D,) uint32
+        if (
+            node_offset + node_count > MAX_OFFSET
+            or (brick_offset + brick_count) * BRICK_WORDS > MAX_OFFSET
+            or grid_offset + len(grid) > MAX_OFFSET
+        ):
+            raise ValueError(
+                "the corpus holds more than 2^32 - 1 nodes, brick words or grid entries; split it"
+            )
+        records.append(scene_record(g, node_offset, brick_offset, grid_offset))
+        grids.append(grid)
         infos.append(
             SceneInfo(
                 name=stem if stem is not None else f"scene{i}",
@@ -145,18 +224,23 @@ def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cp
                 flags=g.flags,
                 node_count=node_count,
                 brick_count=brick_count,
-                nbytes=scene_nbytes(node_count, brick_count),
+                nbytes=scene_nbytes(node_count, brick_count, g.levels),
             )
         )
         gmdags.append(g)
         node_offset += node_count
         brick_offset += brick_count
+        grid_offset += len(grid)
     nodes = np.concatenate([g.nodes.reshape(-1) for g in gmdags]).view(np.int32)  # (Nn * 8,) int32
-    bricks = np.concatenate([g.bricks.reshape(-1) for g in gmdags])  # (Nb * 729,) int8
+    grid_all = np.concatenate(grids).view(np.int32)  # (Ng,) int32
+    bricks = np.concatenate([corner_words(g.bricks).reshape(-1) for g in gmdags]).view(
+        np.int32
+    )  # (Nb * 576,)
     classes = np.concatenate([g.brick_class for g in gmdags])  # (Nb,) uint8
     table = np.stack(records)  # (S, 16) int32
     return SceneCorpus(
         nodes=torch.from_numpy(nodes).to(dev),
+        grid=torch.from_numpy(grid_all).to(dev),
         bricks=torch.from_numpy(bricks).to(dev),
         brick_class=torch.from_numpy(classes).to(dev),
         table=torch.from_numpy(table).to(dev),

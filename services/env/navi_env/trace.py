@@ -257,6 +257,7 @@ def trace(
     )  # fmt: skip
     args = TraceArgs(
         nodes=scenes.nodes.data_ptr(),
+        grid=scenes.grid.data_ptr(),
         bricks=scenes.bricks.data_ptr(),
         brick_class=scenes.brick_class.data_ptr(),
         scenes=scenes.table.data_ptr(),
@@ -311,6 +312,7 @@ def sample_distance(
         return result
     args = SampleArgs(
         nodes=scenes.nodes.data_ptr(),
+        grid=scenes.grid.data_ptr(),
         bricks=scenes.bricks.data_ptr(),
         scenes=scenes.table.data_ptr(),
         scene_ids=scene_ids.data_ptr(),

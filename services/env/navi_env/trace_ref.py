@@ -1,8 +1,10 @@
 """The reference tracer: the algorithm of csrc/gmdag_trace.h in plain PyTorch, vectorised over rays.
 
-Slow and obviously correct: every sample descends from the root (no leaf cache), every operation is
-one float32 tensor op in the header's order, so it takes the same steps as the compiled launchers and
-serves as their parity oracle. Same signature and semantics as `navi_env.trace.trace`.
+Slow and obviously correct: every sample descends from the root through the file's child words (no
+leaf grid, no leaf cache) and reads the file's 729 samples of a brick (decoded back from the corpus's
+corner words), every operation is one float32 tensor op in the header's order, so it takes the same
+steps as the compiled launchers and serves as their parity oracle. Same signature and semantics as
+`navi_env.trace.trace`.
 
 Shapes: B actors, R rays, M = B * R rays in flight, K rays being worked on, N query points.
 """
@@ -46,7 +48,7 @@ class RefScene:
     """Per-ray copies of the scene records (all (M,) tensors) and the corpus buffers."""
 
     nodes: torch.Tensor  # (Nn * 8,) int64 child words as unsigned values
-    bricks: torch.Tensor  # (Nb * 729,) float32 samples
+    bricks: torch.Tensor  # (Nb * 729,) float32 samples, file order (i + 9j + 81k)
     root: torch.Tensor  # (M,) int64
     node_offset: torch.Tensor  # (M,) int64
     brick_offset: torch.Tensor  # (M,) int64
@@ -66,13 +68,27 @@ class RefScene:
         )  # fmt: skip
 
 
+def brick_samples(words: torch.Tensor) -> torch.Tensor:
+    """(Nb * 729,) int8 samples in file order from corner words (Nb * 576,) int32 (layout in scene.py):
+    sample (i, j, k) is byte 0 of word (i, j, k), or byte 1 of word (i - 1, j, k) when i = 8, byte 2
+    of word (i, j - 1, k) when j = 8, byte 3 of word (7, 7, k) when both are 8; each byte is sample + 128."""
+    w = words.view(-1, 8, 8, 9).long() & 0xFFFFFFFF  # (Nb, 8i, 8j, 9k) unsigned
+    nb = w.shape[0]
+    u = torch.zeros(nb, 9, 9, 9, dtype=torch.long, device=words.device)  # (Nb, 9i, 9j, 9k)
+    u[:, :8, :8] = w & 0xFF
+    u[:, 8, :8] = (w[:, 7] >> 8) & 0xFF
+    u[:, :8, 8] = (w[:, :, 7] >> 16) & 0xFF
+    u[:, 8, 8] = (w[:, 7, 7] >> 24) & 0xFF
+    return (u - 128).to(torch.int8).permute(0, 3, 2, 1).reshape(-1)  # (Nb * 729,) in [k, j, i] order
+
+
 def ref_scene(scenes: SceneCorpus, sid: torch.Tensor) -> RefScene:
     """Per-ray scene records for scene ids sid (M,) (already clamped into range)."""
     rec = scenes.table[sid].long() & 0xFFFFFFFF  # (M, 16) int64 unsigned words
     frec = scenes.table[sid].view(F32)  # (M, 16) float32
     return RefScene(
         nodes=scenes.nodes.long() & 0xFFFFFFFF,
-        bricks=scenes.bricks.to(F32),
+        bricks=brick_samples(scenes.bricks).to(F32),
         root=rec[:, W_ROOT],
         node_offset=rec[:, W_NODE_OFFSET],
         brick_offset=rec[:, W_BRICK_OFFSET],

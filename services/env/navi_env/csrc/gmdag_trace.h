@@ -1,11 +1,16 @@
 // The one traversal of a .gmdag scene corpus, compiled for the host (trace_cpu.cpp) and for the
-// device (trace_cuda.cu). Every launcher calls trace_ray / sample_point per ray / point; nothing
-// about the algorithm lives anywhere else. docs/SDFDAG_RUNTIME.md describes it, docs/GMDAG.md the data.
+// device (trace_cuda.cu). Every launcher calls trace_item / sample_point per ray / point; nothing
+// about the algorithm lives anywhere else. docs/SDFDAG_RUNTIME.md describes it, docs/GMDAG.md the
+// file, navi_env/scene.py the runtime layout built from it (leaf grid, corner-word bricks).
 //
 // Units inside: "voxel space" of the ray's scene, p_vox = (p_world - origin) / voxel_size, so the cube
 // is [0, R]^3 and a unit direction stays a unit direction; t is in voxels until it is written out.
-// The arithmetic is plain float32 with no fused multiply-add (CPU: -ffp-contract=off, CUDA:
-// --fmad=false) so that the CPU, the CUDA build and trace_ref.py take bit-identical steps.
+// The arithmetic is plain float32. The CPU build has no fused multiply-add (-ffp-contract=off) and
+// takes bit-identical steps to trace_ref.py; where the device takes a cheaper route to the same value
+// (floor through a rounding add, int8 to float through a byte permute) the result is exact, so that
+// changes nothing. The CUDA build contracts a * b + c into fused multiply-adds (--fmad=true, ~3%
+// faster), which moves positions and distances by an ulp: CUDA agrees with the CPU to a tolerance
+// (docs/SDFDAG_RUNTIME.md, "Determinism"), not bit for bit.
 #pragma once
 
 #include <math.h>
@@ -26,13 +31,20 @@ constexpr uint32_t kTagFarFree = 2;
 constexpr uint32_t kTagFarSolid = 3;
 constexpr uint32_t kPayloadMask = 0x3FFFFFFFu;
 constexpr int kBrickShift = 3;          // bricks are 8 = 1 << 3 cells per axis
-constexpr int kBrickSamples = 729;      // 9^3 corner samples per brick
+constexpr int kBrickWords = 576;        // runtime brick: 8 x 8 x 9 corner words (scene.py)
 constexpr int kSceneWords = 16;         // one scene record = 16 x 32-bit words (64 bytes)
 constexpr float kFarUnit = 1.0f / 16.0f;  // far-code payload unit, voxels
 // Hit epsilon in voxels when the caller passes hit_epsilon <= 0; also the minimum step.
 constexpr float kDefaultHitEpsilonVoxels = 0.1f;
 constexpr int kRefineIterations = 6;    // bisection halvings after a sign change, then one secant
 constexpr float kBig = 3.0e38f;
+// Leaf-grid entries: tag (bits 31-30) | log2 cube edge (bits 29-26) | payload (bits 25-0).
+constexpr int kGridShiftBit = 26;
+constexpr uint32_t kGridPayloadMask = 0x03FFFFFFu;
+// Float tricks, exact for the integers they are used on (0 <= n < 2^23).
+constexpr float kTwo23 = 8388608.0f;           // 2^23: float bits 0x4B000000 + n encode 2^23 + n
+constexpr int32_t kTwo23Bits = 0x4B000000;
+constexpr float kSampleBias = 8388736.0f;      // 2^23 + 128: corner bytes hold sample + 128
 
 // Scene record layout (int32 words; float fields hold float32 bits). Mirrored in navi_env/scene.py.
 enum SceneWord : int {
@@ -48,19 +60,22 @@ enum SceneWord : int {
   kInvVoxelSize = 9,  // f32 1 / h (rounded once from float64)
   kQuantStep = 10,    // f32 voxels per i8 unit
   kBand = 11,         // f32 clamp band, voxels
+  kGridOffset = 12,   // u32 first entry of the scene's leaf grid in the corpus grid buffer
+  kGridDepth = 13,    // u32 D = min(L, 7): the grid has 2^D cells per axis
 };
 
 // Arguments of one trace launch; laid out for C callers (ctypes mirror in navi_env/abi.py).
 struct TraceArgs {
   const uint32_t* nodes;        // (sum node_count * 8,) child words of every scene
-  const int8_t* bricks;         // (sum brick_count * 729,) samples of every scene
+  const uint32_t* grid;         // (sum 8^D,) leaf-grid entries of every scene
+  const uint32_t* bricks;       // (sum brick_count * 576,) corner words of every scene
   const uint8_t* brick_class;   // (sum brick_count,) class id per brick
   const int32_t* scenes;        // (S, 16) scene records
   const void* scene_ids;        // (B,) int32 or int64
   const float* origins;         // (B, 3) world meters
   const float* directions;      // (R, 3) shared or (B, R, 3) per actor, unit vectors
   const float* yaw;             // (B,) radians about +Z, or null
-  const int32_t* ray_order;     // (R,) permutation, or null: thread j of an actor traces ray ray_order[j]
+  const int32_t* ray_order;     // (R,) permutation, or null: item j of an actor traces ray ray_order[j]
   float* out_depth;             // (B, R) meters
   void* out_semantic;           // (B, R) int32 or uint8, or null
   int32_t* out_steps;           // (B, R) steps taken, or null
@@ -82,7 +97,8 @@ struct TraceArgs {
 // Arguments of one point-query launch (sample_distance).
 struct SampleArgs {
   const uint32_t* nodes;
-  const int8_t* bricks;
+  const uint32_t* grid;
+  const uint32_t* bricks;
   const int32_t* scenes;
   const void* scene_ids;        // (N,) int32 or int64
   const float* points;          // (N, 3) world meters
@@ -96,7 +112,7 @@ struct SampleArgs {
 };
 
 // ---------------------------------------------------------------------------------------------
-// Loads (read-only cache on the device).
+// Loads (read-only cache on the device) and exact float helpers.
 
 template <typename T>
 NAVI_HD T load_ro(const T* p) {
@@ -117,34 +133,58 @@ NAVI_HD float bits_float(int32_t bits) {
 #endif
 }
 
+NAVI_HD int32_t float_bits(float f) {
+#ifdef __CUDA_ARCH__
+  return __float_as_int(f);
+#else
+  int32_t bits;
+  memcpy(&bits, &f, sizeof bits);
+  return bits;
+#endif
+}
+
 NAVI_HD float kNaN() { return bits_float(0x7FC00000); }
 
 NAVI_HD bool finite(float x) { return fabsf(x) <= 3.4028235e38f; }  // false for NaN and +-inf
 
+// float(n) for 0 <= n < 2^23 (exact either way; the device avoids the conversion unit).
+NAVI_HD float small_int_float(int n) {
+#ifdef __CUDA_ARCH__
+  return bits_float(kTwo23Bits + n) - kTwo23;
+#else
+  return static_cast<float>(n);
+#endif
+}
+
 // A scene record decoded into registers.
 struct Scene {
-  uint32_t root, node_offset, brick_offset;
-  int resolution, levels;
+  uint32_t root, node_offset, brick_offset, grid_offset;
+  int resolution, levels, grid_depth;
+  float cell_max;  // R - 1 as a float: the largest cell index
   float ox, oy, oz, voxel, inv_voxel, quant;
 };
 
 NAVI_HD Scene load_scene(const int32_t* table, int64_t id) {
-  int32_t w[12];
+  int32_t w[16];
 #ifdef __CUDA_ARCH__
   const int4* rec = reinterpret_cast<const int4*>(table + id * kSceneWords);
-  const int4 a = __ldg(rec), b = __ldg(rec + 1), c = __ldg(rec + 2);
+  const int4 a = __ldg(rec), b = __ldg(rec + 1), c = __ldg(rec + 2), d = __ldg(rec + 3);
   w[0] = a.x; w[1] = a.y; w[2] = a.z; w[3] = a.w;
   w[4] = b.x; w[5] = b.y; w[6] = b.z; w[7] = b.w;
   w[8] = c.x; w[9] = c.y; w[10] = c.z; w[11] = c.w;
+  w[12] = d.x; w[13] = d.y; w[14] = d.z; w[15] = d.w;
 #else
-  for (int k = 0; k < 12; ++k) w[k] = table[id * kSceneWords + k];
+  for (int k = 0; k < 16; ++k) w[k] = table[id * kSceneWords + k];
 #endif
   Scene s;
   s.root = static_cast<uint32_t>(w[kRoot]);
   s.node_offset = static_cast<uint32_t>(w[kNodeOffset]);
   s.brick_offset = static_cast<uint32_t>(w[kBrickOffset]);
+  s.grid_offset = static_cast<uint32_t>(w[kGridOffset]);
   s.resolution = w[kResolution];
   s.levels = w[kLevels];
+  s.grid_depth = w[kGridDepth];
+  s.cell_max = static_cast<float>(s.resolution - 1);
   s.ox = bits_float(w[kOriginX]);
   s.oy = bits_float(w[kOriginY]);
   s.oz = bits_float(w[kOriginZ]);
@@ -160,53 +200,108 @@ NAVI_HD int64_t load_scene_id(const void* ids, int bytes, int64_t i) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Descent and the leaf cache.
+// Leaf lookup and the leaf cache.
 
-// The leaf (brick or far cube) holding a lattice cell: its child word and its cube.
+// The leaf (brick or far cube) holding a lattice cell, decoded: its cube and its child word.
 struct Leaf {
-  int cx, cy, cz;  // cube min corner, voxels
-  int shift;       // log2 of the cube edge, voxels
-  uint32_t word;   // child word (tag << 30 | payload), payload relative to the scene offsets
+  int cx, cy, cz;    // cube min corner, voxels (a multiple of the edge)
+  int shift;         // log2 of the cube edge, voxels
+  uint32_t tag;      // kTagBrick, kTagFarFree, kTagFarSolid (kTagNode only in an invalid file)
+  uint32_t payload;  // relative to the scene's offsets
+  uint32_t words;    // brick: its first corner word minus the offset of cell (cx, cy, cz), mod 2^32
 };
 
-// Cell index of a coordinate, clamped to [0, R - 1] in float first (NaN lands on 0).
-NAVI_HD int cell_of(float x, int resolution) {
-  return static_cast<int>(fminf(fmaxf(floorf(x), 0.0f), static_cast<float>(resolution - 1)));
+// Offset of cell (i, j, k)'s corner word in a brick, for local i, j, k, or (mod 2^32) for global
+// cells relative to a brick corner at a multiple of 8.
+NAVI_HD uint32_t corner_offset(int i, int j, int k) {
+  return static_cast<uint32_t>(i) * 72u + static_cast<uint32_t>(j) * 9u + static_cast<uint32_t>(k);
 }
 
-// Bounded stackless descent from the root to the leaf holding cell (ix, iy, iz): at most L loads.
-NAVI_HD Leaf descend(const uint32_t* nodes, const Scene& s, int ix, int iy, int iz) {
-  uint32_t word = s.root;
-  int shift = s.levels + kBrickShift;  // log2 R: the root's cube edge
-  while ((word >> 30) == kTagNode && shift > kBrickShift) {
-    --shift;
-    const uint64_t node = static_cast<uint64_t>(s.node_offset) + (word & kPayloadMask);
-    const int child = ((ix >> shift) & 1) | (((iy >> shift) & 1) << 1) | (((iz >> shift) & 1) << 2);
-    word = load_ro(nodes + node * 8 + child);
-  }
+// The lattice cell of a voxel-space point: indices and the same indices as floats (exact).
+struct Cell {
+  int ix, iy, iz;
+  float fx, fy, fz;  // float(ix), float(iy), float(iz)
+};
+
+// floor(x) clamped to [0, R - 1] (NaN lands on 0), as an int and as a float. The clamp is taken
+// before the floor, which gives the same cell; on the device the floor is a round-down add of 2^23,
+// exact for 0 <= x < 2^23, whose bits hold the integer and whose value minus 2^23 is its float.
+NAVI_HD void cell_axis(float x, float cell_max, int& i, float& f) {
+  const float c = fminf(fmaxf(x, 0.0f), cell_max);
+#ifdef __CUDA_ARCH__
+  const float r = __fadd_rd(c, kTwo23);
+  i = __float_as_int(r) - kTwo23Bits;
+  f = r - kTwo23;
+#else
+  f = floorf(c);
+  i = static_cast<int>(f);
+#endif
+}
+
+NAVI_HD Cell cell_of(float px, float py, float pz, float cell_max) {
+  Cell c;
+  cell_axis(px, cell_max, c.ix, c.fx);
+  cell_axis(py, cell_max, c.iy, c.fy);
+  cell_axis(pz, cell_max, c.iz, c.fz);
+  return c;
+}
+
+// The leaf holding cell (ix, iy, iz): one leaf-grid load (the descent from the root to depth D,
+// done once at load time by scene.py), then, for scenes deeper than the grid, the bounded stackless
+// descent through the nodes for the remaining L - D levels.
+NAVI_HD Leaf find_leaf(const uint32_t* grid, const uint32_t* nodes, const Scene& s, int ix, int iy, int iz) {
+  const int gshift = s.levels + kBrickShift - s.grid_depth;  // log2 of a grid cell's edge, voxels
+  const uint32_t gx = static_cast<uint32_t>(ix >> gshift), gy = static_cast<uint32_t>(iy >> gshift);
+  const uint32_t gz = static_cast<uint32_t>(iz >> gshift);
+  const uint32_t entry = load_ro(grid + s.grid_offset + ((((gz << s.grid_depth) | gy) << s.grid_depth) | gx));
   Leaf leaf;
+  leaf.tag = entry >> 30;
+  leaf.payload = entry & kGridPayloadMask;
+  int shift = static_cast<int>((entry >> kGridShiftBit) & 15u);
+  while (leaf.tag == kTagNode && shift > kBrickShift) {
+    --shift;
+    const uint64_t node = static_cast<uint64_t>(s.node_offset) + leaf.payload;
+    const int child = ((ix >> shift) & 1) | (((iy >> shift) & 1) << 1) | (((iz >> shift) & 1) << 2);
+    const uint32_t word = load_ro(nodes + node * 8 + child);
+    leaf.tag = word >> 30;
+    leaf.payload = word & kPayloadMask;
+  }
   leaf.shift = shift;
   leaf.cx = (ix >> shift) << shift;
   leaf.cy = (iy >> shift) << shift;
   leaf.cz = (iz >> shift) << shift;
-  leaf.word = word;
+  leaf.words = (s.brick_offset + leaf.payload) * static_cast<uint32_t>(kBrickWords) -
+               corner_offset(leaf.cx, leaf.cy, leaf.cz);
   return leaf;
 }
 
+// Whether cell (ix, iy, iz), all >= 0, lies in the leaf's cube (its corner is a multiple of the edge).
 NAVI_HD bool leaf_contains(const Leaf& leaf, int ix, int iy, int iz) {
-  return ((ix - leaf.cx) >> leaf.shift) == 0 && ((iy - leaf.cy) >> leaf.shift) == 0 &&
-         ((iz - leaf.cz) >> leaf.shift) == 0;
+  return ((static_cast<uint32_t>((ix ^ leaf.cx) | (iy ^ leaf.cy) | (iz ^ leaf.cz))) >> leaf.shift) == 0;
 }
 
-// Trilinear interpolation inside a brick: cell (i, j, k) in [0, 7]^3 of the brick, fractions in [0, 1].
-NAVI_HD float brick_distance(const int8_t* brick, float quant, int i, int j, int k, float fx, float fy, float fz) {
-  const int8_t* c = brick + i + 9 * j + 81 * k;
-  const float c000 = load_ro(c), c100 = load_ro(c + 1), c010 = load_ro(c + 9), c110 = load_ro(c + 10);
-  const float c001 = load_ro(c + 81), c101 = load_ro(c + 82), c011 = load_ro(c + 90), c111 = load_ro(c + 91);
-  const float x00 = c000 + fx * (c100 - c000);
-  const float x10 = c010 + fx * (c110 - c010);
-  const float x01 = c001 + fx * (c101 - c001);
-  const float x11 = c011 + fx * (c111 - c011);
+// 2^23 + (corner byte k of a corner word): the byte holds sample + 128, so subtracting kSampleBias
+// gives the sample exactly, and the difference of two such values is the difference of the samples.
+NAVI_HD float corner(uint32_t word, int k) {
+#ifdef __CUDA_ARCH__
+  return __int_as_float(static_cast<int>(__byte_perm(word, 0x4B000000u, 0x7440u + static_cast<unsigned>(k))));
+#else
+  return bits_float(kTwo23Bits | static_cast<int32_t>((word >> (8 * k)) & 0xFFu));
+#endif
+}
+
+// Trilinear interpolation inside a brick from the cell's corner words w[0], w[1], fractions in
+// [0, 1]. Corner word (i, j, k) of a brick (index (8i + j) * 9 + k) holds the samples (i, j, k),
+// (i+1, j, k), (i, j+1, k), (i+1, j+1, k) in bytes 0..3, so a cell is two adjacent words.
+NAVI_HD float brick_distance(const uint32_t* w, float quant, float fx, float fy, float fz) {
+  const uint32_t lo = load_ro(w), hi = load_ro(w + 1);
+  const float a0 = corner(lo, 0), a1 = corner(lo, 1), a2 = corner(lo, 2), a3 = corner(lo, 3);
+  const float b0 = corner(hi, 0), b1 = corner(hi, 1), b2 = corner(hi, 2), b3 = corner(hi, 3);
+  // The same operations as on the samples c000..c111 themselves: c000 + fx * (c100 - c000), ...
+  const float x00 = (a0 - kSampleBias) + fx * (a1 - a0);
+  const float x10 = (a2 - kSampleBias) + fx * (a3 - a2);
+  const float x01 = (b0 - kSampleBias) + fx * (b1 - b0);
+  const float x11 = (b2 - kSampleBias) + fx * (b3 - b2);
   const float y0 = x00 + fy * (x10 - x00);
   const float y1 = x01 + fy * (x11 - x01);
   return (y0 + fz * (y1 - y0)) * quant;
@@ -225,56 +320,69 @@ struct FieldSample {
   uint32_t brick;  // corpus brick index, or kNoBrick
 };
 
-NAVI_HD FieldSample leaf_field(const int8_t* bricks, const Scene& s, const Leaf& leaf, float px, float py, float pz,
-                               int ix, int iy, int iz) {
+NAVI_HD FieldSample leaf_field(const uint32_t* bricks, const Scene& s, const Leaf& leaf, float px, float py,
+                               float pz, const Cell& c) {
   FieldSample f;
-  const uint32_t tag = leaf.word >> 30;
-  const uint32_t payload = leaf.word & kPayloadMask;
-  f.solid = tag == kTagFarSolid;
-  f.far_free = tag != kTagBrick && tag != kTagFarSolid;
+  f.solid = leaf.tag == kTagFarSolid;
+  f.far_free = leaf.tag != kTagBrick && leaf.tag != kTagFarSolid;
   f.brick = kNoBrick;
-  if (tag == kTagBrick) {
-    f.brick = s.brick_offset + payload;
-    const int8_t* brick = bricks + static_cast<uint64_t>(f.brick) * kBrickSamples;
-    // The cell lies in this brick, so its local index is in [0, 7]; the fraction is clamped for
-    // points on (or, after a forced exit, just outside) the cell's faces.
-    f.dist = brick_distance(brick, s.quant, ix - leaf.cx, iy - leaf.cy, iz - leaf.cz,
-                            unit_clamp(px - static_cast<float>(ix)), unit_clamp(py - static_cast<float>(iy)),
-                            unit_clamp(pz - static_cast<float>(iz)));
-  } else if (tag == kTagFarSolid) {
-    f.dist = -(static_cast<float>(payload) * kFarUnit);
+  if (leaf.tag == kTagBrick) {
+    f.brick = s.brick_offset + leaf.payload;
+    // The cell lies in this brick, so its local index is in [0, 7] and its corner words are
+    // leaf.words + corner_offset(ix, iy, iz) (the brick corner's offset cancels mod 2^32); the
+    // fraction is clamped for points on (or, after a forced exit, just outside) the cell's faces.
+    f.dist = brick_distance(bricks + (leaf.words + corner_offset(c.ix, c.iy, c.iz)), s.quant,
+                            unit_clamp(px - c.fx), unit_clamp(py - c.fy), unit_clamp(pz - c.fz));
+  } else if (leaf.tag == kTagFarSolid) {
+    f.dist = -(static_cast<float>(leaf.payload) * kFarUnit);
   } else {
     // Far free; an internal node below the brick level cannot occur in a validated file.
-    f.dist = tag == kTagFarFree ? static_cast<float>(payload) * kFarUnit : 0.0f;
+    f.dist = leaf.tag == kTagFarFree ? static_cast<float>(leaf.payload) * kFarUnit : 0.0f;
   }
   return f;
 }
 
 // Per-ray state for the walk: the cached leaf (the macro-cell void cache) and a forced exit cell.
 struct Walker {
-  Leaf leaf;
-  bool cached;
+  Leaf leaf;        // starts with corner -1, which contains no cell
   int force_axis;   // -1, or the axis whose cell index must reach force_cell (after a far skip)
   int force_cell;
   int force_sign;   // +1 or -1: direction along force_axis
 };
 
+NAVI_HD void walker_init(Walker& w) {
+  w.leaf.cx = w.leaf.cy = w.leaf.cz = -1;
+  w.leaf.shift = kBrickShift;
+  w.leaf.tag = kTagFarFree;
+  w.leaf.payload = 0;
+  w.leaf.words = 0;
+  w.force_axis = -1;
+  w.force_cell = 0;
+  w.force_sign = 1;
+}
+
 // Samples the field at voxel-space p, reusing the cached leaf when p's cell lies in it.
-NAVI_HD FieldSample walk_sample(const uint32_t* nodes, const int8_t* bricks, const Scene& s, Walker& w, float px,
-                                float py, float pz) {
-  int ix = cell_of(px, s.resolution), iy = cell_of(py, s.resolution), iz = cell_of(pz, s.resolution);
+NAVI_HD FieldSample walk_sample(const uint32_t* grid, const uint32_t* nodes, const uint32_t* bricks, const Scene& s,
+                                Walker& w, float px, float py, float pz) {
+  Cell c = cell_of(px, py, pz, s.cell_max);
   if (w.force_axis >= 0) {
-    const int c = w.force_axis == 0 ? ix : (w.force_axis == 1 ? iy : iz);
-    const int forced = w.force_sign > 0 ? (c > w.force_cell ? c : w.force_cell) : (c < w.force_cell ? c : w.force_cell);
-    if (w.force_axis == 0) ix = forced;
-    if (w.force_axis == 1) iy = forced;
-    if (w.force_axis == 2) iz = forced;
+    const int cur = w.force_axis == 0 ? c.ix : (w.force_axis == 1 ? c.iy : c.iz);
+    const int forced =
+        w.force_sign > 0 ? (cur > w.force_cell ? cur : w.force_cell) : (cur < w.force_cell ? cur : w.force_cell);
+    const float forced_f = small_int_float(forced);
+    if (w.force_axis == 0) {
+      c.ix = forced;
+      c.fx = forced_f;
+    } else if (w.force_axis == 1) {
+      c.iy = forced;
+      c.fy = forced_f;
+    } else {
+      c.iz = forced;
+      c.fz = forced_f;
+    }
   }
-  if (!(w.cached && leaf_contains(w.leaf, ix, iy, iz))) {
-    w.leaf = descend(nodes, s, ix, iy, iz);
-    w.cached = true;
-  }
-  return leaf_field(bricks, s, w.leaf, px, py, pz, ix, iy, iz);
+  if (!leaf_contains(w.leaf, c.ix, c.iy, c.iz)) w.leaf = find_leaf(grid, nodes, s, c.ix, c.iy, c.iz);
+  return leaf_field(bricks, s, w.leaf, px, py, pz, c);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -325,6 +433,21 @@ struct Ray {
   bool done;
 };
 
+// The body-frame direction rotated by yaw about +Z (cos/sin as the platform's libm computes them).
+NAVI_HD void rotate_yaw(float yaw, float& dx, float& dy) {
+  float c, sn;
+#ifdef __CUDA_ARCH__
+  sincosf(yaw, &sn, &c);
+#else
+  c = cosf(yaw);
+  sn = sinf(yaw);
+#endif
+  const float rx = c * dx - sn * dy;
+  const float ry = sn * dx + c * dy;
+  dx = rx;
+  dy = ry;
+}
+
 // Sets up ray r of actor b (writing to element b * R + r); rays that are decided before the first
 // sample (bad scene id, non-finite input, missing the cube) come back done.
 NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t r) {
@@ -344,14 +467,7 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t r) {
   const float* dir = a.directions + (a.directions_shared ? r : b * a.num_rays + r) * 3;
   float dx = load_ro(dir), dy = load_ro(dir + 1);
   const float dz = load_ro(dir + 2);
-  if (a.yaw != nullptr) {
-    const float yaw = load_ro(a.yaw + b);
-    const float c = cosf(yaw), sn = sinf(yaw);
-    const float rx = c * dx - sn * dy;
-    const float ry = sn * dx + c * dy;
-    dx = rx;
-    dy = ry;
-  }
+  if (a.yaw != nullptr) rotate_yaw(load_ro(a.yaw + b), dx, dy);
   const float ox = (load_ro(a.origins + b * 3) - s.ox) * s.inv_voxel;
   const float oy = (load_ro(a.origins + b * 3 + 1) - s.oy) * s.inv_voxel;
   const float oz = (load_ro(a.origins + b * 3 + 2) - s.oz) * s.inv_voxel;
@@ -379,10 +495,7 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t r) {
   ray.prev_t = t0;
   ray.prev_d = 0.0f;
   ray.last_brick = kNoBrick;
-  ray.w.cached = false;
-  ray.w.force_axis = -1;
-  ray.w.force_cell = 0;
-  ray.w.force_sign = 1;
+  walker_init(ray.w);
   ray.done = false;
   return ray;
 }
@@ -400,7 +513,7 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   ray.res.steps = step + 1;
   const float t = ray.t;
   const float px = ray.ox + t * ray.dx, py = ray.oy + t * ray.dy, pz = ray.oz + t * ray.dz;
-  const FieldSample f = walk_sample(a.nodes, a.bricks, s, w, px, py, pz);
+  const FieldSample f = walk_sample(a.grid, a.nodes, a.bricks, s, w, px, py, pz);
   w.force_axis = -1;
   if (f.brick != kNoBrick) ray.last_brick = f.brick;
   if (f.solid || f.dist < 0.0f) {
@@ -410,8 +523,8 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
       float lo = ray.prev_t, hi = t, flo = ray.prev_d, fhi = f.dist;
       for (int k = 0; k < kRefineIterations; ++k) {
         const float mid = 0.5f * (lo + hi);
-        const FieldSample m =
-            walk_sample(a.nodes, a.bricks, s, w, ray.ox + mid * ray.dx, ray.oy + mid * ray.dy, ray.oz + mid * ray.dz);
+        const FieldSample m = walk_sample(a.grid, a.nodes, a.bricks, s, w, ray.ox + mid * ray.dx,
+                                          ray.oy + mid * ray.dy, ray.oz + mid * ray.dz);
         if (m.brick != kNoBrick) ray.last_brick = m.brick;
         if (m.solid || m.dist < 0.0f) {
           hi = mid;
@@ -476,21 +589,12 @@ NAVI_HD void finish_ray(const TraceArgs& a, const Ray& ray) {
   if (a.out_steps != nullptr) a.out_steps[ray.out] = ray.res.steps;
 }
 
-// Work item i = b * R + j is ray ray_order[j] (or j) of actor b. The order only decides which rays
-// run side by side in a GPU warp (coherent neighbours take similar step counts); results do not
-// depend on it.
-// Returns false for an out-of-range ray_order entry (the item is skipped).
-NAVI_HD bool item_ray(const TraceArgs& a, int64_t i, int64_t& b, int64_t& r) {
-  b = i / a.num_rays;
-  const int64_t j = i - b * a.num_rays;
-  r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
-  return r >= 0 && r < a.num_rays;
-}
-
-// Traces work item i to the end.
-NAVI_HD void trace_ray(const TraceArgs& a, int64_t i) {
-  int64_t b, r;
-  if (!item_ray(a, i, b, r)) return;
+// Traces work item j of actor b to the end: ray ray_order[j] (or j). The order only decides which
+// rays run side by side in a GPU warp (coherent neighbours take similar step counts); results do
+// not depend on it. An out-of-range ray_order entry is skipped (its output is not written).
+NAVI_HD void trace_item(const TraceArgs& a, int64_t b, int64_t j) {
+  const int64_t r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
+  if (r < 0 || r >= a.num_rays) return;
   Ray ray = start_ray(a, b, r);
   while (!ray.done) step_ray(a, ray);
   finish_ray(a, ray);
@@ -522,9 +626,9 @@ NAVI_HD void sample_point(const SampleArgs& a, int64_t i) {
     a.out_distance[i] = sqrtf(ex * ex + ey * ey + ez * ez) * s.voxel;
     return;
   }
-  const int ix = cell_of(px, s.resolution), iy = cell_of(py, s.resolution), iz = cell_of(pz, s.resolution);
-  const Leaf leaf = descend(a.nodes, s, ix, iy, iz);
-  a.out_distance[i] = leaf_field(a.bricks, s, leaf, px, py, pz, ix, iy, iz).dist * s.voxel;
+  const Cell c = cell_of(px, py, pz, s.cell_max);
+  const Leaf leaf = find_leaf(a.grid, a.nodes, s, c.ix, c.iy, c.iz);
+  a.out_distance[i] = leaf_field(a.bricks, s, leaf, px, py, pz, c).dist * s.voxel;
 }
 
 }  // namespace navi

@@ -43,7 +43,10 @@ int parallel_for(int64_t count, int32_t threads, const Body& body) {
 
 extern "C" int navi_trace_cpu(const navi::TraceArgs* args) {
   const navi::TraceArgs a = *args;
-  return parallel_for(a.num_actors * a.num_rays, a.cpu_threads, [&a](int64_t i) { navi::trace_ray(a, i); });
+  return parallel_for(a.num_actors * a.num_rays, a.cpu_threads, [&a](int64_t i) {
+    const int64_t b = i / a.num_rays;
+    navi::trace_item(a, b, i - b * a.num_rays);
+  });
 }
 
 extern "C" int navi_sample_cpu(const navi::SampleArgs* args) {

@@ -1,0 +1,143 @@
+"""The runtime layout built by scene.py (leaf grid, corner-word bricks) holds exactly the file's data,
+and the tracer gives the same results whatever the grid depth (the node descent below the grid)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+import navi_env.scene as scene_mod
+from navi_compiler.gmdag import PAYLOAD_MASK, TAG_FAR_FREE, TAG_NODE, Gmdag
+from navi_env.analytic_scenes import AnalyticScene, Box, Sphere, demo_room, free_points, random_directions
+from navi_env.scene import BRICK_WORDS, corner_words, grid_depth, leaf_grid, load_corpus, load_scene
+from navi_env.trace import trace
+from navi_env.trace_ref import brick_samples, trace_ref
+
+
+def _scenes() -> list[AnalyticScene]:
+    sparse = AnalyticScene((Sphere((21.0, 12.0, 9.5), 2.5),), resolution=64, voxel_size=0.5)  # far codes
+    boxes = AnalyticScene(
+        (Box((1.0, 1.5, 0.5), (3.0, 6.0, 2.5)), Box((4.5, 0.7, 1.0), (7.2, 2.1, 7.0))),
+        resolution=32,
+        voxel_size=0.25,
+    )
+    return [demo_room(32, 8.0), sparse, boxes]
+
+
+def test_corner_words_hold_every_sample_plus_128() -> None:
+    rng = np.random.default_rng(0)
+    bricks = rng.integers(-128, 128, size=(5, 729)).astype(np.int8)  # (Nb, 729) every i8 value range
+    bricks[0] = np.arange(729) % 256 - 128  # (729,) each position distinct
+    words = corner_words(bricks)  # (Nb, 576) uint32
+    assert words.shape == (5, BRICK_WORDS) and words.dtype == np.uint32
+    s = bricks.astype(np.int64).reshape(5, 9, 9, 9)  # (Nb, k, j, i)
+    for i, j, k in [(0, 0, 0), (7, 7, 8), (3, 5, 2), (7, 0, 4), (0, 7, 8)]:
+        w = words[:, (8 * i + j) * 9 + k].astype(np.int64)  # (Nb,)
+        for byte, (di, dj) in enumerate([(0, 0), (1, 0), (0, 1), (1, 1)]):
+            assert np.array_equal((w >> (8 * byte)) & 0xFF, s[:, k, j + dj, i + di] + 128)
+    back = brick_samples(torch.from_numpy(words.reshape(-1).view(np.int32)))  # (Nb * 729,) int8
+    assert torch.equal(back, torch.from_numpy(bricks.reshape(-1)))
+
+
+def _descend(g: Gmdag, cell: tuple[int, int, int]) -> tuple[int, int, int]:
+    """(tag, payload, log2 edge) of the leaf holding a cell, from the root, one level at a time."""
+    word, shift = g.root, g.levels + 3
+    nodes = g.nodes.reshape(-1, 8)
+    while word >> 30 == TAG_NODE and shift > 3:
+        shift -= 1
+        child = sum(((cell[a] >> shift) & 1) << a for a in range(3))
+        word = int(nodes[word & PAYLOAD_MASK, child])
+    return word >> 30, word & PAYLOAD_MASK, shift
+
+
+@pytest.mark.parametrize("depth_cap", [7, 2, 0])
+def test_leaf_grid_entries_are_the_descent_from_the_root(
+    monkeypatch: pytest.MonkeyPatch, depth_cap: int
+) -> None:
+    monkeypatch.setattr(scene_mod, "MAX_GRID_DEPTH", depth_cap)
+    rng = np.random.default_rng(1)
+    for s in _scenes():
+        g = s.gmdag()
+        d = grid_depth(g.levels)
+        entries = leaf_grid(g).astype(np.int64)  # (8^D,)
+        assert d == min(g.levels, depth_cap) and len(entries) == 8**d
+        gshift = g.levels + 3 - d
+        for cell in rng.integers(0, g.resolution, size=(300, 3)):
+            gx, gy, gz = (int(c) >> gshift for c in cell)
+            e = int(entries[(gz << (2 * d)) | (gy << d) | gx])
+            tag, payload, shift = _descend(g, tuple(int(c) for c in cell))
+            if shift >= gshift:  # the leaf lies at or above the grid depth: the entry is that leaf
+                assert (e >> 30, e & (2**26 - 1), (e >> 26) & 15) == (tag, payload, shift)
+            else:  # deeper: the entry is the internal node covering the grid cell
+                assert e >> 30 == TAG_NODE and (e >> 26) & 15 == gshift
+
+
+def _trace_both(corpus: scene_mod.SceneCorpus, scenes: list[AnalyticScene]) -> tuple[torch.Tensor, ...]:
+    per = 5
+    origins = np.concatenate([free_points(s, per, 0.0, seed=i) for i, s in enumerate(scenes)])  # (B, 3)
+    ids = torch.arange(len(scenes)).repeat_interleave(per)  # (B,)
+    o = torch.tensor(origins, dtype=torch.float32)  # (B, 3)
+    dirs = torch.tensor(random_directions(200, seed=3), dtype=torch.float32)  # (R, 3)
+    out = []
+    for fn in (trace, trace_ref):
+        depth = torch.full((len(ids), 200), -1.0)  # (B, R) float32
+        sem = torch.full((len(ids), 200), -1, dtype=torch.int32)  # (B, R) int32
+        steps = torch.full((len(ids), 200), -1, dtype=torch.int32)  # (B, R) int32
+        fn(corpus, ids, o, dirs, out_depth=depth, out_semantic=sem, out_steps=steps)
+        out += [depth, sem, steps]
+    return tuple(out)
+
+
+def test_traces_do_not_depend_on_the_grid_depth(monkeypatch: pytest.MonkeyPatch) -> None:
+    scenes = _scenes()
+    full = _trace_both(load_corpus([s.gmdag() for s in scenes]), scenes)
+    monkeypatch.setattr(scene_mod, "MAX_GRID_DEPTH", 1)  # the node descent does the rest
+    shallow = _trace_both(load_corpus([s.gmdag() for s in scenes]), scenes)
+    for a, b in zip(full, shallow, strict=True):
+        assert torch.equal(a, b)
+    for a, b in zip(full[:3], full[3:], strict=True):  # compiled == reference, bit for bit
+        assert torch.equal(a, b)
+    assert float((full[1] > 0).float().mean()) > 0.2
+
+
+def test_huge_far_payloads_clamp_without_changing_results() -> None:
+    g = demo_room(16, 4.0).gmdag()
+    far = (TAG_FAR_FREE << 30) | (2**29 + 5)  # a valid, absurdly large lower bound at the root
+    empty = dataclasses.replace(
+        g, root=far, nodes=np.zeros((0, 8), np.uint32), bricks=np.zeros((0, 729), np.int8),
+        brick_class=np.zeros(0, np.uint8),
+    )  # fmt: skip
+    entries = leaf_grid(empty)  # (8^D,) uint32
+    assert (entries >> 30 == TAG_FAR_FREE).all() and (entries & (2**26 - 1) == 2**26 - 1).all()
+    corpus = load_scene(empty)
+    origins = torch.tensor([[1.0, 2.0, 1.5], [-3.0, 1.0, 1.0]])  # (B, 3) inside and outside the cube
+    dirs = torch.tensor(random_directions(30, seed=4), dtype=torch.float32)  # (R, 3)
+    got, want = torch.empty(2, 30), torch.empty(2, 30)  # (B, R) float32 each
+    trace(corpus, torch.zeros(2, dtype=torch.int64), origins, dirs, out_depth=got, horizon=50.0)
+    trace_ref(corpus, torch.zeros(2, dtype=torch.int64), origins, dirs, out_depth=want, horizon=50.0)
+    assert torch.equal(got, want) and (got == 50.0).all()
+
+
+def test_scene_nbytes_counts_every_device_buffer() -> None:
+    scenes = _scenes()
+    corpus = load_corpus([s.gmdag() for s in scenes])
+    total = sum(
+        t.numel() * t.element_size() for t in (corpus.nodes, corpus.grid, corpus.bricks, corpus.brick_class)
+    )
+    total += corpus.table.numel() * corpus.table.element_size()
+    assert sum(corpus.nbytes) == total
+    for info in corpus.infos:
+        assert (
+            info.nbytes
+            == 32 * info.node_count + 2305 * info.brick_count + 4 * 8 ** grid_depth(info.levels) + 64
+        )
+
+
+def test_too_many_bricks_for_the_grid_payload_is_rejected(monkeypatch: pytest.MonkeyPatch) -> None:
+    g = demo_room(32, 8.0).gmdag()
+    monkeypatch.setattr(scene_mod, "GRID_PAYLOAD_LIMIT", len(g.bricks))
+    with pytest.raises(ValueError, match="at most"):
+        load_scene(g)
