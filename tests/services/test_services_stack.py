@@ -56,7 +56,7 @@ def test_stack_up_status_down(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
     try:
         states = up(cfg, 120.0, lambda line: None, said.append)
         assert [s.name for s in states] == ["router", "compiler", "env", "learner"]
-        assert wait_for_tokens(cfg.router_port, ["router", "compiler", "env", "learner"], 5.0) == []
+        assert wait_for_tokens(cfg.router_port, ["router", "compiler", "env", "learner"], 60.0) == []
         assert all(s.running for s in read_states(cfg.root))
         # The generated token is printed once, kept private on disk, and guards the control plane.
         token_file = cfg.root / "api_token"

@@ -28,7 +28,7 @@ from navi_contracts.models import CompileJob, CompileResult, TelemetryEvent
 from navi_contracts.topics import COMPILE_JOBS, alive_key
 from navi_mesh import metrics
 from navi_mesh.liveliness import declare_alive, instance_id, live_tokens
-from navi_mesh.pubsub import Incoming, RequestError, RequestQueue, request
+from navi_mesh.pubsub import Incoming, NoReplyError, RequestError, RequestQueue, request
 from navi_mesh.session import SessionConfig, session
 
 log = logging.getLogger("navi_compiler.service")
@@ -36,6 +36,8 @@ log = logging.getLogger("navi_compiler.service")
 SERVICE = "compiler"
 BUSY_PREFIX = "navi/busy"
 """Liveliness prefix of workers that are compiling: navi/busy/compiler/<worker id>."""
+WORKER_GONE_GRACE_S = 5.0
+"""After a job's query ended without a reply: how long the client waits for the worker's token to go."""
 
 Progress = Callable[[str, float], None]  # (stage, fraction of the compile done)
 
@@ -235,9 +237,22 @@ def submit_compile_job(
     watch = sess.liveliness().declare_subscriber(alive_key(SERVICE, worker), on_token)
     try:
         return request(sess, f"{COMPILE_JOBS.key}/{worker}", job, CompileResult, timeout_s, relay, died)
-    except RequestError as err:
-        if died.is_cancelled or worker not in {t.instance for t in live_tokens(sess, SERVICE, timeout_s=1.0)}:
+    except NoReplyError as err:
+        if _worker_gone(sess, worker, died, WORKER_GONE_GRACE_S):
             raise RequestError(f"compiler worker {worker} died before answering job {job.job_id}") from err
         raise
     finally:
         watch.undeclare()
+
+
+def _worker_gone(sess: zenoh.Session, worker: str, died: zenoh.CancellationToken, grace_s: float) -> bool:
+    """Whether the worker's liveliness token is gone, waiting up to grace_s for the router to notice
+    (a killed process's query can end before its token is withdrawn)."""
+    deadline = time.monotonic() + grace_s
+    while not died.is_cancelled:
+        if worker not in {t.instance for t in live_tokens(sess, SERVICE, timeout_s=0.5)}:
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.1)
+    return True

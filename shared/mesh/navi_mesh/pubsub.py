@@ -271,6 +271,10 @@ class RequestError(RuntimeError):
     """The service answered with an error reply, or nobody answered in time."""
 
 
+class NoReplyError(RequestError):
+    """No final reply came: the service went away, the request was cancelled, or it timed out."""
+
+
 def request(
     sess: zenoh.Session,
     key: str,
@@ -310,9 +314,9 @@ def request(
         elif result is None:
             result = decode(sample.payload.to_bytes(), reply_type)
     if result is None and cancel is not None and cancel.is_cancelled:
-        raise RequestError(f"{key}: cancelled before the reply")
+        raise NoReplyError(f"{key}: cancelled before the reply")
     if result is None and time.monotonic() - t0 < timeout_s * 0.9:
-        raise RequestError(f"{key}: the request ended without a reply (the service went away)")
+        raise NoReplyError(f"{key}: the request ended without a reply (the service went away)")
     if result is None:
-        raise RequestError(f"{key}: no reply within {timeout_s:g} s (is the service running?)")
+        raise NoReplyError(f"{key}: no reply within {timeout_s:g} s (is the service running?)")
     return result
