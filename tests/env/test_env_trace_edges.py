@@ -126,6 +126,20 @@ def test_rays_leaving_the_cube_miss_and_outside_origins_enter_it() -> None:
     assert (sem[2, 2:] == 0).all()
 
 
+def test_rays_along_a_lattice_plane_drifting_out_of_it_keep_going() -> None:
+    # Origins exactly on the lattice plane x = 24 voxels, directions with a vanishing x component: an
+    # exit time along x is 0 or huge there, and no skip may send the ray backwards or stall it.
+    scene = AnalyticScene((Room((1.0, 1.0, 1.0), (15.0, 15.0, 7.0)),), resolution=32, voxel_size=0.5)
+    corpus = load_scene(scene.gmdag())
+    origins = np.array([[12.0, 10.0, 4.0]])  # (1, 3) voxel (24, 20, 8)
+    dirs = np.array(
+        [[-1.8e-16, -0.98079, 0.19509], [1.8e-16, -0.98079, 0.19509], [-1e-9, -1.0, 0.0]]
+    )  # (3, 3)
+    depth, sem = _depth(corpus, origins, dirs, max_steps=64)
+    want = 9.0 / -dirs[:, 1]  # (3,) to the wall at y = 1 m
+    assert np.all(np.abs(depth[0] - want) < 0.25 * 0.5) and (sem[0] > 0).all()
+
+
 def test_horizon_and_max_steps_semantics() -> None:
     scene = AnalyticScene((Room((1.0, 1.0, 1.0), (31.0, 31.0, 31.0)),), resolution=32, voxel_size=1.0)
     corpus = load_scene(scene.gmdag())

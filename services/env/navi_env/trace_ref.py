@@ -328,7 +328,7 @@ def trace_ref(
             t_exit = torch.where(axis == 0, te[0], torch.where(axis == 1, te[1], te[2]))  # (K,)
             d_axis = dk.gather(1, axis[:, None]).squeeze(1)  # (K,)
             cube_min = f.corner.gather(1, axis[:, None]).squeeze(1)  # (K,)
-            nxt = torch.where(far, torch.maximum(tk + f.dist, t_exit), nxt)
+            nxt = torch.where(far, torch.maximum(t_exit, tk) + f.dist, nxt)  # the bound past the exit
             cell = torch.where(d_axis > 0, cube_min + edge, cube_min - 1)  # (K,)
             force_axis[idx] = torch.where(far, axis, force_axis[idx])
             force_sign[idx] = torch.where(far, torch.where(d_axis > 0, 1, -1), force_sign[idx])

@@ -552,8 +552,10 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   }
   float next = t + fmaxf(f.dist, ray.eps);
   if (f.far_free) {
-    // Skip the whole far cube: to its exit, or by its lower bound when that is farther. The next
-    // sample is forced into the neighbouring cube across the exit face, so rounding cannot stall.
+    // Skip the whole far cube and then its lower bound d beyond the exit: every point of the closed
+    // cube, the exit point included, is at least d from the surface (the far code's promise). The
+    // next sample is forced into the neighbouring cube across the exit face, so rounding cannot stall
+    // (nor can a point on the exit face moving out, whose exit time may round below t).
     const int edge = 1 << w.leaf.shift;
     const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
     const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
@@ -562,7 +564,7 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
     const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
     const float d_axis = axis == 0 ? ray.dx : (axis == 1 ? ray.dy : ray.dz);
     const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
-    next = fmaxf(t + f.dist, t_exit);
+    next = fmaxf(t_exit, t) + f.dist;
     w.force_axis = axis;
     w.force_sign = d_axis > 0.0f ? 1 : -1;
     w.force_cell = d_axis > 0.0f ? cube_min + edge : cube_min - 1;
