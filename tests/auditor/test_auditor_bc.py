@@ -17,9 +17,10 @@ import torch
 
 from navi_auditor.bc import BCConfig, action_error, run_bc, train_bc
 from navi_auditor.demos import DemoBuffer, load_demos
+from navi_learner.baselines import RandomPolicy, ReactivePolicy
 from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.evaluate import CheckpointPolicy, RandomPolicy, ReactivePolicy, evaluate
+from navi_learner.evaluate import CheckpointPolicy, evaluate
 from navi_learner.toy_env import ToyEnv
 from navi_learner.train import train
 

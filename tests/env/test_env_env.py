@@ -67,6 +67,7 @@ def test_observation_layout_wall_ahead_is_bin_zero(room: SceneCorpus) -> None:
     env.reset(seed=0)
     env.position.copy_(torch.tensor([[12.0, 10.0, 4.0], [10.0, 12.0, 4.0]]))
     env.yaw.copy_(torch.tensor([0.0, math.pi / 2]))  # actor 1 faces +Y: its nearest wall is ahead too
+    env.safe_distance.copy_(torch.tensor([3.0, 3.0]))
     env.clearance.copy_(torch.tensor([3.0, 3.0]))
     out = env.step(torch.zeros(2, 4))
     az, el = SMALL.azimuth_bins, SMALL.elevation_bins

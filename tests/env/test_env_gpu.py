@@ -124,5 +124,5 @@ def test_fused_observation_is_bit_identical_on_cuda() -> None:
         a = observe(fast, sensed, sensed_sem, fresh, depth, sem, table, horizon, rc)
         b = observe_ref(ref, sensed, sensed_sem, fresh, depth, sem, horizon, rc)
         assert torch.equal(fast, ref), [float((fast[:, c] - ref[:, c]).abs().max()) for c in range(3)]
-        for name in ("void", "near", "mid", "mid_balance"):
+        for name in ("void", "near", "mid", "front_mid", "clearance"):
             assert torch.equal(getattr(a, name), getattr(b, name)), name

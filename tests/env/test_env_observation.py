@@ -7,7 +7,15 @@ import math
 import torch
 
 from navi_env.config import EnvConfig, SensorConfig
-from navi_env.observation import observe, observe_ref, semantic_table, view_stats, write_observation
+from navi_env.observation import (
+    front_bin_count,
+    is_front,
+    observe,
+    observe_ref,
+    semantic_table,
+    view_stats,
+    write_observation,
+)
 from navi_env.rays import spherical_directions
 from navi_env.sensor import apply_sensor, dome_lidar, ray_pattern
 
@@ -55,17 +63,28 @@ def test_write_observation_channels_and_delta() -> None:
     assert torch.all(obs[1, 2] == 0.0)
 
 
-def test_view_stats_fractions_and_balance() -> None:
+def test_view_stats_fractions_front_and_clearance() -> None:
     az, el = 8, 2
     depth = torch.full((1, az, el), 100.0)
-    depth[0, 1:4] = 5.0  # mid-range structure on the left (bins 1..3)
+    depth[0, 1:4] = 5.0  # mid-range structure on the left (bins 1..3: 45, 90, 135 degrees)
     depth[0, 0] = 0.5  # near field straight ahead
+    depth[0, 0, 1] = 0.25  # the nearest surface
     hit = depth < 100.0
     s = view_stats(depth.reshape(1, -1), hit.reshape(1, -1), az, CFG.reward)
     assert math.isclose(float(s.void), 4 / 8, rel_tol=1e-6)
     assert math.isclose(float(s.near), 1 / 8, rel_tol=1e-6)
     assert math.isclose(float(s.mid), 3 / 8, rel_tol=1e-6)
-    assert math.isclose(float(s.mid_balance), 1.0, rel_tol=1e-6)
+    # the front half is bins 7, 0, 1 (cos > 0): only bin 1 holds mid-range rays
+    assert math.isclose(float(s.front_mid), 1 / 3, rel_tol=1e-6)
+    assert float(s.clearance) == 0.25
+
+
+def test_front_half_is_where_the_cosine_is_positive() -> None:
+    for az in (4, 5, 6, 7, 8, 30, 256):
+        bins = torch.arange(az)
+        want = torch.cos(2 * math.pi * bins.double() / az) > 1e-9
+        assert torch.equal(is_front(bins, az), want)
+        assert front_bin_count(az) == int(want.sum())
 
 
 def test_sensor_noise_and_dropout() -> None:
@@ -140,9 +159,9 @@ def test_fused_observation_matches_the_reference_on_cpu() -> None:
         assert torch.all(fast[fresh[step], 2] == 0.0) and bool((fast[~fresh[step], 2] != 0.0).any()) == (
             step > 0
         )
-        for name in ("void", "near", "mid", "mid_balance"):
+        for name in ("void", "near", "mid", "front_mid", "clearance"):
             assert torch.equal(getattr(a, name), getattr(b, name)), name
-        assert float(a.mid_balance.abs().max()) > 0.0
+        assert float(a.front_mid.abs().max()) > 0.0
         fast.copy_(ref)  # the next delta starts from the same previous frame
 
 

@@ -3,22 +3,25 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 
-from navi_env.config import EnvConfig, RewardConfig
+from navi_env.config import EnvConfig
 from navi_env.rewards import (
+    SHAPING_TERMS,
     TERMS,
     RewardInputs,
     cell_index,
     collision_term,
-    escape_term,
+    escape_potential,
     exploration_term,
     foraging_term,
-    progress_term,
     proximity_term,
     reward_terms,
-    structure_term,
+    shaping,
+    structure_potential,
+    term_bounds,
     visit_cells,
     visit_cells_ref,
 )
@@ -41,13 +44,6 @@ def test_collision_penalty_scales_with_speed() -> None:
     assert float(out[2]) < float(out[1]) < 0.0
 
 
-def test_progress_is_off_by_default_and_discounted_near_walls() -> None:
-    assert float(progress_term(t(5.0), t(10.0), 5.0, R).abs().sum()) == 0.0  # weight 0.0 by default
-    cfg = RewardConfig(progress_weight=1.0)
-    out = progress_term(t(5.0, 5.0, 5.0, -5.0), t(10.0, 1.0, 0.0, 10.0), 5.0, cfg)
-    assert torch.allclose(out, t(1.0, 1.0 / cfg.proximity_distance, 0.0, -1.0))
-
-
 def test_proximity_shaping_grows_toward_the_surface() -> None:
     out = proximity_term(t(5.0, 2.0, 1.0, 0.0), R)
     assert float(out[0]) == 0.0 and float(out[1]) == 0.0
@@ -55,12 +51,39 @@ def test_proximity_shaping_grows_toward_the_surface() -> None:
     assert math.isclose(float(out[3]), -R.proximity_weight, rel_tol=1e-6)
 
 
-def test_escape_pays_for_gained_clearance_only_near_geometry() -> None:
+def test_escape_is_potential_based_pays_for_leaving_and_charges_for_approaching() -> None:
     step = CFG.max_speed * CFG.dt
-    out = escape_term(t(0.5, 0.5, 5.0), t(1.0, 0.2, 6.0), step, R)
-    assert math.isclose(float(out[0]), R.escape_weight * 0.5 / step, rel_tol=1e-6)  # gained 0.5 m near a wall
-    assert float(out[1]) == 0.0  # lost clearance: no escape reward (proximity handles the cost)
-    assert float(out[2]) == 0.0  # already in the open
+    g = R.shaping_gamma
+    before, after = t(0.5, 1.0, 5.0, 6.0), t(1.0, 0.5, 6.0, 5.0)
+    out = shaping(escape_potential(before, step, R), escape_potential(after, step, R), R)
+    w = R.escape_weight / step
+    assert math.isclose(float(out[0]), w * (g * 1.0 - 0.5), rel_tol=1e-6)  # left the wall: paid
+    assert math.isclose(float(out[1]), w * (g * 0.5 - 1.0), rel_tol=1e-6)  # came closer: charged
+    assert float(out[0]) > 0.0 > float(out[1])
+    d = R.proximity_distance
+    assert math.isclose(float(out[2]), w * (g - 1.0) * d, rel_tol=1e-6)  # in the open: only the (g-1) leak
+    assert float(out[2]) == float(out[3])
+
+
+def test_every_closed_loop_of_states_earns_no_net_shaping() -> None:
+    """Random closed loops of (clearance, mid, front mid): escape + structure summed over the loop is
+    (gamma - 1) * sum(Phi) <= 0, and exactly 0 with gamma = 1."""
+    gen = torch.Generator().manual_seed(0)
+    step = CFG.max_speed * CFG.dt
+    for gamma in (R.shaping_gamma, 1.0):
+        cfg = replace(R, shaping_gamma=gamma)
+        for length in (2, 3, 10, 50):
+            c = torch.rand(256, length, generator=gen) * 4.0  # (L loops, K states) meters, around d = 2 m
+            mid, front = torch.rand(2, 256, length, generator=gen)
+            phi_e = escape_potential(c, step, cfg)  # (L, K)
+            phi_s = structure_potential(mid, front, cfg)  # (L, K)
+            total = torch.zeros(256)
+            for k in range(length):
+                nxt = (k + 1) % length  # the loop returns to its first state
+                total += shaping(phi_e[:, k], phi_e[:, nxt], cfg) + shaping(phi_s[:, k], phi_s[:, nxt], cfg)
+            assert float(total.max()) <= 1e-5
+            if gamma == 1.0:
+                assert float(total.abs().max()) <= 1e-5
 
 
 def test_exploration_pays_novel_cells_only_with_clearance() -> None:
@@ -75,18 +98,18 @@ def test_foraging_penalises_blind_and_wall_hugging_views() -> None:
     assert math.isclose(float(out[2]), -R.near_weight, rel_tol=1e-6)  # all near field: hugging
 
 
-def test_structure_rewards_stable_mid_range_and_turning_toward_it() -> None:
-    mid = t(0.8, 0.8, 0.8, 0.8)
-    prev = t(0.8, 0.3, 0.8, 0.8)
-    balance = t(0.0, 0.0, 0.5, 0.5)
-    yaw_rate = t(0.0, 0.0, CFG.max_yaw_rate, -CFG.max_yaw_rate)
-    out = structure_term(mid, prev, balance, yaw_rate, CFG.max_yaw_rate, R)
-    assert math.isclose(float(out[0]), R.structure_weight * 0.8, rel_tol=1e-6)
-    assert float(out[1]) < float(out[0])  # unstable view pays less
+def test_structure_rewards_gaining_structure_and_turning_toward_it() -> None:
+    g = R.shaping_gamma
+    phi = structure_potential(t(0.2, 0.8, 0.5, 0.5), t(0.0, 0.4, 0.2, 0.8), R)
+    assert math.isclose(float(phi[0]), R.structure_weight * 0.2, rel_tol=1e-6)
+    gained = shaping(phi[0:1], phi[1:2], R)  # more mid-range structure, more of it ahead
+    assert float(gained) > 0.0
+    turned = shaping(phi[2:3], phi[3:4], R)  # same structure, turned toward it
     assert math.isclose(
-        float(out[2] - out[0]), R.structure_turn_weight * 0.5, rel_tol=1e-5
-    )  # turning left, toward it
-    assert math.isclose(float(out[3] - out[0]), -R.structure_turn_weight * 0.5, rel_tol=1e-5)  # turning away
+        float(turned), R.structure_front_weight * 0.6 * g - (1 - g) * float(phi[2]), rel_tol=1e-4
+    )
+    turned_away = shaping(phi[3:4], phi[2:3], R)
+    assert float(turned_away) < 0.0
 
 
 def test_existential_tax_and_terms_sum() -> None:
@@ -94,23 +117,50 @@ def test_existential_tax_and_terms_sum() -> None:
     x = RewardInputs(
         contact=torch.tensor([False, True]),
         speed=t(0.0, 3.0),
-        forward_speed=t(0.0, 2.0),
-        clearance=t(10.0, 0.2),
-        prev_clearance=t(10.0, 0.1),
         novel=torch.tensor([False, True]),
+        clearance_before=t(10.0, 0.4),
+        clearance=t(10.0, 0.2),
+        mid_before=z,
+        mid=z,
+        front_mid_before=z,
+        front_mid=z,
         void=t(0.0, 0.9),
         near=t(0.0, 0.4),
-        mid=z,
-        mid_prev=z,
-        mid_balance=z,
-        yaw_rate=z,
     )
     terms = reward_terms(x, CFG)
-    assert tuple(terms) == TERMS
+    assert tuple(terms) == TERMS and set(SHAPING_TERMS) <= set(TERMS)
     assert torch.allclose(terms["existential"], t(-0.02, -0.02))
     idle = sum(float(v[0]) for v in terms.values())
-    assert math.isclose(idle, -0.02, rel_tol=1e-6)  # an idle drone in the open pays only the tax
+    leak = (R.shaping_gamma - 1) * R.escape_weight * R.proximity_distance / (CFG.max_speed * CFG.dt)
+    assert math.isclose(idle, -0.02 + leak, rel_tol=1e-5)  # an idle drone in the open pays the tax (+ leak)
     assert sum(float(v[1]) for v in terms.values()) < -1.0  # a crash into a wall is strongly negative
+
+
+def test_term_bounds_hold_on_random_inputs() -> None:
+    """Each term of random transitions lies within term_bounds when the clearance changes by at most
+    one step of flight plus a voxel."""
+    gen = torch.Generator().manual_seed(1)
+    n, change = 4096, CFG.max_speed * CFG.dt + 0.1
+    c0 = torch.rand(n, generator=gen) * 5.0
+    c1 = (c0 + (torch.rand(n, generator=gen) * 2 - 1) * change).clamp_min(0.0)
+    u = torch.rand(6, n, generator=gen)
+    x = RewardInputs(
+        contact=u[0] < 0.3,
+        speed=u[1] * CFG.max_speed,
+        novel=u[2] < 0.5,
+        clearance_before=c0,
+        clearance=c1,
+        mid_before=u[3],
+        mid=u[4],
+        front_mid_before=u[5],
+        front_mid=u[3] * u[4],
+        void=u[0],
+        near=u[1],
+    )
+    bounds = term_bounds(CFG, change)
+    for name, value in reward_terms(x, CFG).items():
+        lo, hi = bounds[name]
+        assert float(value.min()) >= lo - 1e-5 and float(value.max()) <= hi + 1e-5, name
 
 
 def test_visited_cells_bitmap_matches_sets() -> None:

@@ -10,9 +10,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from navi_learner.baselines import RandomPolicy, ReactivePolicy
 from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.evaluate import CheckpointPolicy, RandomPolicy, ReactivePolicy, evaluate
+from navi_learner.evaluate import CheckpointPolicy, evaluate
 from navi_learner.protocol import StepOut
 from navi_learner.registry import ModelRegistry
 from navi_learner.toy_env import ToyEnv

@@ -18,7 +18,7 @@ from navi_compiler.dag import brick_reduce
 from navi_compiler.distance import brick_classes, make_triangles, nearest_triangles, nondegenerate
 from navi_compiler.farfield import lower_bound, squared_edt, surface_corners
 from navi_compiler.gmdag import FLAG_INSIDE_SEEDS, FLAG_LEAK_FALLBACK
-from navi_compiler.sign import WALL, fill, signs, walls
+from navi_compiler.sign import fill, signs, walls
 
 REACH_MARGIN = 1.0  # voxels beyond the band where distances are still exact
 
@@ -88,18 +88,21 @@ def signed_field_ref(inp: SdfInput) -> SdfResult:
     reach = float(np.float32(inp.band)) + REACH_MARGIN
     near_drawn = nearest_triangles(tri, inp.resolution, reach)
     lap("distance")
-    near_barrier = nearest_triangles(bar, inp.resolution, WALL)
+    near_barrier = nearest_triangles(bar, inp.resolution, reach)
     lap("barrier")
     wall = walls(near_drawn, near_barrier)  # (R+1)^3 bool
     filled = fill(inp.seeds, wall)
     lap("fill")
     sign = signs(near_drawn, near_barrier, tri, bar, filled)  # (R+1)^3 int8
     lap("sign")
-    sites = surface_corners(near_drawn.distance)  # (R+1)^3 bool
+    # distances are measured to drawn and barrier surfaces alike: a barrier (a Quake 3 sky, an open
+    # scene's lid) bounds the free space, so the field must reach zero there to stay 1-Lipschitz
+    surface = np.minimum(near_drawn.distance, near_barrier.distance)  # (R+1)^3 float32
+    sites = surface_corners(surface)  # (R+1)^3 bool
     lap("surface cells")
     lower = lower_bound(squared_edt(sites))  # (R+1)^3 float32
     lap("edt")
-    lattice = assemble(near_drawn.distance, lower, sign, reach, inp.resolution)
+    lattice = assemble(surface, lower, sign, reach, inp.resolution)
     lap("assemble")
     brick_class = brick_classes(tri, classes, inp.resolution, stored_bricks(lattice, inp.band))
     lap("classes")

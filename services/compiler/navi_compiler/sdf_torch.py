@@ -569,20 +569,21 @@ def compile_torch(inp: SdfInput, cfg: TorchConfig) -> TorchResult:
     near_drawn = band_distances(tri, inp.resolution, reach, cfg)
     drawn = near_drawn.distance  # (n, n, n) float32
     lap("distance")
-    near_barrier = band_distances(bar, inp.resolution, WALL, cfg)
+    near_barrier = band_distances(bar, inp.resolution, reach, cfg)
     barrier = near_barrier.distance  # (n, n, n) float32
     lap("barrier")
     wall = walls(drawn, barrier)  # (n, n, n) bool
     filled = fill(inp.seeds, wall)
     lap("fill")
     sign = signs(drawn, near_drawn.triangle, barrier, near_barrier.triangle, tri, bar, filled)
+    surface = torch.minimum(drawn, barrier)  # (n, n, n) float32: drawn and barrier surfaces (sdf.py)
     del near_barrier, barrier
     lap("sign")
-    sites = surface_corners(drawn)  # (n, n, n) bool
+    sites = surface_corners(surface)  # (n, n, n) bool
     lap("surface cells")
     edt_min = brick_min_edt(sites)  # (nb, nb, nb) int64
     lap("edt")
-    stored, words, coords, codes = bricks(drawn, sign, edt_min, reach, inp.band, inp.resolution)
+    stored, words, coords, codes = bricks(surface, sign, edt_min, reach, inp.band, inp.resolution)
     lap("assemble")
     cls = brick_classes(tri, face_class, stored, cfg)  # (nb, nb, nb) uint8
     picked = cls[coords[:, 0], coords[:, 1], coords[:, 2]]  # (K,) uint8

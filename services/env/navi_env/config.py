@@ -35,20 +35,24 @@ class SensorConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Weights and shapes of every reward term; the reward is the sum of the weighted terms."""
+    """Weights and shapes of every reward term; the reward is the sum of the weighted terms.
+
+    Terms that reward a change of state are potential-based (Ng, Harada & Russell 1999):
+    F = shaping_gamma * Phi(s') - Phi(s), so no closed loop of states earns net shaping reward.
+    docs/SIMULATION.md gives every term's formula and its bound per step.
+    """
 
     collision_weight: float = 1.0
     """Weight of the collision penalty: -(collision_base + speed / max_speed) on a contact step."""
     collision_base: float = 0.5
     """Part of the collision penalty paid even at zero speed (grazing)."""
-    progress_weight: float = 0.0
-    """Forward-velocity weight: forward speed / max_speed times the proximity ratio (0 = no approach bias)."""
     proximity_weight: float = 0.2
-    """Proximity shaping: -(1 - clearance / proximity_distance)^2 inside proximity_distance."""
+    """Proximity cost of the state after the move: -(1 - clearance / proximity_distance)^2 inside it."""
     proximity_distance: float = 2.0
-    """Clearance (m) under which proximity shaping, the progress discount and escape apply."""
+    """Clearance (m) under which the proximity cost and the escape potential vary."""
     escape_weight: float = 0.5
-    """Escape incentive: clearance gained this step / (max_speed * dt), paid only when starting near geometry."""
+    """Escape potential: weight * min(clearance, proximity_distance) / (max_speed * dt); its shaping
+    pays for clearance gained near geometry and charges the same amount for clearance lost."""
     exploration_weight: float = 0.1
     """Bonus for entering a cell not visited this episode (1 per novel cell)."""
     exploration_min_clearance: float = 1.0
@@ -66,15 +70,18 @@ class RewardConfig:
     near_distance: float = 1.0
     """Range (m) under which a ray counts as near field."""
     structure_weight: float = 0.05
-    """Structure seeking: stable mid-range fraction of the view (1 - its change since the last step)."""
-    structure_turn_weight: float = 0.05
-    """Structure seeking: yaw rate toward the side with more mid-range structure."""
+    """Structure potential: weight * fraction of the view's rays in the mid-range band."""
+    structure_front_weight: float = 0.05
+    """Structure potential: weight * mid-range fraction of the front half of the view (turning toward
+    structure raises it)."""
     mid_range_min: float = 2.0
     """Lower edge (m) of the mid-range band of structure seeking."""
     mid_range_max: float = 20.0
     """Upper edge (m) of the mid-range band of structure seeking."""
     existential_tax: float = -0.02
     """Constant reward every step (negative: idling costs)."""
+    shaping_gamma: float = 0.99
+    """Discount of the potential-based terms; set it to the learner's gamma (PPOConfig.gamma)."""
 
 
 @dataclass(frozen=True)
@@ -101,6 +108,10 @@ class EnvConfig:
     """Lateral speed at action[2] = +-1, m/s (positive: to the left)."""
     max_yaw_rate: float = 1.5
     """Yaw rate at action[3] = +-1, rad/s (positive: counter-clockwise seen from above)."""
+    clearance_range: float = 10.0
+    """The view clearance (the shortest depth of the view, read by the rewards and the speed limiter) is
+    capped at this (m): farther away the ray spacing (1.4 x 3.75 degrees at 256x48) can miss features a
+    voxel wide, so beyond it the clearance only says "open"."""
     drone_radius: float = 0.3
     """Contact when the clearance at the commanded position is below this, meters."""
     limiter_distance: float = 3.0
@@ -142,6 +153,8 @@ class EnvConfig:
             raise ValueError("limiter_min_fraction must be in [0, 1]")
         if not 0.0 < self.path_clearance_fraction <= 1.0:
             raise ValueError("path_clearance_fraction must be in (0, 1]")
+        if not self.limiter_distance < self.clearance_range <= self.horizon:
+            raise ValueError("clearance_range must lie between limiter_distance and the horizon")
         if self.limiter_distance <= self.drone_radius:
             raise ValueError("limiter_distance must exceed drone_radius")
         if self.max_steps_per_episode < 1 or self.episodes_per_scene < 1 or self.void_grace_steps < 0:
@@ -152,6 +165,8 @@ class EnvConfig:
             raise ValueError("sensor dropout must be in [0, 1)")
         if self.reward.mid_range_max >= self.horizon or self.reward.near_distance >= self.horizon:
             raise ValueError("the near and mid-range bands must end before the horizon")
+        if not 0.0 < self.reward.shaping_gamma <= 1.0:
+            raise ValueError("shaping_gamma must be in (0, 1]")
         if not 4 <= self.reward.exploration_table_bits <= 24:
             raise ValueError("exploration_table_bits must be in [4, 24]")
 

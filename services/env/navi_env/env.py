@@ -2,11 +2,12 @@
 
 One step, in order (docs/SIMULATION.md):
   physics      actions -> limited body velocity -> contact-safe move, yaw, visited cells
-  reward       every term from this move and the view the action was chosen on
   episode      step counts, truncation (time limit, starvation after the void grace), auto-reset
                (scene rotation, spawn) of the actors whose episode ended
   trace        one sphere trace of every actor's rays from its (new or spawn) pose
-  observation  sensor model, DistanceMatrix v2 in place, view statistics for the next step
+  observation  sensor model, DistanceMatrix v2 in place, view statistics (clearance included)
+  reward       every term from the move and the views before and after it (an actor whose episode
+               ended was not traced at its final pose: its view after the move is its last view)
 
 All state lives in buffers allocated once on the device and written in place. The tensors that
 `reset` and `step` return are those buffers: copy them before the next step if you keep them.
@@ -29,7 +30,7 @@ from navi_env.scene import SceneCorpus
 from navi_env.sensor import apply_sensor, ray_pattern
 from navi_env.trace import sample_distance, trace
 
-STAGES: tuple[str, ...] = ("physics", "reward", "episode", "trace", "observation")
+STAGES: tuple[str, ...] = ("physics", "episode", "trace", "observation", "reward")
 """Stage names of one step, in order."""
 
 INFO_KEYS: tuple[str, ...] = (
@@ -44,6 +45,9 @@ INFO_KEYS: tuple[str, ...] = (
     "scene_id",
 )
 """Keys of StepOut.info; every value is a tensor with leading dimension N."""
+
+VIEW_KEYS: tuple[str, ...] = ("clearance", "void", "near", "mid", "front_mid")
+"""The view statistics the env keeps per actor (attributes of the same names), from navi_env.observation."""
 
 
 @dataclass(frozen=True)
@@ -153,7 +157,10 @@ class SdfDagEnv:
         self.scene = i64(n)  # (N,) scene index per actor
         self.position = f32(n, 3)  # (N, 3) world meters
         self.yaw = f32(n)  # (N,) radians
-        self.clearance = f32(n)  # (N,) meters
+        self.safe_distance = f32(n)  # (N,) certified lower bound of the clearance (physics), meters
+        self.clearance = f32(
+            n
+        )  # (N,) view clearance: shortest exact depth of the view, capped at clearance_range
         self.steps = i64(n)  # (N,) steps in this episode
         self.episodes_on_scene = i64(n)  # (N,) ended episodes on the current scene
         self.episode_return = f32(n)  # (N,)
@@ -169,8 +176,9 @@ class SdfDagEnv:
         self.void = f32(n)  # (N,) view statistics of the current observation
         self.near = f32(n)  # (N,)
         self.mid = f32(n)  # (N,)
-        self.mid_prev = f32(n)  # (N,) mid of the observation before
-        self.mid_balance = f32(n)  # (N,)
+        self.front_mid = f32(n)  # (N,)
+        # (N,) each: the statistics of the view the last action was chosen on
+        self.before = {k: f32(n) for k in VIEW_KEYS}
         self.reward = f32(n)  # (N,)
         self.terms = {name: f32(n) for name in rewards.TERMS}  # name -> (N,)
         self.done = flag(n)  # (N,) always False: there is no terminal state
@@ -262,7 +270,7 @@ class SdfDagEnv:
             vel = vel * physics.limiter_scale(self.clearance, cfg)[:, None]  # (N, 3) body m/s
             move = physics.safe_move(
                 self.position,
-                self.clearance,
+                self.safe_distance,
                 physics.body_to_world(vel, self.yaw) * cfg.dt,
                 self._lo[self.scene],
                 self._hi[self.scene],
@@ -271,53 +279,59 @@ class SdfDagEnv:
                 cfg.drone_radius * cfg.path_clearance_fraction,
                 cfg.collision_iterations,
             )
-            heading = torch.stack((torch.cos(self.yaw), torch.sin(self.yaw)), dim=1)  # (N, 2)
-            forward_speed = (move.displacement[:, :2] * heading).sum(dim=1) / cfg.dt  # (N,)
             cells = rewards.cell_index(
                 move.position, cfg.reward.exploration_cell, cfg.reward.exploration_table_bits
             )
             novel = rewards.visit_cells(self.visited, cells)  # (N,) bool
-        with stage("reward"):
-            inputs = rewards.RewardInputs(
-                contact=move.contact,
-                speed=vel.norm(dim=1),
-                forward_speed=forward_speed,
-                clearance=move.clearance,
-                prev_clearance=self.clearance,
-                novel=novel,
-                void=self.void,
-                near=self.near,
-                mid=self.mid,
-                mid_prev=self.mid_prev,
-                mid_balance=self.mid_balance,
-                yaw_rate=yaw_rate,
-            )
-            self.reward.zero_()
-            for name, value in rewards.reward_terms(inputs, cfg).items():
-                self.terms[name].copy_(value)
-                self.reward.add_(value)
-            self.episode_return.add_(self.reward)
         with stage("episode"):
             self.steps.add_(1)
             time_limit, starved = episodes.truncation(self.steps, self.void, cfg)  # (N,), (N,) bool
             torch.logical_or(time_limit, starved, out=self.truncated)
             self._record_info(move, novel, starved)
+            for name, value in self.before.items():
+                value.copy_(getattr(self, name))
             self.position.copy_(move.position)
-            self.clearance.copy_(move.clearance)
+            self.safe_distance.copy_(move.clearance)
             self.yaw.copy_(physics.wrap_angle(self.yaw + yaw_rate * cfg.dt))
             self._end_episodes(self.truncated)
         with stage("trace"):
             self._trace()
         with stage("observation"):
             self._observe_from_trace()
+        with stage("reward"):
+            ended = self.truncated  # (N,) bool: not traced at the final pose, the last view stands in
+
+            def after(now: torch.Tensor, before: torch.Tensor) -> torch.Tensor:
+                return torch.where(ended, before, now)  # (N,)
+
+            inputs = rewards.RewardInputs(
+                contact=move.contact,
+                speed=vel.norm(dim=1),
+                novel=novel,
+                clearance_before=self.before["clearance"],
+                clearance=after(self.clearance, self.before["clearance"]),
+                mid_before=self.before["mid"],
+                mid=after(self.mid, self.before["mid"]),
+                front_mid_before=self.before["front_mid"],
+                front_mid=after(self.front_mid, self.before["front_mid"]),
+                void=after(self.void, self.before["void"]),
+                near=after(self.near, self.before["near"]),
+            )
+            self.reward.zero_()
+            for name, value in rewards.reward_terms(inputs, cfg).items():
+                self.terms[name].copy_(value)
+                self.reward.add_(value)
+            self.episode_return.add_(self.reward)
+            self.info["episode_return"].copy_(self.episode_return)
+            self.info["clearance"].copy_(inputs.clearance)
+            self.episode_return.masked_fill_(ended, 0.0)
 
     def _record_info(self, move: physics.Move, novel: torch.Tensor, starved: torch.Tensor) -> None:
-        self.info["clearance"].copy_(move.clearance)
+        """Info of the step that just ended (clearance and return are written by the reward stage)."""
         self.info["collision"].copy_(move.contact)
         self.info["position"].copy_(move.position)
         self.info["novel_cell"].copy_(novel)
         self.info["speed"].copy_(move.displacement.norm(dim=1) / self.config.dt)
-        self.info["episode_return"].copy_(self.episode_return)
         self.info["episode_length"].copy_(self.steps)
         self.info["starved"].copy_(starved)
         self.info["scene_id"].copy_(self.scene)
@@ -329,14 +343,13 @@ class SdfDagEnv:
         other = episodes.next_scene(self.scene, self.spawns.scenes, self.seed, self.tick, self.actor)  # (N,)
         self.scene.copy_(torch.where(rotate, other, self.scene))
         self.steps.masked_fill_(ended, 0)
-        self.episode_return.masked_fill_(ended, 0.0)
         self._spawn(ended)
 
     def _spawn(self, mask: torch.Tensor) -> None:
         """Place actors with `mask` (N,) bool at a fresh spawn of their scene; clear their visited cells."""
         pos, clr, yaw = episodes.draw_spawns(self.spawns, self.scene, self.seed, self.tick, self.actor)
         self.position.copy_(torch.where(mask[:, None], pos, self.position))
-        self.clearance.copy_(torch.where(mask, clr, self.clearance))
+        self.safe_distance.copy_(torch.where(mask, clr, self.safe_distance))
         self.yaw.copy_(torch.where(mask, yaw, self.yaw))
         self.visited.masked_fill_(mask[:, None], 0)
         cfg = self.config.reward
@@ -383,11 +396,11 @@ class SdfDagEnv:
             stats = observe_ref(
                 self.obs, depth, semantic, self.fresh, self.depth, self.semantic, cfg.horizon, cfg.reward
             )
-        self.mid_prev.copy_(torch.where(self.fresh, stats.mid, self.mid))
-        self.mid.copy_(stats.mid)
         self.void.copy_(stats.void)
         self.near.copy_(stats.near)
-        self.mid_balance.copy_(stats.mid_balance)
+        self.mid.copy_(stats.mid)
+        self.front_mid.copy_(stats.front_mid)
+        torch.clamp(stats.clearance, max=cfg.clearance_range, out=self.clearance)
         self.fresh.zero_()
 
     def _distance(self, points: torch.Tensor) -> torch.Tensor:

@@ -30,7 +30,10 @@ class ViewStats:
     void: torch.Tensor  # fraction of rays that missed (saw the horizon)
     near: torch.Tensor  # fraction of rays closer than near_distance
     mid: torch.Tensor  # fraction of rays in [mid_range_min, mid_range_max]
-    mid_balance: torch.Tensor  # mid fraction of the left half minus the right half, [-1, 1]
+    front_mid: torch.Tensor  # the same fraction over the front half (|azimuth| < 90 degrees)
+    clearance: (
+        torch.Tensor
+    )  # meters to the nearest surface any ray sees (the shortest depth; horizon if none)
 
 
 def write_observation(
@@ -72,24 +75,36 @@ def semantic_table(device: torch.device | str) -> torch.Tensor:
     return table[0]
 
 
+def is_front(azimuth: torch.Tensor, azimuth_bins: int) -> torch.Tensor:
+    """Whether azimuth bins (any shape, int64) look forward, cos(2*pi*a/Az) > 0: 4a < Az or 4a > 3 Az."""
+    return (4 * azimuth < azimuth_bins) | (4 * azimuth > 3 * azimuth_bins)
+
+
+def front_bin_count(azimuth_bins: int) -> int:
+    """Number of azimuth bins in the front half (see is_front)."""
+    return int(is_front(torch.arange(azimuth_bins), azimuth_bins).sum())
+
+
 def view_stats(depth: torch.Tensor, hit: torch.Tensor, azimuth_bins: int, cfg: RewardConfig) -> ViewStats:
     """Statistics of views: depth (N, R) meters, hit (N, R) bool; rays ordered as navi_env.sensor says.
 
-    Near and mid-range rays are counted by depth (a miss reads the horizon, beyond both bands).
-    Left is azimuth bins 1 .. Az/2 - 1 (toward body +Y), right is Az/2 + 1 .. Az - 1.
+    Near and mid-range rays are counted by depth (a miss reads the horizon, beyond both bands). The
+    front half is the azimuth bins that look forward (see `is_front`). The clearance is the shortest
+    depth of the view: with the full-sphere pattern it is the distance to the nearest surface, within
+    the pattern's angular spacing (docs/SIMULATION.md).
     """
     n, r = depth.shape
     el = r // azimuth_bins
-    half = azimuth_bins // 2
+    front_az = is_front(torch.arange(azimuth_bins, device=depth.device), azimuth_bins)  # (Az,) bool
     mid = (depth >= cfg.mid_range_min) & (depth <= cfg.mid_range_max)  # (N, R) bool
     mid_az = mid.view(n, azimuth_bins, el).sum(dim=2, dtype=torch.float32)  # (N, Az) rays per azimuth
-    left = mid_az[:, 1:half].sum(dim=1) / ((half - 1) * el)  # (N,)
-    right = mid_az[:, half + 1 :].sum(dim=1) / ((azimuth_bins - half - 1) * el)  # (N,)
+    front = (mid_az * front_az).sum(dim=1)  # (N,)
     return ViewStats(
         void=1.0 - hit.sum(dim=1, dtype=torch.float32) / r,
         near=(depth < cfg.near_distance).sum(dim=1, dtype=torch.float32) / r,
         mid=mid_az.sum(dim=1) / r,
-        mid_balance=left - right,
+        front_mid=front / (front_bin_count(azimuth_bins) * el),
+        clearance=depth.amin(dim=1),
     )
 
 
@@ -132,7 +147,7 @@ def observe(
     az = obs.shape[2]
     ch = obs.view(n, CHANNELS, r)  # (N, 3, R) view of obs
     with torch.no_grad():  # one grad mode for every call: the compiled code is never re-specialised
-        counts = _compiled_pass()(
+        counts, clearance = _compiled_pass()(
             ch[:, 0],
             ch[:, 1],
             ch[:, 2],
@@ -148,11 +163,11 @@ def observe(
             cfg.mid_range_min,
             cfg.mid_range_max,
         )
-    return _stats_from_counts(counts, r, az)
+    return _stats_from_counts(counts, clearance, r, az)
 
 
 @functools.cache
-def _compiled_pass() -> Callable[..., torch.Tensor]:
+def _compiled_pass() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
     """_fused_pass compiled once per process (torch.compile caches one program per input shape)."""
     return torch.compile(_fused_pass, fullgraph=True, dynamic=False)
 
@@ -172,39 +187,41 @@ def _fused_pass(
     near_distance: float,
     mid_min: float,
     mid_max: float,
-) -> torch.Tensor:
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Writes the channels ch0, ch1, ch2 (N, R) float32 (views into obs) in place and returns the ray
-    counts (N, 5) int32 [hits, near, mid, mid on the left, mid on the right] of stats_depth and
-    stats_semantic. Every value is computed by the same float32 operation as in write_observation."""
+    counts (N, 4) int32 [hits, near, mid, mid in the front half] of stats_depth and stats_semantic and
+    the shortest depth (N,) float32 of stats_depth. Every value is computed by the same float32
+    operation as in write_observation and view_stats."""
     r = depth.shape[1]
     el = r // azimuth_bins
-    half = azimuth_bins // 2
     scale = (~fresh).to(depth.dtype)[:, None] * (1.0 / horizon)  # (N, 1) 1/horizon, 0 where fresh
     ch2.copy_(torch.add(depth, ch0, alpha=-horizon) * scale)  # the same add-with-alpha as torch.sub
     ch0.copy_(depth * (1.0 / horizon))
     ch1.copy_(table[semantic.to(torch.int64)])
     azimuth = torch.arange(r, device=depth.device) // el  # (R,) int64 azimuth bin of each ray
     mid = (stats_depth >= mid_min) & (stats_depth <= mid_max)  # (N, R) bool
-    left = mid & (azimuth >= 1) & (azimuth < half)  # (N, R) bool
-    right = mid & (azimuth > half)  # (N, R) bool
-    return torch.stack(
+    front = mid & is_front(azimuth, azimuth_bins)  # (N, R) bool
+    counts = torch.stack(
         (
             (stats_semantic > 0).sum(dim=1, dtype=torch.int32),
             (stats_depth < near_distance).sum(dim=1, dtype=torch.int32),
             mid.sum(dim=1, dtype=torch.int32),
-            left.sum(dim=1, dtype=torch.int32),
-            right.sum(dim=1, dtype=torch.int32),
+            front.sum(dim=1, dtype=torch.int32),
         ),
         dim=1,
-    )  # (N, 5) int32
+    )  # (N, 4) int32
+    return counts, stats_depth.amin(dim=1)
 
 
-def _stats_from_counts(counts: torch.Tensor, r: int, azimuth_bins: int) -> ViewStats:
-    """ViewStats from the ray counts (N, 5) int32 of _fused_pass, with view_stats' float32 operations
-    (counts below 2^24 are exact in float32, so the results are identical)."""
+def _stats_from_counts(counts: torch.Tensor, clearance: torch.Tensor, r: int, azimuth_bins: int) -> ViewStats:
+    """ViewStats from the ray counts (N, 4) int32 and shortest depths (N,) of _fused_pass, with
+    view_stats' float32 operations (counts below 2^24 are exact in float32, so the results are identical)."""
     el = r // azimuth_bins
-    half = azimuth_bins // 2
-    f = counts.to(torch.float32)  # (N, 5)
-    left = f[:, 3] / ((half - 1) * el)  # (N,)
-    right = f[:, 4] / ((azimuth_bins - half - 1) * el)  # (N,)
-    return ViewStats(void=1.0 - f[:, 0] / r, near=f[:, 1] / r, mid=f[:, 2] / r, mid_balance=left - right)
+    f = counts.to(torch.float32)  # (N, 4)
+    return ViewStats(
+        void=1.0 - f[:, 0] / r,
+        near=f[:, 1] / r,
+        mid=f[:, 2] / r,
+        front_mid=f[:, 3] / (front_bin_count(azimuth_bins) * el),
+        clearance=clearance,
+    )

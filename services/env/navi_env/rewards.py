@@ -1,8 +1,15 @@
 """Reward terms: each a small function of per-actor tensors, weighted by `RewardConfig`.
 
 The step reward is the sum of the weighted terms in `TERMS`; `reward_terms` returns each one so the
-trainer can log them separately. Observation-derived terms (foraging, structure) use the statistics of
-the view the action was chosen on; motion-derived terms use this step's move.
+trainer can log them separately. Every term reads the transition s -> s' of one step:
+
+- state terms (collision, proximity, exploration, foraging, existential) read the move and the state
+  after it, and are never positive except exploration, which pays each cell once per episode;
+- shaping terms (escape, structure) are potential-based, F = gamma * Phi(s') - Phi(s), with Phi a
+  function of the clearance and the view, so the shaping summed over any closed loop of states is
+  (gamma - 1) * (sum of Phi along the loop) <= 0: approach-retreat cycles cannot farm it.
+
+docs/SIMULATION.md lists each term with its bound per step (`term_bounds` computes them).
 """
 
 from __future__ import annotations
@@ -15,7 +22,6 @@ from navi_env.config import EnvConfig, RewardConfig
 
 TERMS: tuple[str, ...] = (
     "collision",
-    "progress",
     "proximity",
     "escape",
     "exploration",
@@ -25,25 +31,28 @@ TERMS: tuple[str, ...] = (
 )
 """Names of the reward terms, in the order docs/SIMULATION.md lists them."""
 
+SHAPING_TERMS: tuple[str, ...] = ("escape", "structure")
+"""The potential-based terms."""
+
 _HASH_PRIMES = (73856093, 19349663, 83492791)
 
 
 @dataclass(frozen=True)
 class RewardInputs:
-    """Everything the reward terms read, one value per actor."""
+    """Everything the reward terms read, one value per actor; `_before` is the state s the action was
+    chosen in, the plain name the state s' after the move."""
 
     contact: torch.Tensor  # (N,) bool: contact this step
     speed: torch.Tensor  # (N,) float32 commanded speed after the limiter, m/s
-    forward_speed: torch.Tensor  # (N,) float32 speed actually flown along body +X, m/s
-    clearance: torch.Tensor  # (N,) float32 clearance after the move, m
-    prev_clearance: torch.Tensor  # (N,) float32 clearance before the move, m
     novel: torch.Tensor  # (N,) bool: the drone entered a cell not visited this episode
-    void: torch.Tensor  # (N,) float32 fraction of rays that missed (view acted on)
-    near: torch.Tensor  # (N,) float32 fraction of rays closer than near_distance
-    mid: torch.Tensor  # (N,) float32 fraction of rays in the mid-range band
-    mid_prev: torch.Tensor  # (N,) float32 the same fraction one view earlier
-    mid_balance: torch.Tensor  # (N,) float32 mid-range fraction on the left minus on the right, [-1, 1]
-    yaw_rate: torch.Tensor  # (N,) float32 commanded yaw rate, rad/s (positive: turn left)
+    clearance_before: torch.Tensor  # (N,) float32 view clearance in s, m
+    clearance: torch.Tensor  # (N,) float32 view clearance in s', m
+    mid_before: torch.Tensor  # (N,) float32 mid-range fraction of the view in s
+    mid: torch.Tensor  # (N,) float32 mid-range fraction of the view in s'
+    front_mid_before: torch.Tensor  # (N,) float32 mid-range fraction of the front half in s
+    front_mid: torch.Tensor  # (N,) float32 mid-range fraction of the front half in s'
+    void: torch.Tensor  # (N,) float32 fraction of rays that missed in s'
+    near: torch.Tensor  # (N,) float32 fraction of rays closer than near_distance in s'
 
 
 def collision_term(
@@ -58,25 +67,24 @@ def proximity_ratio(clearance: torch.Tensor, cfg: RewardConfig) -> torch.Tensor:
     return (clearance / cfg.proximity_distance).clamp(0.0, 1.0)
 
 
-def progress_term(
-    forward_speed: torch.Tensor, clearance: torch.Tensor, max_speed: float, cfg: RewardConfig
-) -> torch.Tensor:
-    """Forward speed / max_speed discounted by the proximity ratio (N,)."""
-    return cfg.progress_weight * forward_speed / max_speed * proximity_ratio(clearance, cfg)
-
-
 def proximity_term(clearance: torch.Tensor, cfg: RewardConfig) -> torch.Tensor:
-    """-(1 - proximity ratio)^2 (N,): zero in the open, -weight at the surface."""
+    """-(1 - proximity ratio)^2 of the state after the move (N,): zero in the open, -weight at the surface."""
     return -cfg.proximity_weight * (1.0 - proximity_ratio(clearance, cfg)).square()
 
 
-def escape_term(
-    prev_clearance: torch.Tensor, clearance: torch.Tensor, max_step: float, cfg: RewardConfig
-) -> torch.Tensor:
-    """Clearance gained / largest possible step (N,), paid only when the step began near geometry."""
-    gain = (clearance - prev_clearance).clamp_min(0.0) / max_step  # (N,)
-    near = prev_clearance < cfg.proximity_distance  # (N,) bool
-    return cfg.escape_weight * gain * near.to(gain.dtype)
+def escape_potential(clearance: torch.Tensor, max_step: float, cfg: RewardConfig) -> torch.Tensor:
+    """Phi_escape (N,) = weight * min(clearance, proximity_distance) / max_step, in [0, weight * d / step]."""
+    return cfg.escape_weight * clearance.clamp(0.0, cfg.proximity_distance) / max_step
+
+
+def structure_potential(mid: torch.Tensor, front_mid: torch.Tensor, cfg: RewardConfig) -> torch.Tensor:
+    """Phi_structure (N,) = w * mid-range fraction + w_front * front mid-range fraction, in [0, w + w_front]."""
+    return cfg.structure_weight * mid + cfg.structure_front_weight * front_mid
+
+
+def shaping(phi_before: torch.Tensor, phi: torch.Tensor, cfg: RewardConfig) -> torch.Tensor:
+    """Potential-based shaping (N,): gamma * Phi(s') - Phi(s)."""
+    return cfg.shaping_gamma * phi - phi_before
 
 
 def exploration_term(novel: torch.Tensor, clearance: torch.Tensor, cfg: RewardConfig) -> torch.Tensor:
@@ -91,32 +99,50 @@ def foraging_term(void: torch.Tensor, near: torch.Tensor, cfg: RewardConfig) -> 
     return -(cfg.blind_weight * blind + cfg.near_weight * near)
 
 
-def structure_term(
-    mid: torch.Tensor,
-    mid_prev: torch.Tensor,
-    mid_balance: torch.Tensor,
-    yaw_rate: torch.Tensor,
-    max_yaw_rate: float,
-    cfg: RewardConfig,
-) -> torch.Tensor:
-    """Stable mid-range structure in view, plus turning toward the side that has more of it (N,)."""
-    stable = mid * (1.0 - (mid - mid_prev).abs())  # (N,) in [0, 1]
-    turn = mid_balance * yaw_rate / max_yaw_rate  # (N,) in [-1, 1]
-    return cfg.structure_weight * stable + cfg.structure_turn_weight * turn
-
-
 def reward_terms(x: RewardInputs, config: EnvConfig) -> dict[str, torch.Tensor]:
     """Every weighted term (N,) by name, in `TERMS` order; the reward is their sum."""
     cfg = config.reward
+    step = config.max_speed * config.dt
+    escape = shaping(
+        escape_potential(x.clearance_before, step, cfg), escape_potential(x.clearance, step, cfg), cfg
+    )
+    structure = shaping(
+        structure_potential(x.mid_before, x.front_mid_before, cfg),
+        structure_potential(x.mid, x.front_mid, cfg),
+        cfg,
+    )
     return {
         "collision": collision_term(x.contact, x.speed, config.max_speed, cfg),
-        "progress": progress_term(x.forward_speed, x.clearance, config.max_speed, cfg),
         "proximity": proximity_term(x.clearance, cfg),
-        "escape": escape_term(x.prev_clearance, x.clearance, config.max_speed * config.dt, cfg),
+        "escape": escape,
         "exploration": exploration_term(x.novel, x.clearance, cfg),
         "foraging": foraging_term(x.void, x.near, cfg),
-        "structure": structure_term(x.mid, x.mid_prev, x.mid_balance, x.yaw_rate, config.max_yaw_rate, cfg),
+        "structure": structure,
         "existential": torch.full_like(x.clearance, cfg.existential_tax),
+    }
+
+
+def term_bounds(config: EnvConfig, clearance_change: float) -> dict[str, tuple[float, float]]:
+    """The documented (low, high) bound of every term per step, given a bound on how much the clearance
+    can change in one step, `clearance_change` meters (the distance flown plus the tracer's error).
+
+    Escape: |gamma * Phi' - Phi| <= w * min(change, d) / step + (1 - gamma) * Phi_max on either side.
+    Structure: Phi in [0, Phi_max], so gamma * Phi' - Phi lies in [-Phi_max, gamma * Phi_max].
+    """
+    cfg = config.reward
+    step = config.max_speed * config.dt
+    g = cfg.shaping_gamma
+    escape_max = cfg.escape_weight * cfg.proximity_distance / step  # Phi_escape's largest value
+    escape_swing = cfg.escape_weight * min(clearance_change, cfg.proximity_distance) / step
+    structure_max = cfg.structure_weight + cfg.structure_front_weight
+    return {
+        "collision": (-cfg.collision_weight * (cfg.collision_base + 1.0), 0.0),
+        "proximity": (-cfg.proximity_weight, 0.0),
+        "escape": (-escape_swing - (1.0 - g) * escape_max, escape_swing),
+        "exploration": (0.0, cfg.exploration_weight),
+        "foraging": (-(cfg.blind_weight + cfg.near_weight), 0.0),
+        "structure": (-structure_max, g * structure_max),
+        "existential": (cfg.existential_tax, cfg.existential_tax),
     }
 
 

@@ -13,8 +13,9 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import typer
 
 if TYPE_CHECKING:
+    from navi_learner.baselines import EvalPolicy
     from navi_learner.config import TrainConfig
-    from navi_learner.evaluate import EvalMetrics, EvalPolicy
+    from navi_learner.evaluate import EvalMetrics
 
 PANEL = "Learner"
 MODELS_DIR = Path("artifacts/models")
@@ -143,8 +144,9 @@ def eval_policy(spec: str, device: str, seed: int, deterministic: bool) -> EvalP
     """'random', 'reactive', or a checkpoint path / registry version."""
     import torch
 
+    from navi_learner.baselines import RandomPolicy, ReactivePolicy
     from navi_learner.checkpoint import CheckpointError
-    from navi_learner.evaluate import CheckpointPolicy, RandomPolicy, ReactivePolicy
+    from navi_learner.evaluate import CheckpointPolicy
     from navi_learner.registry import ModelRegistry, RegistryError
 
     if spec == "random":

@@ -8,84 +8,19 @@ episodes / finished episodes). Info keys that an env lacks give NaN for that met
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 import torch
 
+from navi_learner.baselines import EvalPolicy
 from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig
-from navi_learner.heads import ACTION_DIM
 from navi_learner.policy import CognitiveMambaPolicy
 from navi_learner.protocol import BatchedEnv
 from navi_learner.temporal import CoreState
-
-
-class EvalPolicy(Protocol):
-    """A policy the evaluator can drive."""
-
-    name: str
-
-    def reset(self, n: int, device: torch.device) -> None:
-        """Prepare for n actors."""
-        ...
-
-    def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
-        """obs (N, 3, Az, El), resets (N,) bool -> actions (N, 4) in [-1, 1]."""
-        ...
-
-
-class RandomPolicy:
-    """Uniform actions in [-1, 1]^4 from a seeded generator."""
-
-    name = "random"
-
-    def __init__(self, seed: int = 0) -> None:
-        self.seed = seed
-        self.gen: torch.Generator | None = None
-
-    def reset(self, n: int, device: torch.device) -> None:
-        self.gen = torch.Generator(device=device).manual_seed(self.seed)
-
-    def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
-        n = obs.shape[0]
-        return torch.rand(n, ACTION_DIM, generator=self.gen, device=obs.device) * 2 - 1  # (N, 4)
-
-
-class ReactivePolicy:
-    """Scripted baseline: yaw toward the most open azimuth, fly forward as fast as the view ahead allows,
-    climb or sink toward the more open half of the elevation range."""
-
-    name = "reactive"
-
-    def reset(self, n: int, device: torch.device) -> None:
-        return None
-
-    def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
-        depth = obs[:, 0].float()  # (N, Az, El)
-        az = depth.shape[1]
-        per_az = depth.mean(dim=2)  # (N, Az)
-        smooth = (per_az + per_az.roll(1, dims=1) + per_az.roll(-1, dims=1)) / 3  # (N, Az) circular
-        rel = smooth / smooth.amax(dim=1, keepdim=True).clamp(
-            min=1e-6
-        )  # (N, Az) openness relative to the best
-        best = smooth.argmax(dim=1).float()  # (N,)
-        angle = (
-            torch.remainder(2 * math.pi * best / az + math.pi, 2 * math.pi) - math.pi
-        )  # (N,) left positive
-        yaw = (angle / (math.pi / 4)).clamp(-1.0, 1.0)  # (N,)
-        forward = (2.0 * rel[:, 0] - 0.5).clamp(-1.0, 1.0) * torch.cos(angle).clamp(min=0.0)  # (N,)
-        per_el = depth.mean(dim=1)  # (N, El)
-        half = per_el.shape[1] // 2
-        vertical = (per_el[:, half:].mean(1) - per_el[:, :half].mean(1)) / per_el.amax(1).clamp(
-            min=1e-6
-        )  # (N,)
-        zeros = torch.zeros_like(yaw)  # (N,)
-        return torch.stack([forward, vertical.clamp(-1.0, 1.0), zeros, yaw], dim=1)  # (N, 4)
 
 
 class CheckpointPolicy:

@@ -10,17 +10,11 @@ from pathlib import Path
 
 import torch
 
+from navi_learner.baselines import EvalPolicy, RandomPolicy, ReactivePolicy
 from navi_learner.checkpoint import CheckpointError, atomic_write, read_meta
 from navi_learner.config import EngineConfig, TrainConfig, default_actors
 from navi_learner.envs import EnvUnavailable, corpus_summary, make_env
-from navi_learner.evaluate import (
-    CheckpointPolicy,
-    EvalPolicy,
-    RandomPolicy,
-    ReactivePolicy,
-    comparison_table,
-    evaluate,
-)
+from navi_learner.evaluate import CheckpointPolicy, comparison_table, evaluate
 from navi_learner.registry import ModelRegistry
 from navi_learner.train import train
 

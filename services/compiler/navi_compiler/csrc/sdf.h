@@ -63,8 +63,8 @@ inline SdfStats signed_field(const double* drawn_corners, int64_t drawn_count, c
   std::vector<float> bar_dist(n3);
   std::vector<int32_t> bar_tri(n3);
   {
-    const Buckets bar_buckets = bucket_triangles(bar, nb, static_cast<double>(kWall));
-    nearest_triangles(bar, bar_buckets, resolution, static_cast<double>(kWall), threads, bar_dist.data(), bar_tri.data());
+    const Buckets bar_buckets = bucket_triangles(bar, nb, reach);
+    nearest_triangles(bar, bar_buckets, resolution, reach, threads, bar_dist.data(), bar_tri.data());
   }
   lap("barrier");
   std::vector<uint8_t> wall(n3);
@@ -81,6 +81,9 @@ inline SdfStats signed_field(const double* drawn_corners, int64_t drawn_count, c
   std::vector<int8_t> sign(n3);
   signs(resolution, dist.data(), tri.data(), bar_dist.data(), bar_tri.data(), drawn, bar, reached.data(), threads,
         sign.data());
+  // Distances are measured to drawn and barrier surfaces alike (sdf.py): the field reaches zero at a
+  // barrier, so it stays 1-Lipschitz across a Quake 3 sky or an open scene's lid.
+  for (int64_t i = 0; i < n3; ++i) dist[i] = std::min(dist[i], bar_dist[i]);
   std::vector<float>().swap(bar_dist);
   std::vector<int32_t>().swap(bar_tri);
   std::vector<int32_t>().swap(tri);
