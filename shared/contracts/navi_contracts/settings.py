@@ -36,6 +36,11 @@ class NaviSettings(BaseSettings):
     metrics_port: int = Field(
         9100, gt=0, lt=65536, description="Prometheus port of services without an HTTP API."
     )
+    max_source_bytes: int = Field(
+        256 * 2**20,
+        gt=0,
+        description="Largest scene source file or archive member a compile reads (checked before reading).",
+    )
     artifacts_dir: Path = Field(
         Path("artifacts"), description="Root of runs, models, corpora and recordings."
     )

@@ -156,6 +156,15 @@ def serve_compiler(
     device: Annotated[
         str, typer.Option("--device", help="cpu (C++ core) or cuda[:N] (GPU engine); auto picks.")
     ] = "cpu",
+    max_source_mb: Annotated[
+        float | None,
+        typer.Option(
+            "--max-source-mb",
+            min=0.001,
+            help="Largest source file or .pk3 member a job may read, MiB, checked before reading "
+            "(default NAVI_MAX_SOURCE_BYTES, 256 MiB).",
+        ),
+    ] = None,
     metrics_port: MetricsPortOpt = None,
     connect: ConnectOpt = None,
     zenoh_config: ZenohConfigOpt = None,
@@ -170,6 +179,9 @@ def serve_compiler(
         threads=threads,
         device=_device(device),
         metrics_port=metrics_port or settings.metrics_port,
+        max_source_bytes=(
+            settings.max_source_bytes if max_source_mb is None else max(1, int(max_source_mb * 2**20))
+        ),
         session=_session_config(settings, connect, zenoh_config),
     )
     run_service(lambda stop: serve(cfg, stop))
