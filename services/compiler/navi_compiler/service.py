@@ -55,7 +55,7 @@ class CompilerServiceConfig:
     """cpu: the C++ core; cuda or cuda:N: the GPU (torch) engine, same output format."""
     metrics_port: int = 9100
     """Port of GET /metrics (Prometheus)."""
-    metrics_host: str = "0.0.0.0"
+    metrics_host: str = "127.0.0.1"
     """Interface of the metrics endpoint."""
     max_source_bytes: int = 256 * 2**20
     """Largest source file or archive member a job may read (checked before reading)."""

@@ -10,6 +10,13 @@ The loop is the learner's own (`train.train` or the inference loop below); this 
   a router restart costs no step (the session reconnects by itself).
 - The FastAPI control plane runs in a uvicorn thread; its promotions are announced on
   navi/models/promoted, and inference reloads the model when its followed alias moves.
+- Bring-up: the control plane and the liveliness token come first (seconds after the start), then the
+  corpus: when the sdfdag corpus folder has no manifest, the procedural default corpus is built over
+  compile jobs on the compiler workers (navi_mesh.corpus_jobs; `corpus_build="local"` compiles in
+  this process instead). Its progress is in /healthz (`phase`, `corpus`), in the navi_corpus_* gauges
+  and in `corpus.*` telemetry; training starts when it is ready.
+- A heartbeat publishes `actor.training.actors` (or `actor.inference.actors`) once a second while the
+  loop runs, so a dashboard knows the mode and the actor count between slow PPO updates.
 SIGTERM or Ctrl+C ends training through its KeyboardInterrupt path (a checkpoint is saved first).
 """
 
@@ -27,6 +34,7 @@ import numpy as np
 import torch
 import zenoh
 
+from navi_contracts import telemetry_keys as keys
 from navi_contracts.models import Action, DistanceMatrix, ModelPromoted, TelemetryEvent
 from navi_contracts.topics import ACTIONS, MODEL_PROMOTED, OBSERVATIONS, TELEMETRY
 from navi_learner.config import TrainConfig
@@ -35,6 +43,7 @@ from navi_learner.envs import EnvKind, corpus_summary, make_env
 from navi_learner.protocol import BatchedEnv, StepLike
 from navi_learner.registry import ModelRegistry, RegistryError
 from navi_mesh import metrics
+from navi_mesh.corpus_jobs import BuildProgress, CorpusBuildConfig, build_corpus_over_jobs
 from navi_mesh.liveliness import declare_alive
 from navi_mesh.messages import action_message, distance_matrix, telemetry
 from navi_mesh.pubsub import Publisher, QueuedPublisher, subscribe
@@ -53,7 +62,13 @@ class LearnerServiceConfig:
     mode: Mode = "train"
     """train (PPO) or infer (run a model, follow promotions)."""
     corpus: Path = Path("artifacts/corpus/default")
-    """Corpus folder; the procedural default corpus is built there when it holds no scene."""
+    """Corpus folder; the procedural default corpus is built there when it has no manifest."""
+    corpus_build: Literal["jobs", "local"] = "jobs"
+    """How a missing default corpus is built: compile jobs on the compiler workers, or in this process."""
+    corpus_scenes: int = 16
+    """Procedural scenes of a default corpus built here."""
+    corpus_resolution: int = 512
+    """Compile resolution of a default corpus built here."""
     env_kind: EnvKind = "sdfdag"
     """sdfdag (the drone env) or toy (tests)."""
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -76,12 +91,14 @@ class LearnerServiceConfig:
     """Rate of actor 0's observation and of the actions on the mesh (5-10 Hz for dashboards)."""
     telemetry_capacity: int = 1024
     """Telemetry queue length (drop-oldest beyond it)."""
-    api_host: str = "0.0.0.0"
+    api_host: str = "127.0.0.1"
     """Control plane interface."""
     api_port: int = 8000
     """Control plane port (0: no control plane)."""
     api_token: str = ""
-    """Bearer token for mutations (empty: mutations disabled)."""
+    """Bearer token for mutations (required unless api_read_only)."""
+    api_read_only: bool = False
+    """Serve the registry read-only (mutations answer 503); the only way to run without a token."""
     exit_when_done: bool = False
     """Exit after the run instead of keeping the control plane up until stopped."""
     session: SessionConfig = field(default_factory=SessionConfig)
@@ -217,8 +234,14 @@ def telemetry_rows(prefix: str, row: dict[str, float], run_id: str) -> list[Tele
 class TrainingMetrics:
     """on_log callback of `train`: Prometheus gauges and counters plus `actor.training.*` telemetry."""
 
-    def __init__(self, pubs: MeshPublishers, tap: TelemetryTap, device: torch.device) -> None:
-        self.pubs, self.tap, self.device = pubs, tap, device
+    def __init__(
+        self,
+        pubs: MeshPublishers,
+        tap: TelemetryTap,
+        device: torch.device,
+        status: ServiceStatus | None = None,
+    ) -> None:
+        self.pubs, self.tap, self.device, self.status = pubs, tap, device, status
         self.counted_steps = 0  # actor-steps of this process already added to navi_steps_total
         self.t0 = time.monotonic()
 
@@ -235,29 +258,158 @@ class TrainingMetrics:
         metrics.record_gpu_memory(self.device)
         metrics.PUBLISH_SECONDS.inc(self.tap.publish_s)
         extra = {"publish_fraction": self.tap.publish_s / max(time.monotonic() - self.t0, 1e-9)}
+        if self.status is not None:
+            self.status.update(step=int(row.get("step", 0)))
         for event in telemetry_rows("actor.training", {**row, **extra}, run_id):
             self.pubs.telemetry.publish(event)
         self.tap.publish_s, self.t0 = 0.0, time.monotonic()
 
 
-def ensure_corpus(cfg: LearnerServiceConfig) -> None:
-    """Build the procedural default corpus when the sdfdag env has no scene to fly."""
-    if cfg.env_kind != "sdfdag" or any(cfg.corpus.glob("*.gmdag")):
+class ServiceStatus:
+    """What /healthz says beyond liveness: phase, run, actors and the corpus build (thread-safe)."""
+
+    def __init__(self, corpus: Path | None) -> None:
+        self._lock = threading.Lock()
+        self.phase = "starting"
+        self.step = 0  # step id of the newest training log row
+        self.run_id = ""
+        self.actors = 0
+        self.corpus_path = str(corpus) if corpus is not None else ""
+        self.corpus: BuildProgress | None = BuildProgress("missing") if corpus is not None else None
+
+    def update(self, **fields: Any) -> None:
+        with self._lock:
+            for name, value in fields.items():
+                setattr(self, name, value)
+
+    def __call__(self) -> dict[str, Any]:
+        with self._lock:
+            corpus = None
+            if self.corpus is not None:
+                c = self.corpus
+                corpus = {
+                    "path": self.corpus_path,
+                    "state": c.state,
+                    "scenes_ready": c.scenes_ready,
+                    "scenes_total": c.scenes_total,
+                    "rejected": c.rejected,
+                    "error": c.error,
+                }
+            return {"phase": self.phase, "run_id": self.run_id, "actors": self.actors, "corpus": corpus}
+
+
+class CorpusReporter:
+    """Turns corpus build progress into /healthz status, navi_corpus_* gauges and `corpus.*` telemetry."""
+
+    def __init__(self, status: ServiceStatus, pubs: MeshPublishers) -> None:
+        self.status, self.pubs = status, pubs
+
+    def __call__(self, progress: BuildProgress) -> None:
+        self.status.update(corpus=progress)
+        metrics.CORPUS_SCENES_READY.set(progress.scenes_ready)
+        metrics.CORPUS_SCENES_PLANNED.set(progress.scenes_total)
+        metrics.CORPUS_SCENES_REJECTED.set(progress.rejected)
+        metrics.CORPUS_READY.set(1.0 if progress.state == "ready" else 0.0)
+        self.publish(progress)
+        log.info(
+            "corpus %s: %d/%d scenes ready, %d rejected%s",
+            progress.state,
+            progress.scenes_ready,
+            progress.scenes_total,
+            progress.rejected,
+            f" ({progress.error})" if progress.error else "",
+        )
+
+    def publish(self, progress: BuildProgress) -> None:
+        for key, value in (
+            (keys.CORPUS_SCENES_READY, progress.scenes_ready),
+            (keys.CORPUS_SCENES_PLANNED, progress.scenes_total),
+            (keys.CORPUS_SCENES_REJECTED, progress.rejected),
+            (keys.CORPUS_READY, 1.0 if progress.state == "ready" else 0.0),
+        ):
+            self.pubs.telemetry.publish(telemetry(key, float(value), 0))
+
+
+def prepare_corpus(
+    cfg: LearnerServiceConfig,
+    sess: zenoh.Session,
+    reporter: CorpusReporter,
+    stop: threading.Event,
+) -> None:
+    """Make sure the sdfdag corpus exists: read its manifest, or build the procedural default corpus
+    (over compile jobs, or in this process with corpus_build="local")."""
+    if cfg.env_kind != "sdfdag":
         return
-    from navi_env.corpus import build_default_corpus
+    from navi_env.corpus import MANIFEST, CorpusError, build_default_corpus, read_manifest
 
-    log.info("building the procedural default corpus into %s", cfg.corpus)
-    build_default_corpus(cfg.corpus)
+    if not (cfg.corpus / MANIFEST).is_file():
+        reporter.status.update(phase="corpus")
+        if cfg.corpus_build == "local":
+            log.info("building the procedural default corpus into %s in this process", cfg.corpus)
+            reporter(BuildProgress("building", scenes_total=cfg.corpus_scenes))
+            build_default_corpus(
+                cfg.corpus, cfg.corpus_resolution, cfg.corpus_scenes, cfg.train.seed, cfg.train.device
+            )
+        else:
+            log.info(
+                "building the procedural default corpus into %s over compile jobs (%d scenes at %d^3)",
+                cfg.corpus,
+                cfg.corpus_scenes,
+                cfg.corpus_resolution,
+            )
+            build = CorpusBuildConfig(
+                cfg.corpus, cfg.corpus_scenes, cfg.corpus_resolution, cfg.train.seed, cfg.train.device
+            )
+            build_corpus_over_jobs(build, sess, reporter, stop)
+    try:
+        manifest = read_manifest(cfg.corpus)
+    except CorpusError as err:
+        reporter(BuildProgress("failed", error=str(err)))
+        raise
+    total = len(manifest.scenes) + len(manifest.rejected)
+    reporter(BuildProgress("ready", len(manifest.scenes), total, len(manifest.rejected)))
 
 
-def run_training(cfg: LearnerServiceConfig, env: TelemetryTap, pubs: MeshPublishers) -> dict[str, Any]:
+class Heartbeat:
+    """Once a second: `actor.<mode>.actors` while the loop runs (mode and actor count for dashboards),
+    and the corpus progress again while it is built (for dashboards that connect late)."""
+
+    def __init__(self, status: ServiceStatus, pubs: MeshPublishers, reporter: CorpusReporter) -> None:
+        self.status, self.pubs, self.reporter = status, pubs, reporter
+        self.tap: TelemetryTap | None = None  # set once the environment exists (its step count)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="navi-heartbeat", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(1.0):
+            phase, actors, run_id = self.status.phase, self.status.actors, self.status.run_id
+            if phase in ("training", "inference") and actors > 0:
+                prefix = keys.TRAINING if phase == "training" else keys.INFERENCE
+                step = self.status.step
+                if phase == "inference" and self.tap is not None:
+                    step = self.tap.steps * self.tap.n_actors
+                self.pubs.telemetry.publish(telemetry(prefix + keys.ACTORS, actors, step, run_id))
+            corpus = self.status.corpus
+            if phase == "corpus" and corpus is not None:
+                self.reporter.publish(corpus)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+
+
+def run_training(
+    cfg: LearnerServiceConfig, env: TelemetryTap, pubs: MeshPublishers, status: ServiceStatus
+) -> dict[str, Any]:
     """`train` with the tap and the metrics callback; returns the run summary."""
     from navi_learner.runs import new_run_id
     from navi_learner.train import train
 
     run_id = new_run_id()
     env.run_id = run_id
-    on_log = TrainingMetrics(pubs, env, env.device)
+    status.update(phase="training", run_id=run_id, actors=env.n_actors)
+    on_log = TrainingMetrics(pubs, env, env.device, status)
     result = train(
         env,
         cfg.train,
@@ -361,17 +513,21 @@ def run_inference(
     return {"steps": steps * env.n_actors, "model": str(path)}
 
 
+def control_plane_config(cfg: LearnerServiceConfig) -> ControlPlaneConfig:
+    return ControlPlaneConfig(cfg.models_dir, cfg.api_token, SERVICE, cfg.api_read_only)
+
+
 def start_control_plane(
-    cfg: LearnerServiceConfig, pubs: MeshPublishers
+    cfg: LearnerServiceConfig, pubs: MeshPublishers, status: ServiceStatus
 ) -> tuple[Any, threading.Thread] | None:
     """uvicorn serving the control plane from a daemon thread (None when api_port is 0)."""
     if cfg.api_port == 0:
         return None
     import uvicorn
 
-    if not cfg.api_token:
-        log.warning("NAVI_API_TOKEN is empty: the control plane refuses every mutation (503)")
-    app = create_app(ControlPlaneConfig(cfg.models_dir, cfg.api_token, SERVICE), pubs.promotions.publish)
+    if cfg.api_read_only:
+        log.warning("the control plane is read-only (--read-only): every mutation answers 503")
+    app = create_app(control_plane_config(cfg), pubs.promotions.publish, status)
     server = uvicorn.Server(uvicorn.Config(app, host=cfg.api_host, port=cfg.api_port, log_level="warning"))
     thread = threading.Thread(target=server.run, name="control plane", daemon=True)
     thread.start()
@@ -384,26 +540,47 @@ def start_control_plane(
 
 
 def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str, Any]:
-    """Run the learner service; returns the run summary (also written to the log as JSON)."""
-    ensure_corpus(cfg)
+    """Run the learner service; returns the run summary (also written to the log as JSON).
+
+    Order: control plane and liveliness token (the service answers /healthz within seconds), then the
+    corpus (built over compile jobs when missing), then the environment and the run."""
+    if cfg.api_port != 0:
+        control_plane_config(cfg).check()  # fail fast: mutations enabled without a token
     device = torch.device(cfg.train.device)
     from navi_learner.config import default_actors
 
     n = cfg.train.n_actors or default_actors(device)
-    base_env = make_env(
-        cfg.corpus if cfg.env_kind == "sdfdag" else None, n, cfg.train.device, cfg.train.seed, cfg.env_kind
-    )
     sess = session(cfg.session)
     pubs = MeshPublishers(sess, cfg.telemetry_capacity)
-    tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
-    repeater = FrameRepeater(tap, pubs)
-    plane = start_control_plane(cfg, pubs)
-    token = declare_alive(sess, SERVICE)  # after the control plane listens: the token means ready
+    status = ServiceStatus(cfg.corpus if cfg.env_kind == "sdfdag" else None)
+    reporter = CorpusReporter(status, pubs)
+    plane = start_control_plane(cfg, pubs, status)
+    token = declare_alive(sess, SERVICE)  # after the control plane listens: the token means reachable
+    heartbeat = Heartbeat(status, pubs, reporter)
+    repeater: FrameRepeater | None = None
     try:
+        try:
+            prepare_corpus(cfg, sess, reporter, stop)
+        except InterruptedError:
+            return {"steps": 0, "interrupted": True}
+        if stop.is_set():
+            return {"steps": 0, "interrupted": True}
+        base_env = make_env(
+            cfg.corpus if cfg.env_kind == "sdfdag" else None,
+            n,
+            cfg.train.device,
+            cfg.train.seed,
+            cfg.env_kind,
+        )
+        tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
+        heartbeat.tap = tap
+        repeater = FrameRepeater(tap, pubs)
         if cfg.mode == "train":
-            summary = run_training(cfg, tap, pubs)
+            summary = run_training(cfg, tap, pubs, status)
         else:
+            status.update(phase="inference", actors=tap.n_actors)
             summary = run_inference(cfg, tap, pubs, sess, stop)
+        status.update(phase="done")
         repeater.close()  # the run is over: no frame is repeated as if it were live
         log.info("run finished: %s", json.dumps(summary, default=str))
         if not cfg.exit_when_done:
@@ -411,8 +588,13 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
                 stop.wait()
             except KeyboardInterrupt:
                 log.info("stopping")
+    except BaseException:
+        status.update(phase="failed")
+        raise
     finally:
-        repeater.close()
+        heartbeat.close()
+        if repeater is not None:
+            repeater.close()
         if plane is not None:
             server, thread = plane
             server.should_exit = True

@@ -27,7 +27,8 @@ class NaviSettings(BaseSettings):
         "tcp/127.0.0.1:7447", description="Comma-separated Zenoh endpoints to connect to."
     )
     zenoh_listen: str = Field(
-        "tcp/0.0.0.0:7447", description="Comma-separated endpoints the router listens on."
+        "tcp/127.0.0.1:7447",
+        description="Comma-separated endpoints the router listens on (tcp/0.0.0.0:7447 for other hosts).",
     )
     zenoh_config: Path | None = Field(None, description="A Zenoh JSON5 config file; overrides the endpoints.")
     api_token: SecretStr = Field(SecretStr(""), description="Bearer token for control-plane mutations.")
