@@ -22,7 +22,9 @@ class Sink:
 
 
 def pubs() -> Any:
-    return SimpleNamespace(observations=Sink(), actions=Sink(), telemetry=Sink())
+    return SimpleNamespace(
+        observations=Sink(), actions=Sink(), telemetry=Sink(), poses=Sink(), floor_plans=Sink()
+    )
 
 
 def test_tap_forwards_the_env_unchanged_and_samples_exact_values() -> None:
@@ -41,6 +43,10 @@ def test_tap_forwards_the_env_unchanged_and_samples_exact_values() -> None:
         assert torch.equal(torch.from_numpy(sample.depth[0]), b.obs[0, 0])
         assert torch.equal(torch.from_numpy(sample.delta_depth[0]), b.obs[0, 2])
         assert torch.equal(torch.from_numpy(sinks.actions.items[i].command), actions)
+        pose = sinks.poses.items[i]  # actor 0's position after the step, exactly
+        position = b.info["position"][0]  # (3,) meters
+        assert (pose.env_id, pose.x, pose.y, pose.z) == (0, *(float(v) for v in position))
+        assert pose.timestamp == sample.timestamp
 
 
 def test_tap_publishes_at_most_at_its_rate() -> None:

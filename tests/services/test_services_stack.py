@@ -163,6 +163,10 @@ def test_stack_up_without_a_corpus_builds_it_over_compile_jobs(
             shown = httpx.get(dashboard).json()
             assert shown["actors"] == 2 and shown["run_id"] == healthz(cfg.api_port)["run_id"]
             assert shown["corpus"]["ready"] == progress["scenes_ready"] and shown["corpus"]["planned"] == 2
+            # Actor 0's trail over the floor plan of the scene it flies in (a scene of this corpus).
+            scene_names = {scene["name"] for scene in manifest["scenes"]}
+            wait_for(lambda: httpx.get(dashboard).json()["plan_scene"] in scene_names, 30.0, "a floor plan")
+            assert httpx.get(dashboard).json()["trail_points"] > 0
 
         # Safe defaults: every listening socket of the stack is on 127.0.0.1 (0100007F) only.
         ports = {cfg.router_port, cfg.api_port, cfg.compiler_metrics_port, cfg.env_metrics_port}

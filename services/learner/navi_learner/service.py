@@ -17,6 +17,10 @@ The loop is the learner's own (`train.train` or the inference loop below); this 
   and in `corpus.*` telemetry; training starts when it is ready.
 - A heartbeat publishes `actor.training.actors` (or `actor.inference.actors`) once a second while the
   loop runs, so a dashboard knows the mode and the actor count between slow PPO updates.
+- With each sampled observation the tap also queues actor 0's pose (navi/actor/pose, from the env's
+  `info["position"]` and its yaw); `FloorPlanner` publishes the floor plan of actor 0's scene
+  (navi/env/floor_plan: clearance on a horizontal slice at the drone's height, 128 cells on the long
+  side) when the scene changes and every 5 s, computed on its own thread.
 SIGTERM or Ctrl+C ends training through its KeyboardInterrupt path (a checkpoint is saved first).
 """
 
@@ -24,8 +28,10 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -35,8 +41,15 @@ import torch
 import zenoh
 
 from navi_contracts import telemetry_keys as keys
-from navi_contracts.models import Action, DistanceMatrix, ModelPromoted, TelemetryEvent
-from navi_contracts.topics import ACTIONS, MODEL_PROMOTED, OBSERVATIONS, TELEMETRY
+from navi_contracts.models import (
+    Action,
+    DistanceMatrix,
+    FloorPlan,
+    ModelPromoted,
+    RobotPose,
+    TelemetryEvent,
+)
+from navi_contracts.topics import ACTIONS, FLOOR_PLAN, MODEL_PROMOTED, OBSERVATIONS, POSES, TELEMETRY
 from navi_learner.config import TrainConfig
 from navi_learner.control_plane import ControlPlaneConfig, create_app
 from navi_learner.envs import EnvKind, corpus_summary, make_env
@@ -112,10 +125,12 @@ class MeshPublishers:
         self.telemetry: QueuedPublisher[TelemetryEvent] = QueuedPublisher(sess, TELEMETRY, telemetry_capacity)
         self.observations: QueuedPublisher[DistanceMatrix] = QueuedPublisher(sess, OBSERVATIONS, capacity=2)
         self.actions: QueuedPublisher[Action] = QueuedPublisher(sess, ACTIONS, capacity=2)
+        self.poses: QueuedPublisher[RobotPose] = QueuedPublisher(sess, POSES, capacity=2)
+        self.floor_plans: QueuedPublisher[FloorPlan] = QueuedPublisher(sess, FLOOR_PLAN, capacity=1)
         self.promotions: Publisher[ModelPromoted] = Publisher(sess, MODEL_PROMOTED)
 
     def close(self) -> None:
-        for pub in (self.telemetry, self.observations, self.actions):
+        for pub in (self.telemetry, self.observations, self.actions, self.poses, self.floor_plans):
             pub.close()
         self.promotions.close()
 
@@ -140,6 +155,9 @@ class TelemetryTap:
         c, az, el = env.obs_shape
         self._obs_host = torch.zeros(1, c, az, el, pin_memory=cuda)  # (1, 3, Az, El) float32
         self._act_host = torch.zeros(env.n_actors, 4, pin_memory=cuda)  # (N, 4) float32
+        self._pose_host = torch.zeros(5, pin_memory=cuda)  # (5,) float32 actor 0: x, y, z, yaw, scene id
+        self._has_pose = False  # the env reported a position with the sampled step
+        self.on_pose: Callable[[int, float], None] | None = None  # (scene id, z) of each published pose
         self._event: torch.cuda.Event | None = torch.cuda.Event() if cuda else None
         self._pending_step: int | None = None
         self.last_observation: DistanceMatrix | None = None  # the last frame queued (read by FrameRepeater)
@@ -168,16 +186,28 @@ class TelemetryTap:
             self.publish(self._pending_step)
         if now >= self._next and self._pending_step is None:
             self._next = now + self.period
-            self.sample(out.obs, actions)
+            self.sample(out.obs, actions, out.info)
             if self._event is None:
                 self.publish(self.steps * self.env.n_actors)
         self.publish_s += time.monotonic() - now
         return out
 
-    def sample(self, obs: torch.Tensor, actions: torch.Tensor) -> None:
-        """Start copying actor 0's observation and all actions to the host buffers."""
+    def sample(
+        self, obs: torch.Tensor, actions: torch.Tensor, info: dict[str, torch.Tensor] | None = None
+    ) -> None:
+        """Start copying actor 0's observation and pose and all actions to the host buffers."""
         self._obs_host.copy_(obs[:1], non_blocking=True)
         self._act_host.copy_(actions, non_blocking=True)
+        position = (info or {}).get("position")  # (N, 3) meters
+        self._has_pose = position is not None
+        if position is not None:
+            self._pose_host[:3].copy_(position[0], non_blocking=True)
+            yaw = getattr(self.env, "yaw", None)  # (N,) radians (the drone env)
+            if isinstance(yaw, torch.Tensor):
+                self._pose_host[3:4].copy_(yaw[:1], non_blocking=True)
+            scene = (info or {}).get("scene_id")  # (N,) int64
+            if scene is not None:
+                self._pose_host[4:5].copy_(scene[:1], non_blocking=True)
         self._pending_step = self.steps * self.env.n_actors
         if self._event is not None:
             self._event.record()
@@ -189,6 +219,13 @@ class TelemetryTap:
         frame = distance_matrix(first, np.zeros(1, np.int32), step, self.run_id)
         self.pubs.observations.publish(frame)
         self.pubs.actions.publish(action_message(acts, step, self.run_id))
+        if self._has_pose:
+            x, y, z, yaw, scene = (float(v) for v in self._pose_host.tolist())
+            self.pubs.poses.publish(
+                RobotPose(env_id=0, x=x, y=y, z=z, roll=0.0, pitch=0.0, yaw=yaw, timestamp=frame.timestamp)
+            )
+            if self.on_pose is not None:
+                self.on_pose(int(scene), z)
         self.last_observation, self.last_publish = frame, time.monotonic()
         self._pending_step = None
 
@@ -218,6 +255,93 @@ class FrameRepeater:
 
     def close(self) -> None:
         self._stop.set()
+        self._thread.join(timeout=5.0)
+
+
+PLAN_CELLS = 128
+"""Cells on the long side of a floor plan."""
+PLAN_PERIOD_S = 5.0
+"""A floor plan is published again this often (for dashboards that connect late)."""
+
+
+def floor_plan(corpus: Any, scene: int, z: float, cells: int = PLAN_CELLS, run_id: str = "") -> FloorPlan:
+    """The clearance on the horizontal slice at height z of one scene of a SceneCorpus, over its
+    geometry's x-y bounds, `cells` cells on the long side."""
+    from navi_env.trace import sample_distance
+
+    info = corpus.infos[scene]
+    lo, hi = np.asarray(info.bounds_min, np.float64), np.asarray(info.bounds_max, np.float64)  # (3,) m
+    extent = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1e-3)
+    cell = extent / cells
+    w = max(1, min(cells, math.ceil((hi[0] - lo[0]) / cell)))
+    h = max(1, min(cells, math.ceil((hi[1] - lo[1]) / cell)))
+    xs = lo[0] + (np.arange(w) + 0.5) * cell  # (W,) m
+    ys = lo[1] + (np.arange(h) + 0.5) * cell  # (H,) m
+    gx, gy = np.meshgrid(xs, ys)  # (H, W) each
+    points = np.stack([gx, gy, np.full_like(gx, z)], axis=-1).reshape(-1, 3)  # (H*W, 3) m
+    dev = corpus.device
+    ids = torch.full((points.shape[0],), scene, dtype=torch.int64, device=dev)  # (H*W,)
+    pts = torch.from_numpy(points.astype(np.float32)).to(dev).contiguous()  # (H*W, 3)
+    clearance = sample_distance(corpus, ids, pts).cpu().numpy().reshape(h, w)  # (H, W) float32 m
+    return FloorPlan(
+        scene=info.name,
+        run_id=run_id,
+        origin_x=float(lo[0]),
+        origin_y=float(lo[1]),
+        cell_size=cell,
+        z=float(z),
+        clearance=np.ascontiguousarray(clearance, dtype=np.float32),
+        timestamp=time.time(),
+    )
+
+
+class FloorPlanner:
+    """Publishes the floor plan of actor 0's scene from a daemon thread: computed when the scene
+    changes (or the drone's height moved more than a meter), sent again every PLAN_PERIOD_S."""
+
+    def __init__(self, corpus: Any, pubs: MeshPublishers, run_id: Callable[[], str]) -> None:
+        self.corpus, self.pubs, self.run_id = corpus, pubs, run_id
+        self.plans = 0  # floor plans computed
+        self._want: tuple[int, float] | None = None
+        self._plan: FloorPlan | None = None
+        self._key: tuple[int, float] | None = None
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="navi-floor-plan", daemon=True)
+        self._thread.start()
+
+    def request(self, scene: int, z: float) -> None:
+        """Actor 0 is in `scene` at height z (called with every published pose; cheap)."""
+        self._want = (scene, z)
+        key = self._key
+        if key is None or key[0] != scene or abs(key[1] - z) > 1.0:
+            self._wake.set()
+
+    def _run(self) -> None:
+        last_sent = 0.0
+        while not self._stop.is_set():
+            self._wake.wait(PLAN_PERIOD_S)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            want, key = self._want, self._key
+            if want is not None and (key is None or key[0] != want[0] or abs(key[1] - want[1]) > 1.0):
+                try:
+                    self._plan = floor_plan(self.corpus, want[0], want[1], run_id=self.run_id())
+                except (RuntimeError, ValueError, IndexError, TypeError) as err:
+                    log.warning("floor plan of scene %d failed: %s", want[0], err)
+                    self._key = want  # not again for this scene and height
+                    continue
+                self._key = want
+                self.plans += 1
+                last_sent = 0.0
+            if self._plan is not None and time.monotonic() - last_sent >= min(1.0, PLAN_PERIOD_S):
+                self.pubs.floor_plans.publish(self._plan)
+                last_sent = time.monotonic()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
         self._thread.join(timeout=5.0)
 
 
@@ -558,6 +682,7 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
     token = declare_alive(sess, SERVICE)  # after the control plane listens: the token means reachable
     heartbeat = Heartbeat(status, pubs, reporter)
     repeater: FrameRepeater | None = None
+    planner: FloorPlanner | None = None
     try:
         try:
             prepare_corpus(cfg, sess, reporter, stop)
@@ -575,6 +700,10 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
         tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
         heartbeat.tap = tap
         repeater = FrameRepeater(tap, pubs)
+        scenes = getattr(base_env, "corpus", None)
+        if scenes is not None:
+            planner = FloorPlanner(scenes, pubs, lambda: tap.run_id)
+            tap.on_pose = planner.request
         if cfg.mode == "train":
             summary = run_training(cfg, tap, pubs, status)
         else:
@@ -593,6 +722,8 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
         raise
     finally:
         heartbeat.close()
+        if planner is not None:
+            planner.close()
         if repeater is not None:
             repeater.close()
         if plane is not None:
