@@ -25,6 +25,7 @@ registry, one router per resource, `create_app` wires them.
 
 from __future__ import annotations
 
+import json
 import os
 import secrets
 import stat
@@ -35,11 +36,15 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request, Response, status
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import AfterValidator, BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from navi_contracts.models import ModelPromoted
+from navi_learner.checkpoint import read_meta
 from navi_learner.registry import LATEST, ModelEntry, ModelRegistry, RegistryError
 from navi_mesh import metrics
 
@@ -257,10 +262,10 @@ def list_models(registry: ModelRegistry) -> ModelsPublic:
 
 
 def checkpoint_source(registry: ModelRegistry, name: str) -> None:
-    """422 unless `name` is a known version or alias, or a path to a regular file this process can read
-    (a FIFO, device or folder is refused before anything opens it)."""
-    data = registry.aliases()
-    if name in data or any(e.version == name for e in registry.list()):
+    """422 unless `name` is a known version or alias, or a regular readable file that loads as a v3
+    checkpoint (a FIFO, device or folder is refused before anything opens it; whatever way an
+    arbitrary file fails to unpickle, it is the request that is wrong)."""
+    if name in registry.aliases() or any(e.version == name for e in registry.list()):
         return
     try:
         info = os.stat(name)
@@ -272,6 +277,10 @@ def checkpoint_source(registry: ModelRegistry, name: str) -> None:
         raise HTTPException(
             422, f"{name!r} is neither a model version nor a regular readable checkpoint file"
         )
+    try:
+        read_meta(Path(name))
+    except Exception as err:  # untrusted bytes: any failure to load them is the request's fault
+        raise HTTPException(422, f"{name!r} is not a loadable checkpoint: {type(err).__name__}") from err
 
 
 def move_alias(
@@ -422,6 +431,34 @@ class _TooLarge(Exception):
     pass
 
 
+def _plain(value: Any) -> Any:
+    """Echoed request input made JSON-safe: bytes (a body that is not UTF-8) become escaped text."""
+    if isinstance(value, bytes | bytearray):
+        return bytes(value).decode("utf-8", "backslashreplace")
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _ascii_json(status_code: int, body: Any, headers: dict[str, str] | None = None) -> Response:
+    """A JSON response with every non-ASCII character escaped: an echoed input holding an unpaired
+    surrogate (valid JSON, not valid UTF-8) or raw bytes cannot break the encoding of the error reply."""
+    text = json.dumps(jsonable_encoder(_plain(body)), ensure_ascii=True, default=repr, separators=(",", ":"))
+    return Response(text, status_code, headers=headers, media_type="application/json")
+
+
+async def _invalid_request(request: Request, exc: Exception) -> Response:
+    assert isinstance(exc, RequestValidationError)
+    return _ascii_json(422, {"detail": exc.errors()})
+
+
+async def _http_error(request: Request, exc: Exception) -> Response:
+    assert isinstance(exc, StarletteHTTPException)
+    return _ascii_json(exc.status_code, {"detail": exc.detail}, getattr(exc, "headers", None))
+
+
 def create_app(
     config: ControlPlaneConfig, announce: Announce | None = None, status_source: StatusSource | None = None
 ) -> FastAPI:
@@ -441,6 +478,8 @@ def create_app(
     )
     app.include_router(models_router)
     app.include_router(ops_router)
+    app.add_exception_handler(RequestValidationError, _invalid_request)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_middleware(BodyLimit, limit=MAX_BODY_BYTES)
     return app
 
