@@ -670,6 +670,8 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
     corpus (built over compile jobs when missing), then the environment and the run."""
     if cfg.api_port != 0:
         control_plane_config(cfg).check()  # fail fast: mutations enabled without a token
+    for action in ModelRegistry(cfg.models_dir).recover():  # after a writer was killed mid-write
+        log.warning("model registry %s: %s", cfg.models_dir, action)
     device = torch.device(cfg.train.device)
     from navi_learner.config import default_actors
 

@@ -14,6 +14,7 @@ same volume mounted at the same place, as in docker-compose.yml).
 from __future__ import annotations
 
 import json
+import logging
 import os
 import queue
 import shutil
@@ -30,6 +31,8 @@ if TYPE_CHECKING:
     import zenoh
 
     from navi_env.corpus import CorpusManifest
+
+log = logging.getLogger("navi_mesh.corpus_jobs")
 
 BuildState = Literal["missing", "waiting", "building", "ready", "failed"]
 
@@ -94,15 +97,17 @@ def _wait_for_workers(sess: zenoh.Session, stop: threading.Event, poll_s: float)
     return 0
 
 
-def _compile_with_retries(
+def compile_with_retries(
     sess: zenoh.Session,
     source: Path,
     out: Path,
     cfg: CorpusBuildConfig,
     stop: threading.Event,
-    on_retry: Callable[[], None],
+    on_retry: Callable[[str], None],
 ) -> str:
-    """Run one compile job to a live worker; '' on success, else the error. Retries dead workers."""
+    """Run one compile job on a live worker; '' on success, else the error. When the worker dies
+    before answering (RequestError), on_retry(error) is called and the job goes to a live worker
+    again, up to cfg.attempts tries. A job the worker answers with an error is not retried."""
     from navi_compiler.service import submit_compile_job
     from navi_contracts.models import CompileJob
     from navi_mesh.pubsub import RequestError
@@ -116,7 +121,7 @@ def _compile_with_retries(
     last = ""
     for attempt in range(cfg.attempts):
         if attempt:
-            on_retry()
+            on_retry(last)
         if _wait_for_workers(sess, stop, cfg.worker_poll_s) == 0:
             return "stopped"
         try:
@@ -179,7 +184,8 @@ def build_corpus_over_jobs(
         retries = [0]
         lock = threading.Lock()
 
-        def count_retry() -> None:
+        def count_retry(error: str) -> None:
+            log.warning("sending a compile job again: %s", error)
             with lock:
                 retries[0] += 1
 
@@ -191,7 +197,7 @@ def build_corpus_over_jobs(
                     return
                 out = work / f"{sources[i].stem}.gmdag"
                 try:
-                    error = _compile_with_retries(sess, sources[i], out, cfg, abort, count_retry)
+                    error = compile_with_retries(sess, sources[i], out, cfg, abort, count_retry)
                 except Exception as err:  # reported as the scene's failure, never lost in a thread
                     error = f"{type(err).__name__}: {err}"
                 done.put(_Done(i, None if error else out, error))
