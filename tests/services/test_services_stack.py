@@ -100,7 +100,7 @@ def test_stack_up_without_a_corpus_builds_it_over_compile_jobs(
         monkeypatch.setenv(name, value)
     corpus = tmp_path / "artifacts" / "corpus" / "default"
     cfg = StackConfig(
-        root=tmp_path / "stack",
+        root=tmp_path / "artifacts" / "stack",  # where `navi stack status` looks from tmp_path
         router_port=free_port(),
         api_port=free_port(),
         auditor_port=free_port(),
@@ -167,6 +167,17 @@ def test_stack_up_without_a_corpus_builds_it_over_compile_jobs(
             scene_names = {scene["name"] for scene in manifest["scenes"]}
             wait_for(lambda: httpx.get(dashboard).json()["plan_scene"] in scene_names, 30.0, "a floor plan")
             assert httpx.get(dashboard).json()["trail_points"] > 0
+
+        # `navi stack status` joins the processes, the live tokens and the learner's progress.
+        status = subprocess.run(
+            [*NAVI, "stack", "status", "--json"], cwd=tmp_path, capture_output=True, text=True, timeout=60,
+            env={**os.environ, "NAVI_ZENOH_CONNECT": f"tcp/127.0.0.1:{cfg.router_port}"},
+        )  # fmt: skip
+        assert status.returncode == 0, status.stderr
+        shown_status = json.loads(status.stdout)
+        assert [p["name"] for p in shown_status["processes"] if p["running"]] == names
+        assert shown_status["learner"]["phase"] == "training"
+        assert shown_status["learner"]["corpus"]["state"] == "ready"
 
         # Safe defaults: every listening socket of the stack is on 127.0.0.1 (0100007F) only.
         ports = {cfg.router_port, cfg.api_port, cfg.compiler_metrics_port, cfg.env_metrics_port}
