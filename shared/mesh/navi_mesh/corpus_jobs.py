@@ -89,10 +89,17 @@ def _wait_for_workers(sess: zenoh.Session, stop: threading.Event, poll_s: float)
     """The number of live compiler workers, waiting while there are none (0 when stopped)."""
     from navi_mesh.liveliness import live_tokens
 
+    next_note = time.monotonic()
     while not stop.is_set():
         live = live_tokens(sess, "compiler", timeout_s=1.0)
         if live:
             return len(live)
+        if time.monotonic() >= next_note:
+            log.info(
+                "waiting for a compiler worker to build the corpus (start `navi serve compiler`, or build "
+                "it in this process with --corpus-build local)"
+            )
+            next_note = time.monotonic() + 30.0
         stop.wait(poll_s)
     return 0
 
