@@ -1,4 +1,4 @@
-# Learner and env services: CUDA runtime base (plus nvcc, which the env's tracer uses once to build
+# Learner, env and compiler services: CUDA runtime base (plus nvcc, which the env's tracer uses once to build
 # its CUDA launchers; the build is cached under NAVI_CACHE_DIR on the artifacts volume).
 # Build from the repository root: docker build -f deploy/cuda.Dockerfile .
 FROM nvidia/cuda:12.6.3-cudnn-runtime-ubuntu24.04

@@ -1,4 +1,4 @@
-# Compiler and auditor services: a slim Python base with the CPU build of torch.
+# The auditor service: a slim Python base with the CPU build of torch.
 # Build from the repository root: docker build -f deploy/slim.Dockerfile .
 FROM python:3.11-slim
 

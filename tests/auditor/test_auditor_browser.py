@@ -1,7 +1,8 @@
 """The live dashboard in a real headless Chromium, fed over a real Zenoh router on loopback.
 
-The page must show WAITING first, then frames and the right mode (TRAINING, then INFERENCE) once a
-publisher starts sending encoded TelemetryEvents and DistanceMatrix messages.
+The page must show WAITING first, then the corpus build, then frames, the right mode (TRAINING, then
+INFERENCE) and every label equal to the value this test streamed (actors, SPS, observation age, run,
+step, the newest point of each training chart, actor 0's pose, its trail over the floor plan).
 """
 
 from __future__ import annotations
@@ -22,9 +23,9 @@ from navi_auditor.hub import Hub
 from navi_auditor.server import AuditorConfig, BackgroundServer, build_live_app
 from navi_auditor.state import DashboardState
 from navi_contracts.codec import encode
-from navi_contracts.models import DistanceMatrix, TelemetryEvent
+from navi_contracts.models import DistanceMatrix, FloorPlan, RobotPose, TelemetryEvent
 from navi_contracts.settings import NaviSettings
-from navi_contracts.topics import OBSERVATIONS, TELEMETRY
+from navi_contracts.topics import FLOOR_PLAN, OBSERVATIONS, POSES, TELEMETRY
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -48,7 +49,7 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def corridor(az: int, el: int, step: int) -> DistanceMatrix:
+def corridor(az: int, el: int, step: int, stamp: float | None = None) -> DistanceMatrix:
     """A synthetic view: near walls to the left and right, open ahead and behind."""
     azimuth = np.arange(az, dtype=np.float32)[:, None] * (2 * np.pi / az)  # (Az, 1)
     elevation = np.linspace(-np.pi / 2, np.pi / 2, el, dtype=np.float32)[None, :]  # (1, El)
@@ -64,7 +65,7 @@ def corridor(az: int, el: int, step: int) -> DistanceMatrix:
         semantic=zeros,
         delta_depth=zeros,
         step_id=step,
-        timestamp=time.time(),
+        timestamp=time.time() if stamp is None else stamp,
         run_id="browser-test",
     )
 
@@ -82,52 +83,117 @@ def browser_api() -> Any:
     return pytest.importorskip("playwright.sync_api", reason="the playwright Python package is not installed")
 
 
-def test_browser_shows_waiting_then_frames_and_mode(zenoh_router: NaviSettings, zenoh_client: Any) -> None:
+def room_plan() -> FloorPlan:
+    """A 16 m square room, 0.5 m cells: walls (clearance <= 0) on the outer ring, free inside."""
+    centres = (np.arange(32, dtype=np.float32) + 0.5) * 0.5  # (32,) cell centres, meters
+    gx, gy = np.meshgrid(centres, centres)  # (32, 32) each, row = y
+    clearance = np.minimum(np.minimum(gx - 0.5, 15.5 - gx), np.minimum(gy - 0.5, 15.5 - gy))  # (32, 32)
+    return FloorPlan(scene="room", run_id="browser-test", origin_x=0.0, origin_y=0.0, cell_size=0.5, z=4.0,
+                     clearance=clearance.astype(np.float32), timestamp=time.time())  # fmt: skip
+
+
+CHOSEN = {  # the values this test streams, and the label each must show on the page
+    "collisions_per_1k": ("#last-collisions", 3.5, "3.5"),
+    "coverage_per_1k": ("#last-coverage", 12.25, "12.25"),
+    "episode_return": ("#last-episode_return", -4.5, "-4.5"),
+    "entropy": ("#last-entropy", 1.75, "1.75"),
+    "value_loss": ("#last-value_loss", 0.125, "0.125"),
+    "reward_ema": ("#last-reward", 0.875, "0.875"),
+    "sps": ("#last-sps", 1234.0, "1234"),
+}
+
+
+def pixel(page: Any, canvas: str, x: int, y: int) -> list[int]:
+    rgba: list[int] = page.evaluate(
+        f"Array.from(document.getElementById('{canvas}').getContext('2d').getImageData({x}, {y}, 1, 1).data)"
+    )
+    return rgba[:3]
+
+
+def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings, zenoh_client: Any) -> None:
     sync_api = browser_api()
     app, state = build_live_app(zenoh_router, AuditorConfig())
     server = BackgroundServer(app, port=free_port()).start()
     try:
         with sync_api.sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
-            page = browser.new_page(viewport={"width": 1400, "height": 560})
+            page = browser.new_page(viewport={"width": 1400, "height": 1100})
             page.goto(server.url)
             page.wait_for_selector("#link.up", timeout=10_000)
             assert page.inner_text("#mode") == "WAITING"
             assert page.get_attribute("#heatmap", "data-seq") == "0"
-            assert page.is_visible("#waiting")
+            assert page.is_visible("#waiting") and not page.is_visible("#corpus")
             SCREENSHOTS.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(SCREENSHOTS / "auditor_dashboard_waiting.png"))
 
-            for step in range(40):
-                zenoh_client.put(TELEMETRY.key, telemetry("actor.training.sps", 900.0 + step, step))
-                zenoh_client.put(
-                    TELEMETRY.key, telemetry("actor.training.reward_ema", -1.0 + 0.05 * step, step)
-                )
-                zenoh_client.put(TELEMETRY.key, telemetry("actor.training.actors", 4.0, step))
-                zenoh_client.put(OBSERVATIONS.key, encode(corridor(256, 48, step)))
-                time.sleep(0.05)
+            # The corpus is being built: OBSERVER (no actor telemetry yet) and its progress.
+            for key, value in (("scenes_planned", 4.0), ("scenes_ready", 3.0), ("scenes_rejected", 0.0)):
+                zenoh_client.put(TELEMETRY.key, telemetry(f"corpus.{key}", value, 0))
+            zenoh_client.put(TELEMETRY.key, telemetry("corpus.ready", 0.0, 0))
+            page.wait_for_function(
+                "document.getElementById('corpus').textContent === 'Corpus=3/4 building'", timeout=10_000
+            )
+            assert page.inner_text("#mode") == "OBSERVER"
+            zenoh_client.put(TELEMETRY.key, telemetry("corpus.scenes_ready", 4.0, 0))
+            zenoh_client.put(TELEMETRY.key, telemetry("corpus.ready", 1.0, 0))
+            page.wait_for_function(
+                "document.getElementById('corpus').textContent === 'Corpus=4/4 ready'", timeout=10_000
+            )
+
+            zenoh_client.put(FLOOR_PLAN.key, encode(room_plan()))
+            stamped = time.time() - 1.5  # every frame was taken 1.5 s before it is sent
+            for step in range(1, 41):
+                zenoh_client.put(OBSERVATIONS.key, encode(corridor(256, 48, step, stamped)))
+                x = 2.0 + 8.0 * step / 40  # actor 0 flies from (2, 8) to (10, 8) at 4 m
+                pose = RobotPose(env_id=0, x=x, y=8.0, z=4.0, roll=0, pitch=0, yaw=0, timestamp=stamped)
+                zenoh_client.put(POSES.key, encode(pose))
+                if step % 10 == 0:
+                    for name, (_, value, _) in CHOSEN.items():
+                        zenoh_client.put(TELEMETRY.key, telemetry(f"actor.training.{name}", value, step * 4))
+                    zenoh_client.put(TELEMETRY.key, telemetry("actor.training.actors", 4.0, step * 4))
+                time.sleep(0.03)
             page.wait_for_function(
                 "document.getElementById('mode').textContent === 'TRAINING'", timeout=10_000
             )
+            page.wait_for_function("document.getElementById('pose').textContent.startsWith('Pose=10.00')",
+                                   timeout=10_000)  # fmt: skip
             page.wait_for_function(
                 "Number(document.getElementById('heatmap').dataset.seq) >= 20", timeout=10_000
             )
-            page.wait_for_function("document.getElementById('sps').textContent === 'SPS=939'", timeout=10_000)
             assert page.inner_text("#actors") == "Actors=4"
-            assert page.inner_text("#obs").startswith("Obs=") and page.inner_text("#obs").endswith(" ms")
+            assert page.inner_text("#sps") == "SPS=1234"
+            assert page.inner_text("#run") == "Run=browser-test"
+            assert page.inner_text("#step") == "Step=160"
+            assert page.inner_text("#rejected") == "Rejected=0"
+            for selector, _, label in CHOSEN.values():
+                assert page.inner_text(selector) == label, selector
+            assert page.inner_text("#pose") == "Pose=10.00,8.00,4.00"
+            assert page.inner_text("#plan") == "Plan=room @ z 4.00 m"
+            obs = page.inner_text("#obs")
+            assert obs.startswith("Obs=") and obs.endswith(" ms")
+            age_ms = float(obs.removeprefix("Obs=").removesuffix(" ms"))
+            assert 1500.0 <= age_ms < 1500.0 + 15_000.0  # the frame's own age (stamped 1.5 s before sending)
             assert not page.is_visible("#waiting")
             # The heat map holds the corridor: straight ahead (centre column) is far/dark, the sides near/bright.
-            ahead, side = page.evaluate(
-                "(() => { const c = document.getElementById('heatmap').getContext('2d');"
-                " return [c.getImageData(64, 24, 1, 1).data[0], c.getImageData(1, 24, 1, 1).data[0]]; })()"
-            )
+            ahead, side = pixel(page, "heatmap", 64, 24)[0], pixel(page, "heatmap", 1, 24)[0]
             assert ahead < 60 < side
-            page.screenshot(path=str(SCREENSHOTS / "auditor_dashboard_training.png"))
+            # The trail canvas (384 px for the 16 m plan: 24 px per meter, y up): the current position is
+            # red, the path behind it cyan, the wall ring black, open floor bright.
+            assert page.get_attribute("#trail", "data-plan") == "1"
+            assert page.get_attribute("#trail", "data-points") == "40"
+            r, g, b = pixel(page, "trail", 240, 192)  # (10, 8) m
+            assert r > 200 and g < 80 and b < 80, (r, g, b)
+            r, g, b = pixel(page, "trail", 144, 192)  # (6, 8) m, on the path
+            assert r < 60 and g > 150 and b > 200, (r, g, b)
+            assert pixel(page, "trail", 5, 380) == [0, 0, 0]  # (0.2, 0.2) m: the wall
+            assert min(pixel(page, "trail", 96, 96)) >= 200  # (4, 12) m: open floor
+            page.screenshot(path=str(SCREENSHOTS / "auditor_dashboard_training.png"), full_page=True)
 
-            zenoh_client.put(TELEMETRY.key, telemetry("actor.inference.sps", 50.0, 41))
+            zenoh_client.put(TELEMETRY.key, telemetry("actor.inference.sps", 50.0, 161))
             page.wait_for_function(
                 "document.getElementById('mode').textContent === 'INFERENCE'", timeout=10_000
             )
+            page.wait_for_function("document.getElementById('sps').textContent === 'SPS=50'", timeout=10_000)
             assert state.snapshot().rejected == 0
             browser.close()
     finally:

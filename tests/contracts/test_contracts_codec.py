@@ -15,6 +15,7 @@ from navi_contracts import (
     CompileResult,
     ContractError,
     DistanceMatrix,
+    FloorPlan,
     Message,
     ModelPromoted,
     RobotPose,
@@ -138,7 +139,26 @@ scalar_messages = st.one_of(
         timestamp=finite,
     ),
 )
-any_message = st.one_of(distance_matrices(), step_results(), actions(), step_requests(), scalar_messages)
+
+
+@st.composite
+def floor_plans(draw: st.DrawFn) -> FloorPlan:
+    h, w = draw(st.integers(1, 6)), draw(st.integers(1, 6))
+    return FloorPlan(
+        scene=draw(ident),
+        run_id=draw(ident),
+        origin_x=draw(finite),
+        origin_y=draw(finite),
+        cell_size=draw(st.floats(0.01, 10.0)),
+        z=draw(finite),
+        clearance=draw(hnp.arrays(np.float32, (h, w), elements=f32)),  # (H, W) float32
+        timestamp=draw(finite),
+    )
+
+
+any_message = st.one_of(
+    distance_matrices(), step_results(), actions(), step_requests(), floor_plans(), scalar_messages
+)
 
 
 def _same(a: object, b: object) -> bool:

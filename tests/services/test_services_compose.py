@@ -95,7 +95,7 @@ def test_ports_agree_with_the_config() -> None:
     listen = re.findall(r'"tcp/\[::\]:(\d+)"', router_json)
     connect = settings["NAVI_ZENOH_CONNECT"]
     assert connect == f"tcp/router:{listen[0]}"
-    assert f"{listen[0]}:{listen[0]}" in SERVICES["router"]["ports"]
+    assert f"127.0.0.1:{listen[0]}:{listen[0]}" in SERVICES["router"]["ports"]
     rest_port = re.search(r"http_port:\s*(\d+)", router_json)
     assert rest_port and f"localhost:{rest_port.group(1)}/" in " ".join(
         SERVICES["router"]["healthcheck"]["test"]
@@ -105,7 +105,7 @@ def test_ports_agree_with_the_config() -> None:
     learner = SERVICES["learner"]["command"]
     assert (
         option_value(learner, "--port") == api_port
-        and f"{api_port}:{api_port}" in SERVICES["learner"]["ports"]
+        and f"127.0.0.1:{api_port}:{api_port}" in SERVICES["learner"]["ports"]
     )
     metrics_port = settings["NAVI_METRICS_PORT"]
     for name in ("env", "compiler"):
@@ -122,15 +122,49 @@ def test_ports_agree_with_the_config() -> None:
     assert {f"{name}:{port}" for name, port in expected.items()} <= targets
     for target in targets - {"localhost:9090"}:
         assert target.split(":")[0] in SERVICES
-    assert "9090:9090" in SERVICES["prometheus"]["ports"]
+    assert "127.0.0.1:9090:9090" in SERVICES["prometheus"]["ports"]
+
+
+def test_published_ports_are_loopback_only_and_services_listen_inside_the_network() -> None:
+    """The host sees every published port on 127.0.0.1 only; inside the compose network each navi
+    service binds all interfaces (so Prometheus and the other services reach it by name)."""
+    published = [(name, port) for name, svc in SERVICES.items() for port in svc.get("ports", [])]
+    assert {name for name, _ in published} == {"router", "learner", "auditor", "prometheus", "grafana"}
+    for name, port in published:
+        assert str(port).startswith("127.0.0.1:"), (name, port)
+    assert option_value(SERVICES["learner"]["command"], "--host") == "0.0.0.0"
+    assert option_value(SERVICES["auditor"]["command"], "--host") == "0.0.0.0"
+    for name in ("env", "compiler"):
+        assert option_value(SERVICES[name]["command"], "--metrics-host") == "0.0.0.0", name
+
+
+def test_local_serve_commands_default_to_loopback() -> None:
+    """Without the compose file's options every `navi serve` command binds 127.0.0.1."""
+    from navi_contracts.settings import NaviSettings
+
+    serve = navi_click().commands["serve"]
+    defaults = {
+        (name, p.name): p.default
+        for name, cmd in serve.commands.items()
+        for p in cmd.params
+        if p.name in ("host", "metrics_host")
+    }
+    assert defaults == {
+        ("learner", "host"): "127.0.0.1",
+        ("auditor", "host"): "127.0.0.1",
+        ("env", "metrics_host"): "127.0.0.1",
+        ("compiler", "metrics_host"): "127.0.0.1",
+    }
+    assert NaviSettings.model_fields["zenoh_listen"].default == "tcp/127.0.0.1:7447"
 
 
 def test_every_service_has_a_health_check_and_the_learner_a_gpu() -> None:
     for name, svc in SERVICES.items():
         assert "healthcheck" in svc, name
-    for name in ("learner", "env"):
+    for name in ("learner", "env", "compiler"):
         devices = SERVICES[name]["deploy"]["resources"]["reservations"]["devices"]
         assert devices[0]["capabilities"] == ["gpu"]
+    assert option_value(SERVICES["compiler"]["command"], "--device") == "auto"  # the GPU engine on a GPU
     assert SERVICES["router"]["image"].startswith("eclipse/zenoh:")
     cuda = (ROOT / "deploy" / "cuda.Dockerfile").read_text()
     slim = (ROOT / "deploy" / "slim.Dockerfile").read_text()
@@ -139,13 +173,10 @@ def test_every_service_has_a_health_check_and_the_learner_a_gpu() -> None:
     assert (
         SERVICES["learner"]["build"]["dockerfile"]
         == SERVICES["env"]["build"]["dockerfile"]
+        == SERVICES["compiler"]["build"]["dockerfile"]
         == "deploy/cuda.Dockerfile"
     )
-    assert (
-        SERVICES["compiler"]["build"]["dockerfile"]
-        == SERVICES["auditor"]["build"]["dockerfile"]
-        == "deploy/slim.Dockerfile"
-    )
+    assert SERVICES["auditor"]["build"]["dockerfile"] == "deploy/slim.Dockerfile"
 
 
 def test_grafana_provisioning_and_dashboard_use_real_metrics() -> None:
@@ -169,5 +200,6 @@ def test_grafana_provisioning_and_dashboard_use_real_metrics() -> None:
         "navi_gpu_memory_bytes",
         "navi_compile_jobs_total",
         "navi_dropped_messages_total",
+        "navi_corpus_scenes_ready",
     ):
         assert needed in used, needed

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -13,7 +16,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from navi_contracts.models import ModelPromoted
 from navi_learner.checkpoint import CheckpointMeta, save_checkpoint
 from navi_learner.config import TrainConfig
-from navi_learner.control_plane import ControlPlaneConfig, create_app
+from navi_learner.control_plane import ControlPlaneConfig, ControlPlaneError, create_app
 
 TOKEN = "s3cret-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -104,13 +107,32 @@ def test_promote_rollback_and_audit_log(plane: tuple[TestClient, list[ModelPromo
     assert all(a["when"] for a in audit)
 
 
-def test_empty_token_disables_mutations(tmp_path: Path) -> None:
-    client = TestClient(create_app(ControlPlaneConfig(tmp_path / "models", "")))
+def test_no_token_refuses_to_start_unless_read_only(tmp_path: Path) -> None:
+    with pytest.raises(ControlPlaneError, match=r"NAVI_API_TOKEN is empty.*--read-only"):
+        create_app(ControlPlaneConfig(tmp_path / "models", ""))
+    client = TestClient(create_app(ControlPlaneConfig(tmp_path / "models", "", read_only=True)))
     r = client.post("/models/promote", json={"checkpoint": "v001"}, headers={"Authorization": "Bearer "})
     assert r.status_code == 503
     assert client.post("/models/promote", json={"checkpoint": "v001"}, headers=AUTH).status_code == 503
     health = client.get("/healthz").json()
     assert health["status"] == "ok" and health["mutations_enabled"] is False
+    assert client.get("/models").json()["count"] == 0  # reads still work
+    # A token does not reopen a read-only control plane.
+    locked = TestClient(create_app(ControlPlaneConfig(tmp_path / "models", TOKEN, read_only=True)))
+    assert locked.post("/models/rollback", json={"alias": "champion"}, headers=AUTH).status_code == 503
+
+
+def test_navi_serve_learner_refuses_to_start_without_a_token(tmp_path: Path) -> None:
+    """The command exits 2 with one line before it builds anything; --read-only starts it."""
+    env = {**os.environ, "NAVI_API_TOKEN": "", "NAVI_ARTIFACTS_DIR": str(tmp_path / "artifacts")}
+    env["NAVI_ZENOH_CONNECT"] = "tcp/127.0.0.1:1"  # never reached: it stops before the mesh
+    out = subprocess.run(
+        [sys.executable, "-m", "navi", "serve", "learner", "--env", "toy", "--port", "8999"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "refusing to start the control plane" in out.stderr and "--read-only" in out.stderr
+    assert not (tmp_path / "artifacts").exists()
 
 
 def test_metrics_health_and_docs(plane: tuple[TestClient, list[ModelPromoted], Path]) -> None:

@@ -231,6 +231,9 @@ def test_learner_service_telemetry_control_plane_and_router_restart(
     services.started[0].stop(signal.SIGKILL)
     time.sleep(2.0)
     router(services, "router2")
+    t_restart = time.monotonic()
+    wait_for(lambda: max(training_steps()) > before + actors * rollout, 60.0, "telemetry after the restart")
+    resumed_s = time.monotonic() - t_restart
     wait_for(
         lambda: max(training_steps()) > before + 2 * actors * rollout, 60.0, "telemetry after the restart"
     )
@@ -285,6 +288,16 @@ def test_learner_service_telemetry_control_plane_and_router_restart(
         .splitlines()
     ]
     assert [r["step"] for r in rows] == [float(actors * rollout * (i + 1)) for i in range(updates)]
+    steps_lost = total - summary["steps"]
+    assert steps_lost == 0  # the router outage cost training nothing
+    telemetry_rows_seen = len(set(training_steps()))
+    print(
+        "FAULT router_restart "
+        + json.dumps(
+            {"steps_lost": steps_lost, "updates": updates, "update_rows_logged": len(rows),
+             "telemetry_rows_missed": updates - telemetry_rows_seen, "telemetry_resumed_after_s": round(resumed_s, 1)}
+        )
+    )  # fmt: skip
     for s in subs:
         s.undeclare()
 

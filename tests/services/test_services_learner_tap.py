@@ -6,6 +6,7 @@ import time
 from types import SimpleNamespace
 from typing import Any
 
+import pytest
 import torch
 
 from navi_learner.service import FrameRepeater, TelemetryTap, TrainingMetrics, telemetry_rows
@@ -22,7 +23,9 @@ class Sink:
 
 
 def pubs() -> Any:
-    return SimpleNamespace(observations=Sink(), actions=Sink(), telemetry=Sink())
+    return SimpleNamespace(
+        observations=Sink(), actions=Sink(), telemetry=Sink(), poses=Sink(), floor_plans=Sink()
+    )
 
 
 def test_tap_forwards_the_env_unchanged_and_samples_exact_values() -> None:
@@ -41,6 +44,10 @@ def test_tap_forwards_the_env_unchanged_and_samples_exact_values() -> None:
         assert torch.equal(torch.from_numpy(sample.depth[0]), b.obs[0, 0])
         assert torch.equal(torch.from_numpy(sample.delta_depth[0]), b.obs[0, 2])
         assert torch.equal(torch.from_numpy(sinks.actions.items[i].command), actions)
+        pose = sinks.poses.items[i]  # actor 0's position after the step, exactly
+        position = b.info["position"][0]  # (3,) meters
+        assert (pose.env_id, pose.x, pose.y, pose.z) == (0, *(float(v) for v in position))
+        assert pose.timestamp == sample.timestamp
 
 
 def test_tap_publishes_at_most_at_its_rate() -> None:
@@ -135,3 +142,33 @@ def test_log_rows_become_training_telemetry_and_metrics() -> None:
     assert metrics.REGISTRY.get_sample_value("navi_episodes_total", {"mode": "train"}) - episodes == 5.0
     rows = telemetry_rows("actor.inference", {"step": 8.0, "sps": 2.0}, "")
     assert [(e.key, e.value, e.step) for e in rows] == [("actor.inference.sps", 2.0, 8)]
+
+
+def test_floor_plan_is_the_clearance_slice_of_the_scene() -> None:
+    """A box room from (1, 1, 1) to (15, 15, 7) m: at z = 4 the plan's clearance is the distance to
+    the nearest wall (the floor and ceiling are 3 m away), positive inside, and it spans the room."""
+    import numpy as np
+
+    from navi_compiler.dag import build_gmdag
+    from navi_env.scene import load_corpus
+    from navi_learner.service import floor_plan
+
+    res, voxel = 32, 0.5
+    i = np.arange(res + 1, dtype=np.float64) * voxel
+    p = np.stack(np.meshgrid(i, i, i, indexing="ij"), axis=-1)  # (R+1, R+1, R+1, 3) meters
+    lo, hi = np.array([1.0, 1.0, 1.0]), np.array([15.0, 15.0, 7.0])
+    q = np.abs(p - (lo + hi) / 2) - (hi - lo) / 2
+    box = np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)  # > 0 outside
+    g = build_gmdag((-box / voxel).astype(np.float32), origin=(0.0, 0.0, 0.0), voxel_size=voxel,
+                    spawns=np.array([[8.0, 8.0, 4.0]]), bounds=(tuple(lo), tuple(hi)))  # fmt: skip
+    plan = floor_plan(load_corpus([g], "cpu"), 0, 4.0, cells=28, run_id="r")
+    assert plan.clearance.shape == (28, 28) and plan.cell_size == pytest.approx(0.5)
+    assert (plan.origin_x, plan.origin_y, plan.z, plan.run_id) == (1.0, 1.0, 4.0, "r")
+    centres = 1.0 + (np.arange(28) + 0.5) * 0.5  # (28,) cell centres, meters
+    gx, gy = np.meshgrid(centres, centres)  # (28, 28), row = y
+    expected = np.minimum(np.minimum(gx - 1.0, 15.0 - gx), np.minimum(gy - 1.0, 15.0 - gy))
+    expected = np.minimum(expected, 3.0)  # floor and ceiling
+    near = expected <= 1.0  # within the field's exact band of a wall
+    np.testing.assert_allclose(plan.clearance[near], expected[near], atol=0.3)  # half a voxel
+    assert (plan.clearance <= expected + 0.3).all()  # farther away the field stores a lower bound
+    assert (plan.clearance > 0).all() and near.sum() > 100

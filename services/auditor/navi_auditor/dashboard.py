@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine
+from dataclasses import asdict
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -94,8 +95,18 @@ def create_app(
             "obs_age_ms": snap.obs_age_ms,
             "sps": snap.sps,
             "actors": snap.actors,
+            "run_id": snap.run_id,
+            "step": snap.step,
             "frames": snap.frames,
             "rejected": snap.rejected,
+            "corpus": None if snap.corpus is None else asdict(snap.corpus),
+            "pose": None if snap.pose is None else {"x": snap.pose.x, "y": snap.pose.y, "z": snap.pose.z},
+            "trail_points": len(snap.trail),
+            "plan_scene": None if snap.plan is None else snap.plan.scene,
+            "latest": {
+                chart: {key: points[-1][1] for key, points in series.items() if points}
+                for chart, series in snap.charts.items()
+            },
             "clients": len(hub.clients),
         }
         return JSONResponse(body)

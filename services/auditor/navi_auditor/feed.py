@@ -2,8 +2,9 @@
 
 Built on navi_mesh: the session comes from NaviSettings (client mode, scouting off, reconnecting after
 a router restart), decoding goes through `navi_mesh.pubsub.subscribe`, which drops and counts
-undecodable payloads (navi_decode_errors_total). The feed declares two subscribers and the service's
+undecodable payloads (navi_decode_errors_total). The feed declares its subscribers and the service's
 liveliness token, and nothing else: no publisher, querier or queryable, so the auditor cannot steer.
+It also subscribes to actor 0's pose and its scene's floor plan (the top-down trail).
 """
 
 from __future__ import annotations
@@ -14,9 +15,12 @@ import threading
 from typing import Any
 
 from navi_auditor.state import DashboardState
-from navi_contracts.models import DistanceMatrix, TelemetryEvent
+from navi_contracts.models import DistanceMatrix, FloorPlan, RobotPose, TelemetryEvent
 from navi_contracts.settings import NaviSettings
-from navi_contracts.topics import OBSERVATIONS, TELEMETRY
+from navi_contracts.topics import FLOOR_PLAN, OBSERVATIONS, POSES, TELEMETRY
+
+TOPICS = (TELEMETRY, OBSERVATIONS, POSES, FLOOR_PLAN)
+"""Everything the dashboard subscribes to."""
 
 log = logging.getLogger("navi.auditor.feed")
 
@@ -45,10 +49,10 @@ def open_until(settings: NaviSettings, stop: threading.Event, retry_s: float = 1
 
 
 def decode_errors() -> int:
-    """Undecodable payloads dropped so far on the dashboard's two topics (this process)."""
+    """Undecodable payloads dropped so far on the dashboard's topics (this process)."""
     from navi_mesh.pubsub import decode_error
 
-    return sum(decode_error.counts[topic.key] for topic in (TELEMETRY, OBSERVATIONS))
+    return sum(decode_error.counts[topic.key] for topic in TOPICS)
 
 
 class ZenohFeed:
@@ -75,16 +79,18 @@ class ZenohFeed:
         baseline = decode_errors()  # the counter is per process; the page counts from this dashboard's start
         telemetry: Any = subscribe(session, TELEMETRY, self._on_telemetry)
         observations: Any = subscribe(session, OBSERVATIONS, self._on_observation)
+        poses: Any = subscribe(session, POSES, self._on_pose)
+        plans: Any = subscribe(session, FLOOR_PLAN, self._on_floor_plan)
         token = declare_alive(session, SERVICE)
-        log.info("auditor feed subscribed to %s and %s", TELEMETRY.key, OBSERVATIONS.key)
+        log.info("auditor feed subscribed to %s", ", ".join(t.key for t in TOPICS))
         try:
             while True:
                 self.state.set_decode_errors(decode_errors() - baseline)
                 await asyncio.sleep(0.5)
         finally:
             token.undeclare()
-            telemetry.undeclare()
-            observations.undeclare()
+            for sub in (telemetry, observations, poses, plans):
+                sub.undeclare()
             session.close()
 
     def _on_telemetry(self, event: TelemetryEvent) -> None:
@@ -92,3 +98,9 @@ class ZenohFeed:
 
     def _on_observation(self, matrix: DistanceMatrix) -> None:
         self.state.on_observation(matrix)
+
+    def _on_pose(self, pose: RobotPose) -> None:
+        self.state.on_pose(pose)
+
+    def _on_floor_plan(self, plan: FloorPlan) -> None:
+        self.state.on_floor_plan(plan)

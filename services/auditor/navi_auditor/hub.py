@@ -12,7 +12,7 @@ import base64
 import json
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from navi_auditor.state import DashboardState, Snapshot
@@ -77,7 +77,8 @@ class Hub:
 
 
 def snapshot_message(snap: Snapshot) -> str:
-    """Render a snapshot as the page's JSON message (the frame as base64 uint8, row-major (El, Az/2))."""
+    """Render a snapshot as the page's JSON message (the frame as base64 uint8, row-major (El, Az/2);
+    the floor plan as base64 uint8, row-major (H, W), row 0 at the smallest y)."""
     body: dict[str, Any] = {
         "type": "dashboard",
         "mode": snap.mode.value,
@@ -88,10 +89,29 @@ def snapshot_message(snap: Snapshot) -> str:
         "step": snap.step,
         "frames": snap.frames,
         "rejected": snap.rejected,
-        "reward": snap.reward,
-        "sps_history": snap.sps_history,
+        "charts": snap.charts,
+        "corpus": None if snap.corpus is None else asdict(snap.corpus),
+        "pose": None
+        if snap.pose is None
+        else {"x": snap.pose.x, "y": snap.pose.y, "z": snap.pose.z, "yaw": snap.pose.yaw},
+        "trail": [[round(x, 3), round(y, 3)] for x, y in snap.trail],
+        "plan": None,
         "frame": None,
     }
+    if snap.plan is not None:
+        plan = snap.plan
+        height, width = plan.pixels.shape
+        body["plan"] = {
+            "seq": plan.seq,
+            "scene": plan.scene,
+            "origin_x": plan.origin_x,
+            "origin_y": plan.origin_y,
+            "cell_size": plan.cell_size,
+            "z": plan.z,
+            "width": width,
+            "height": height,
+            "data": base64.b64encode(plan.pixels.tobytes()).decode("ascii"),
+        }
     if snap.frame is not None:
         height, width = snap.frame.pixels.shape
         body["frame"] = {

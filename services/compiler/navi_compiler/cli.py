@@ -57,15 +57,36 @@ def _progress(enabled: bool) -> Callable[[str, float], None]:
 
 
 def _load(
-    src: str, map_name: str | None, scale: float | None, repair: bool, seeds: list[str] | None
+    src: str,
+    map_name: str | None,
+    scale: float | None,
+    repair: bool,
+    seeds: list[str] | None,
+    max_bytes: int,
 ) -> Scene:
     from navi_compiler.ingest import IngestError, load_scene
 
     points = [_parse_seed(s) for s in seeds or []]
     try:
-        return load_scene(src, map_name=map_name, scale=scale, repair=repair, seeds=points)
+        return load_scene(
+            src, map_name=map_name, scale=scale, repair=repair, seeds=points, max_bytes=max_bytes
+        )
     except (IngestError, OSError) as exc:
         raise _fail(str(exc)) from None
+
+
+def max_source_bytes(max_source_mb: float | None) -> int:
+    """--max-source-mb in bytes, else NAVI_MAX_SOURCE_BYTES (default 256 MiB)."""
+    if max_source_mb is not None:
+        return max(1, int(max_source_mb * 2**20))
+    from pydantic import ValidationError
+
+    from navi_contracts.settings import NaviSettings
+
+    try:
+        return NaviSettings().max_source_bytes
+    except ValidationError as err:
+        raise _fail(f"invalid NAVI_MAX_SOURCE_BYTES: {err.errors()[0]['msg']}") from None
 
 
 def _summary(stats: dict[str, object], out: str | None, load_seconds: float) -> dict[str, object]:
@@ -198,6 +219,15 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         timeout: Annotated[
             float, typer.Option(help="With --remote: seconds to wait for the worker's answer.", min=1.0)
         ] = 3600.0,
+        max_source_mb: Annotated[
+            float | None,
+            typer.Option(
+                "--max-source-mb",
+                min=0.001,
+                help="Largest source file or .pk3 member to read, MiB, checked before reading "
+                "(default NAVI_MAX_SOURCE_BYTES, 256 MiB). With --remote the worker's own limit applies.",
+            ),
+        ] = None,
     ) -> None:
         """Compile a scene into a .gmdag signed-distance DAG."""
         from navi_compiler.compile import compile_scene
@@ -208,7 +238,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             _compile_remote(src, out, resolution, scale, seed, repair, map_name, timeout, json_out)
             return
         t0 = time.perf_counter()
-        scene = _load(src, map_name, scale, repair, seed)
+        scene = _load(src, map_name, scale, repair, seed, max_source_bytes(max_source_mb))
         load_seconds = time.perf_counter() - t0
         show = sys.stderr.isatty() and not json_out
         try:
@@ -299,7 +329,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
 
         _check_device(engine, device)
         t0 = time.perf_counter()
-        scene = _load(src, map_name, scale, False, None)
+        scene = _load(src, map_name, scale, False, None, max_source_bytes(None))
         load_seconds = time.perf_counter() - t0
         warmup: float | None = None
         try:

@@ -7,7 +7,8 @@ CompileResult, receiving progress replies (TelemetryEvents `compiler.progress.<s
 Any number of workers, in one process (`--workers N`) or in many, share the jobs this way.
 
 A failing job (bad source, bad options) becomes a CompileResult with ok=False, error_type and
-error; the worker keeps serving. The output is written with `write_gmdag` (temp file + fsync +
+error; the worker keeps serving. A source file or archive member over `max_source_bytes` fails with
+SourceTooLargeError before it is read, so no job can make a worker inflate an archive bomb. The output is written with `write_gmdag` (temp file + fsync +
 rename), so a job killed half-way never leaves a partial .gmdag behind.
 """
 
@@ -54,8 +55,10 @@ class CompilerServiceConfig:
     """cpu: the C++ core; cuda or cuda:N: the GPU (torch) engine, same output format."""
     metrics_port: int = 9100
     """Port of GET /metrics (Prometheus)."""
-    metrics_host: str = "0.0.0.0"
+    metrics_host: str = "127.0.0.1"
     """Interface of the metrics endpoint."""
+    max_source_bytes: int = 256 * 2**20
+    """Largest source file or archive member a job may read (checked before reading)."""
     session: SessionConfig = field(default_factory=SessionConfig)
     """How to reach the Zenoh router."""
 
@@ -74,8 +77,11 @@ def run_compile_job(
     progress: Progress | None = None,
     threads: int = 0,
     device: str = "cpu",
+    max_source_bytes: int = 256 * 2**20,
 ) -> CompileResult:
-    """Load, compile and atomically write one job's scene; any failure becomes an error result."""
+    """Load, compile and atomically write one job's scene; any failure becomes an error result.
+
+    The source (or its archive member) is size-checked against max_source_bytes before it is read."""
     from navi_compiler.compile import compile_scene
     from navi_compiler.gmdag import write_gmdag
     from navi_compiler.ingest import load_scene
@@ -83,7 +89,12 @@ def run_compile_job(
     t0 = time.perf_counter()
     try:
         scene = load_scene(
-            job.source, map_name=job.map_name, scale=job.scale, repair=job.repair, seeds=list(job.seeds)
+            job.source,
+            map_name=job.map_name,
+            scale=job.scale,
+            repair=job.repair,
+            seeds=list(job.seeds),
+            max_bytes=max_source_bytes,
         )
         engine: Literal["cpp", "torch"] = "torch" if device.startswith("cuda") else "cpp"
         gmdag, stats = compile_scene(
@@ -156,7 +167,12 @@ def serve_worker(
             busy = sess.liveliness().declare_token(f"{BUSY_PREFIX}/{SERVICE}/{worker_id}")
             try:
                 result = run_compile_job(
-                    item.message, worker_id, _progress_sender(item), cfg.threads, cfg.device
+                    item.message,
+                    worker_id,
+                    _progress_sender(item),
+                    cfg.threads,
+                    cfg.device,
+                    cfg.max_source_bytes,
                 )
                 item.reply(result)
             except zenoh.ZError as err:

@@ -6,6 +6,10 @@ Layout under `root` (default artifacts/models):
   latest.pt       a copy of the version the `latest` alias points at (the best reward_ema)
   audit.jsonl     one line per alias move: when, action, alias, from, to, notes
 Every file is written atomically; a lock file serialises writers (the REST control plane shares this API).
+A move writes the new index first and appends its audit line after, so registry.json is the truth: a
+writer killed at any instant leaves an index whose every version file is complete, and at most one
+audit line or the latest.pt copy behind it. `recover()` (run by the learner service at start) brings
+those back in line and removes temporary files of interrupted writes.
 """
 
 from __future__ import annotations
@@ -155,14 +159,53 @@ class ModelRegistry:
             f.write(json.dumps(asdict(record)) + "\n")
             f.flush()
 
-    def _point(self, data: dict[str, Any], alias: str, version: str, action: str, notes: str) -> None:
+    def _point(
+        self, data: dict[str, Any], alias: str, version: str, action: str, notes: str
+    ) -> tuple[str, str, str | None, str, str] | None:
+        """Move the alias in `data`; returns the audit record to append once the index is written."""
         before = data["aliases"].get(alias)
         if before == version:
-            return
+            return None
         data["aliases"][alias] = version
         if action != "rollback" and before is not None:
             data["history"].setdefault(alias, []).append(before)
-        self._log(action, alias, before, version, notes)
+        return (action, alias, before, version, notes)
+
+    def _commit(self, data: dict[str, Any], move: tuple[str, str, str | None, str, str] | None) -> None:
+        """Write the index, then the audit line of the move, then the latest.pt copy."""
+        self._write(data)
+        if move is not None:
+            self._log(*move)
+        self._sync_latest(data)
+
+    def recover(self) -> builtins.list[str]:
+        """After a writer was killed: remove temporary files of interrupted writes, add the audit line of
+        a move the index holds but the log lacks, re-copy latest.pt when it is not the latest version.
+        Returns what it did (empty when the registry was consistent)."""
+        if not self.root.is_dir():
+            return []
+        done: builtins.list[str] = []
+        with self._locked():
+            for tmp in sorted(self.root.glob(".*.tmp")):
+                tmp.unlink(missing_ok=True)
+                done.append(f"removed {tmp.name}")
+            data = self._read()
+            logged: dict[str, str] = {}
+            for record in self.audit():
+                logged[record.alias] = record.to_version
+            for alias, version in sorted(data["aliases"].items()):
+                if logged.get(alias) != version:
+                    self._log(
+                        "recover", alias, logged.get(alias), version, "audit line of an interrupted move"
+                    )
+                    done.append(f"audit line for {alias} -> {version}")
+            latest = data["aliases"].get(LATEST)
+            if latest is not None:
+                want = next(v["sha256"] for v in data["versions"] if v["version"] == latest)
+                if not self.latest_path.is_file() or sha256_of(self.latest_path) != want:
+                    self._sync_latest(data)
+                    done.append(f"latest.pt re-copied from {latest}")
+        return done
 
     def _sync_latest(self, data: dict[str, Any]) -> None:
         version = data["aliases"].get(LATEST)
@@ -221,11 +264,10 @@ class ModelRegistry:
             version = name if name in known else self._register(data, Path(checkpoint), notes, tags)
             if alias == LATEST:
                 best = max(reversed(data["versions"]), key=lambda v: v["reward_ema"])["version"]
-                self._point(data, LATEST, best, "promote", notes)
+                move = self._point(data, LATEST, best, "promote", notes)
             else:
-                self._point(data, alias, version, "promote", notes)
-            self._write(data)
-            self._sync_latest(data)
+                move = self._point(data, alias, version, "promote", notes)
+            self._commit(data, move)
             return self.get(version)
 
     def maybe_promote(self, checkpoint: Path, notes: str = "", tags: Sequence[str] = ()) -> ModelEntry | None:
@@ -243,7 +285,6 @@ class ModelRegistry:
             if not history:
                 raise RegistryError(f"alias {alias!r} has no previous version to roll back to")
             previous = history.pop()
-            self._point(data, alias, previous, "rollback", f"rollback of {alias}")
-            self._write(data)
-            self._sync_latest(data)
+            move = self._point(data, alias, previous, "rollback", f"rollback of {alias}")
+            self._commit(data, move)
             return self.get(previous)

@@ -10,6 +10,17 @@ The loop is the learner's own (`train.train` or the inference loop below); this 
   a router restart costs no step (the session reconnects by itself).
 - The FastAPI control plane runs in a uvicorn thread; its promotions are announced on
   navi/models/promoted, and inference reloads the model when its followed alias moves.
+- Bring-up: the control plane and the liveliness token come first (seconds after the start), then the
+  corpus: when the sdfdag corpus folder has no manifest, the procedural default corpus is built over
+  compile jobs on the compiler workers (navi_mesh.corpus_jobs; `corpus_build="local"` compiles in
+  this process instead). Its progress is in /healthz (`phase`, `corpus`), in the navi_corpus_* gauges
+  and in `corpus.*` telemetry; training starts when it is ready.
+- A heartbeat publishes `actor.training.actors` (or `actor.inference.actors`) once a second while the
+  loop runs, so a dashboard knows the mode and the actor count between slow PPO updates.
+- With each sampled observation the tap also queues actor 0's pose (navi/actor/pose, from the env's
+  `info["position"]` and its yaw); `FloorPlanner` publishes the floor plan of actor 0's scene
+  (navi/env/floor_plan: clearance on a horizontal slice at the drone's height, 128 cells on the long
+  side) when the scene changes and every 5 s, computed on its own thread.
 SIGTERM or Ctrl+C ends training through its KeyboardInterrupt path (a checkpoint is saved first).
 """
 
@@ -17,8 +28,10 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -27,14 +40,23 @@ import numpy as np
 import torch
 import zenoh
 
-from navi_contracts.models import Action, DistanceMatrix, ModelPromoted, TelemetryEvent
-from navi_contracts.topics import ACTIONS, MODEL_PROMOTED, OBSERVATIONS, TELEMETRY
+from navi_contracts import telemetry_keys as keys
+from navi_contracts.models import (
+    Action,
+    DistanceMatrix,
+    FloorPlan,
+    ModelPromoted,
+    RobotPose,
+    TelemetryEvent,
+)
+from navi_contracts.topics import ACTIONS, FLOOR_PLAN, MODEL_PROMOTED, OBSERVATIONS, POSES, TELEMETRY
 from navi_learner.config import TrainConfig
 from navi_learner.control_plane import ControlPlaneConfig, create_app
 from navi_learner.envs import EnvKind, corpus_summary, make_env
 from navi_learner.protocol import BatchedEnv, StepLike
 from navi_learner.registry import ModelRegistry, RegistryError
 from navi_mesh import metrics
+from navi_mesh.corpus_jobs import BuildProgress, CorpusBuildConfig, build_corpus_over_jobs
 from navi_mesh.liveliness import declare_alive
 from navi_mesh.messages import action_message, distance_matrix, telemetry
 from navi_mesh.pubsub import Publisher, QueuedPublisher, subscribe
@@ -53,7 +75,13 @@ class LearnerServiceConfig:
     mode: Mode = "train"
     """train (PPO) or infer (run a model, follow promotions)."""
     corpus: Path = Path("artifacts/corpus/default")
-    """Corpus folder; the procedural default corpus is built there when it holds no scene."""
+    """Corpus folder; the procedural default corpus is built there when it has no manifest."""
+    corpus_build: Literal["jobs", "local"] = "jobs"
+    """How a missing default corpus is built: compile jobs on the compiler workers, or in this process."""
+    corpus_scenes: int = 16
+    """Procedural scenes of a default corpus built here."""
+    corpus_resolution: int = 512
+    """Compile resolution of a default corpus built here."""
     env_kind: EnvKind = "sdfdag"
     """sdfdag (the drone env) or toy (tests)."""
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -76,12 +104,14 @@ class LearnerServiceConfig:
     """Rate of actor 0's observation and of the actions on the mesh (5-10 Hz for dashboards)."""
     telemetry_capacity: int = 1024
     """Telemetry queue length (drop-oldest beyond it)."""
-    api_host: str = "0.0.0.0"
+    api_host: str = "127.0.0.1"
     """Control plane interface."""
     api_port: int = 8000
     """Control plane port (0: no control plane)."""
     api_token: str = ""
-    """Bearer token for mutations (empty: mutations disabled)."""
+    """Bearer token for mutations (required unless api_read_only)."""
+    api_read_only: bool = False
+    """Serve the registry read-only (mutations answer 503); the only way to run without a token."""
     exit_when_done: bool = False
     """Exit after the run instead of keeping the control plane up until stopped."""
     session: SessionConfig = field(default_factory=SessionConfig)
@@ -95,10 +125,12 @@ class MeshPublishers:
         self.telemetry: QueuedPublisher[TelemetryEvent] = QueuedPublisher(sess, TELEMETRY, telemetry_capacity)
         self.observations: QueuedPublisher[DistanceMatrix] = QueuedPublisher(sess, OBSERVATIONS, capacity=2)
         self.actions: QueuedPublisher[Action] = QueuedPublisher(sess, ACTIONS, capacity=2)
+        self.poses: QueuedPublisher[RobotPose] = QueuedPublisher(sess, POSES, capacity=2)
+        self.floor_plans: QueuedPublisher[FloorPlan] = QueuedPublisher(sess, FLOOR_PLAN, capacity=1)
         self.promotions: Publisher[ModelPromoted] = Publisher(sess, MODEL_PROMOTED)
 
     def close(self) -> None:
-        for pub in (self.telemetry, self.observations, self.actions):
+        for pub in (self.telemetry, self.observations, self.actions, self.poses, self.floor_plans):
             pub.close()
         self.promotions.close()
 
@@ -123,6 +155,9 @@ class TelemetryTap:
         c, az, el = env.obs_shape
         self._obs_host = torch.zeros(1, c, az, el, pin_memory=cuda)  # (1, 3, Az, El) float32
         self._act_host = torch.zeros(env.n_actors, 4, pin_memory=cuda)  # (N, 4) float32
+        self._pose_host = torch.zeros(5, pin_memory=cuda)  # (5,) float32 actor 0: x, y, z, yaw, scene id
+        self._has_pose = False  # the env reported a position with the sampled step
+        self.on_pose: Callable[[int, float], None] | None = None  # (scene id, z) of each published pose
         self._event: torch.cuda.Event | None = torch.cuda.Event() if cuda else None
         self._pending_step: int | None = None
         self.last_observation: DistanceMatrix | None = None  # the last frame queued (read by FrameRepeater)
@@ -151,16 +186,28 @@ class TelemetryTap:
             self.publish(self._pending_step)
         if now >= self._next and self._pending_step is None:
             self._next = now + self.period
-            self.sample(out.obs, actions)
+            self.sample(out.obs, actions, out.info)
             if self._event is None:
                 self.publish(self.steps * self.env.n_actors)
         self.publish_s += time.monotonic() - now
         return out
 
-    def sample(self, obs: torch.Tensor, actions: torch.Tensor) -> None:
-        """Start copying actor 0's observation and all actions to the host buffers."""
+    def sample(
+        self, obs: torch.Tensor, actions: torch.Tensor, info: dict[str, torch.Tensor] | None = None
+    ) -> None:
+        """Start copying actor 0's observation and pose and all actions to the host buffers."""
         self._obs_host.copy_(obs[:1], non_blocking=True)
         self._act_host.copy_(actions, non_blocking=True)
+        position = (info or {}).get("position")  # (N, 3) meters
+        self._has_pose = position is not None
+        if position is not None:
+            self._pose_host[:3].copy_(position[0], non_blocking=True)
+            yaw = getattr(self.env, "yaw", None)  # (N,) radians (the drone env)
+            if isinstance(yaw, torch.Tensor):
+                self._pose_host[3:4].copy_(yaw[:1], non_blocking=True)
+            scene = (info or {}).get("scene_id")  # (N,) int64
+            if scene is not None:
+                self._pose_host[4:5].copy_(scene[:1], non_blocking=True)
         self._pending_step = self.steps * self.env.n_actors
         if self._event is not None:
             self._event.record()
@@ -172,6 +219,13 @@ class TelemetryTap:
         frame = distance_matrix(first, np.zeros(1, np.int32), step, self.run_id)
         self.pubs.observations.publish(frame)
         self.pubs.actions.publish(action_message(acts, step, self.run_id))
+        if self._has_pose:
+            x, y, z, yaw, scene = (float(v) for v in self._pose_host.tolist())
+            self.pubs.poses.publish(
+                RobotPose(env_id=0, x=x, y=y, z=z, roll=0.0, pitch=0.0, yaw=yaw, timestamp=frame.timestamp)
+            )
+            if self.on_pose is not None:
+                self.on_pose(int(scene), z)
         self.last_observation, self.last_publish = frame, time.monotonic()
         self._pending_step = None
 
@@ -204,6 +258,93 @@ class FrameRepeater:
         self._thread.join(timeout=5.0)
 
 
+PLAN_CELLS = 128
+"""Cells on the long side of a floor plan."""
+PLAN_PERIOD_S = 5.0
+"""A floor plan is published again this often (for dashboards that connect late)."""
+
+
+def floor_plan(corpus: Any, scene: int, z: float, cells: int = PLAN_CELLS, run_id: str = "") -> FloorPlan:
+    """The clearance on the horizontal slice at height z of one scene of a SceneCorpus, over its
+    geometry's x-y bounds, `cells` cells on the long side."""
+    from navi_env.trace import sample_distance
+
+    info = corpus.infos[scene]
+    lo, hi = np.asarray(info.bounds_min, np.float64), np.asarray(info.bounds_max, np.float64)  # (3,) m
+    extent = max(float(hi[0] - lo[0]), float(hi[1] - lo[1]), 1e-3)
+    cell = extent / cells
+    w = max(1, min(cells, math.ceil((hi[0] - lo[0]) / cell)))
+    h = max(1, min(cells, math.ceil((hi[1] - lo[1]) / cell)))
+    xs = lo[0] + (np.arange(w) + 0.5) * cell  # (W,) m
+    ys = lo[1] + (np.arange(h) + 0.5) * cell  # (H,) m
+    gx, gy = np.meshgrid(xs, ys)  # (H, W) each
+    points = np.stack([gx, gy, np.full_like(gx, z)], axis=-1).reshape(-1, 3)  # (H*W, 3) m
+    dev = corpus.device
+    ids = torch.full((points.shape[0],), scene, dtype=torch.int64, device=dev)  # (H*W,)
+    pts = torch.from_numpy(points.astype(np.float32)).to(dev).contiguous()  # (H*W, 3)
+    clearance = sample_distance(corpus, ids, pts).cpu().numpy().reshape(h, w)  # (H, W) float32 m
+    return FloorPlan(
+        scene=info.name,
+        run_id=run_id,
+        origin_x=float(lo[0]),
+        origin_y=float(lo[1]),
+        cell_size=cell,
+        z=float(z),
+        clearance=np.ascontiguousarray(clearance, dtype=np.float32),
+        timestamp=time.time(),
+    )
+
+
+class FloorPlanner:
+    """Publishes the floor plan of actor 0's scene from a daemon thread: computed when the scene
+    changes (or the drone's height moved more than a meter), sent again every PLAN_PERIOD_S."""
+
+    def __init__(self, corpus: Any, pubs: MeshPublishers, run_id: Callable[[], str]) -> None:
+        self.corpus, self.pubs, self.run_id = corpus, pubs, run_id
+        self.plans = 0  # floor plans computed
+        self._want: tuple[int, float] | None = None
+        self._plan: FloorPlan | None = None
+        self._key: tuple[int, float] | None = None
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="navi-floor-plan", daemon=True)
+        self._thread.start()
+
+    def request(self, scene: int, z: float) -> None:
+        """Actor 0 is in `scene` at height z (called with every published pose; cheap)."""
+        self._want = (scene, z)
+        key = self._key
+        if key is None or key[0] != scene or abs(key[1] - z) > 1.0:
+            self._wake.set()
+
+    def _run(self) -> None:
+        last_sent = 0.0
+        while not self._stop.is_set():
+            self._wake.wait(PLAN_PERIOD_S)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            want, key = self._want, self._key
+            if want is not None and (key is None or key[0] != want[0] or abs(key[1] - want[1]) > 1.0):
+                try:
+                    self._plan = floor_plan(self.corpus, want[0], want[1], run_id=self.run_id())
+                except (RuntimeError, ValueError, IndexError, TypeError) as err:
+                    log.warning("floor plan of scene %d failed: %s", want[0], err)
+                    self._key = want  # not again for this scene and height
+                    continue
+                self._key = want
+                self.plans += 1
+                last_sent = 0.0
+            if self._plan is not None and time.monotonic() - last_sent >= min(1.0, PLAN_PERIOD_S):
+                self.pubs.floor_plans.publish(self._plan)
+                last_sent = time.monotonic()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=5.0)
+
+
 def telemetry_rows(prefix: str, row: dict[str, float], run_id: str) -> list[TelemetryEvent]:
     """A log row -> one TelemetryEvent per finite value, keyed `<prefix>.<name>`."""
     step = int(row.get("step", 0))
@@ -217,8 +358,14 @@ def telemetry_rows(prefix: str, row: dict[str, float], run_id: str) -> list[Tele
 class TrainingMetrics:
     """on_log callback of `train`: Prometheus gauges and counters plus `actor.training.*` telemetry."""
 
-    def __init__(self, pubs: MeshPublishers, tap: TelemetryTap, device: torch.device) -> None:
-        self.pubs, self.tap, self.device = pubs, tap, device
+    def __init__(
+        self,
+        pubs: MeshPublishers,
+        tap: TelemetryTap,
+        device: torch.device,
+        status: ServiceStatus | None = None,
+    ) -> None:
+        self.pubs, self.tap, self.device, self.status = pubs, tap, device, status
         self.counted_steps = 0  # actor-steps of this process already added to navi_steps_total
         self.t0 = time.monotonic()
 
@@ -235,29 +382,158 @@ class TrainingMetrics:
         metrics.record_gpu_memory(self.device)
         metrics.PUBLISH_SECONDS.inc(self.tap.publish_s)
         extra = {"publish_fraction": self.tap.publish_s / max(time.monotonic() - self.t0, 1e-9)}
+        if self.status is not None:
+            self.status.update(step=int(row.get("step", 0)))
         for event in telemetry_rows("actor.training", {**row, **extra}, run_id):
             self.pubs.telemetry.publish(event)
         self.tap.publish_s, self.t0 = 0.0, time.monotonic()
 
 
-def ensure_corpus(cfg: LearnerServiceConfig) -> None:
-    """Build the procedural default corpus when the sdfdag env has no scene to fly."""
-    if cfg.env_kind != "sdfdag" or any(cfg.corpus.glob("*.gmdag")):
+class ServiceStatus:
+    """What /healthz says beyond liveness: phase, run, actors and the corpus build (thread-safe)."""
+
+    def __init__(self, corpus: Path | None) -> None:
+        self._lock = threading.Lock()
+        self.phase = "starting"
+        self.step = 0  # step id of the newest training log row
+        self.run_id = ""
+        self.actors = 0
+        self.corpus_path = str(corpus) if corpus is not None else ""
+        self.corpus: BuildProgress | None = BuildProgress("missing") if corpus is not None else None
+
+    def update(self, **fields: Any) -> None:
+        with self._lock:
+            for name, value in fields.items():
+                setattr(self, name, value)
+
+    def __call__(self) -> dict[str, Any]:
+        with self._lock:
+            corpus = None
+            if self.corpus is not None:
+                c = self.corpus
+                corpus = {
+                    "path": self.corpus_path,
+                    "state": c.state,
+                    "scenes_ready": c.scenes_ready,
+                    "scenes_total": c.scenes_total,
+                    "rejected": c.rejected,
+                    "error": c.error,
+                }
+            return {"phase": self.phase, "run_id": self.run_id, "actors": self.actors, "corpus": corpus}
+
+
+class CorpusReporter:
+    """Turns corpus build progress into /healthz status, navi_corpus_* gauges and `corpus.*` telemetry."""
+
+    def __init__(self, status: ServiceStatus, pubs: MeshPublishers) -> None:
+        self.status, self.pubs = status, pubs
+
+    def __call__(self, progress: BuildProgress) -> None:
+        self.status.update(corpus=progress)
+        metrics.CORPUS_SCENES_READY.set(progress.scenes_ready)
+        metrics.CORPUS_SCENES_PLANNED.set(progress.scenes_total)
+        metrics.CORPUS_SCENES_REJECTED.set(progress.rejected)
+        metrics.CORPUS_READY.set(1.0 if progress.state == "ready" else 0.0)
+        self.publish(progress)
+        log.info(
+            "corpus %s: %d/%d scenes ready, %d rejected%s",
+            progress.state,
+            progress.scenes_ready,
+            progress.scenes_total,
+            progress.rejected,
+            f" ({progress.error})" if progress.error else "",
+        )
+
+    def publish(self, progress: BuildProgress) -> None:
+        for key, value in (
+            (keys.CORPUS_SCENES_READY, progress.scenes_ready),
+            (keys.CORPUS_SCENES_PLANNED, progress.scenes_total),
+            (keys.CORPUS_SCENES_REJECTED, progress.rejected),
+            (keys.CORPUS_READY, 1.0 if progress.state == "ready" else 0.0),
+        ):
+            self.pubs.telemetry.publish(telemetry(key, float(value), 0))
+
+
+def prepare_corpus(
+    cfg: LearnerServiceConfig,
+    sess: zenoh.Session,
+    reporter: CorpusReporter,
+    stop: threading.Event,
+) -> None:
+    """Make sure the sdfdag corpus exists: read its manifest, or build the procedural default corpus
+    (over compile jobs, or in this process with corpus_build="local")."""
+    if cfg.env_kind != "sdfdag":
         return
-    from navi_env.corpus import build_default_corpus
+    from navi_env.corpus import MANIFEST, CorpusError, build_default_corpus, read_manifest
 
-    log.info("building the procedural default corpus into %s", cfg.corpus)
-    build_default_corpus(cfg.corpus)
+    if not (cfg.corpus / MANIFEST).is_file():
+        reporter.status.update(phase="corpus")
+        if cfg.corpus_build == "local":
+            log.info("building the procedural default corpus into %s in this process", cfg.corpus)
+            reporter(BuildProgress("building", scenes_total=cfg.corpus_scenes))
+            build_default_corpus(
+                cfg.corpus, cfg.corpus_resolution, cfg.corpus_scenes, cfg.train.seed, cfg.train.device
+            )
+        else:
+            log.info(
+                "building the procedural default corpus into %s over compile jobs (%d scenes at %d^3)",
+                cfg.corpus,
+                cfg.corpus_scenes,
+                cfg.corpus_resolution,
+            )
+            build = CorpusBuildConfig(
+                cfg.corpus, cfg.corpus_scenes, cfg.corpus_resolution, cfg.train.seed, cfg.train.device
+            )
+            build_corpus_over_jobs(build, sess, reporter, stop)
+    try:
+        manifest = read_manifest(cfg.corpus)
+    except CorpusError as err:
+        reporter(BuildProgress("failed", error=str(err)))
+        raise
+    total = len(manifest.scenes) + len(manifest.rejected)
+    reporter(BuildProgress("ready", len(manifest.scenes), total, len(manifest.rejected)))
 
 
-def run_training(cfg: LearnerServiceConfig, env: TelemetryTap, pubs: MeshPublishers) -> dict[str, Any]:
+class Heartbeat:
+    """Once a second: `actor.<mode>.actors` while the loop runs (mode and actor count for dashboards),
+    and the corpus progress again while it is built (for dashboards that connect late)."""
+
+    def __init__(self, status: ServiceStatus, pubs: MeshPublishers, reporter: CorpusReporter) -> None:
+        self.status, self.pubs, self.reporter = status, pubs, reporter
+        self.tap: TelemetryTap | None = None  # set once the environment exists (its step count)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="navi-heartbeat", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(1.0):
+            phase, actors, run_id = self.status.phase, self.status.actors, self.status.run_id
+            if phase in ("training", "inference") and actors > 0:
+                prefix = keys.TRAINING if phase == "training" else keys.INFERENCE
+                step = self.status.step
+                if phase == "inference" and self.tap is not None:
+                    step = self.tap.steps * self.tap.n_actors
+                self.pubs.telemetry.publish(telemetry(prefix + keys.ACTORS, actors, step, run_id))
+            corpus = self.status.corpus
+            if phase == "corpus" and corpus is not None:
+                self.reporter.publish(corpus)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+
+
+def run_training(
+    cfg: LearnerServiceConfig, env: TelemetryTap, pubs: MeshPublishers, status: ServiceStatus
+) -> dict[str, Any]:
     """`train` with the tap and the metrics callback; returns the run summary."""
     from navi_learner.runs import new_run_id
     from navi_learner.train import train
 
     run_id = new_run_id()
     env.run_id = run_id
-    on_log = TrainingMetrics(pubs, env, env.device)
+    status.update(phase="training", run_id=run_id, actors=env.n_actors)
+    on_log = TrainingMetrics(pubs, env, env.device, status)
     result = train(
         env,
         cfg.train,
@@ -361,17 +637,21 @@ def run_inference(
     return {"steps": steps * env.n_actors, "model": str(path)}
 
 
+def control_plane_config(cfg: LearnerServiceConfig) -> ControlPlaneConfig:
+    return ControlPlaneConfig(cfg.models_dir, cfg.api_token, SERVICE, cfg.api_read_only)
+
+
 def start_control_plane(
-    cfg: LearnerServiceConfig, pubs: MeshPublishers
+    cfg: LearnerServiceConfig, pubs: MeshPublishers, status: ServiceStatus
 ) -> tuple[Any, threading.Thread] | None:
     """uvicorn serving the control plane from a daemon thread (None when api_port is 0)."""
     if cfg.api_port == 0:
         return None
     import uvicorn
 
-    if not cfg.api_token:
-        log.warning("NAVI_API_TOKEN is empty: the control plane refuses every mutation (503)")
-    app = create_app(ControlPlaneConfig(cfg.models_dir, cfg.api_token, SERVICE), pubs.promotions.publish)
+    if cfg.api_read_only:
+        log.warning("the control plane is read-only (--read-only): every mutation answers 503")
+    app = create_app(control_plane_config(cfg), pubs.promotions.publish, status)
     server = uvicorn.Server(uvicorn.Config(app, host=cfg.api_host, port=cfg.api_port, log_level="warning"))
     thread = threading.Thread(target=server.run, name="control plane", daemon=True)
     thread.start()
@@ -384,26 +664,54 @@ def start_control_plane(
 
 
 def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str, Any]:
-    """Run the learner service; returns the run summary (also written to the log as JSON)."""
-    ensure_corpus(cfg)
+    """Run the learner service; returns the run summary (also written to the log as JSON).
+
+    Order: control plane and liveliness token (the service answers /healthz within seconds), then the
+    corpus (built over compile jobs when missing), then the environment and the run."""
+    if cfg.api_port != 0:
+        control_plane_config(cfg).check()  # fail fast: mutations enabled without a token
+    for action in ModelRegistry(cfg.models_dir).recover():  # after a writer was killed mid-write
+        log.warning("model registry %s: %s", cfg.models_dir, action)
     device = torch.device(cfg.train.device)
     from navi_learner.config import default_actors
 
     n = cfg.train.n_actors or default_actors(device)
-    base_env = make_env(
-        cfg.corpus if cfg.env_kind == "sdfdag" else None, n, cfg.train.device, cfg.train.seed, cfg.env_kind
-    )
     sess = session(cfg.session)
     pubs = MeshPublishers(sess, cfg.telemetry_capacity)
-    tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
-    repeater = FrameRepeater(tap, pubs)
-    plane = start_control_plane(cfg, pubs)
-    token = declare_alive(sess, SERVICE)  # after the control plane listens: the token means ready
+    status = ServiceStatus(cfg.corpus if cfg.env_kind == "sdfdag" else None)
+    reporter = CorpusReporter(status, pubs)
+    plane = start_control_plane(cfg, pubs, status)
+    token = declare_alive(sess, SERVICE)  # after the control plane listens: the token means reachable
+    heartbeat = Heartbeat(status, pubs, reporter)
+    repeater: FrameRepeater | None = None
+    planner: FloorPlanner | None = None
     try:
+        try:
+            prepare_corpus(cfg, sess, reporter, stop)
+        except InterruptedError:
+            return {"steps": 0, "interrupted": True}
+        if stop.is_set():
+            return {"steps": 0, "interrupted": True}
+        base_env = make_env(
+            cfg.corpus if cfg.env_kind == "sdfdag" else None,
+            n,
+            cfg.train.device,
+            cfg.train.seed,
+            cfg.env_kind,
+        )
+        tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
+        heartbeat.tap = tap
+        repeater = FrameRepeater(tap, pubs)
+        scenes = getattr(base_env, "corpus", None)
+        if scenes is not None:
+            planner = FloorPlanner(scenes, pubs, lambda: tap.run_id)
+            tap.on_pose = planner.request
         if cfg.mode == "train":
-            summary = run_training(cfg, tap, pubs)
+            summary = run_training(cfg, tap, pubs, status)
         else:
+            status.update(phase="inference", actors=tap.n_actors)
             summary = run_inference(cfg, tap, pubs, sess, stop)
+        status.update(phase="done")
         repeater.close()  # the run is over: no frame is repeated as if it were live
         log.info("run finished: %s", json.dumps(summary, default=str))
         if not cfg.exit_when_done:
@@ -411,8 +719,15 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
                 stop.wait()
             except KeyboardInterrupt:
                 log.info("stopping")
+    except BaseException:
+        status.update(phase="failed")
+        raise
     finally:
-        repeater.close()
+        heartbeat.close()
+        if planner is not None:
+            planner.close()
+        if repeater is not None:
+            repeater.close()
         if plane is not None:
             server, thread = plane
             server.should_exit = True

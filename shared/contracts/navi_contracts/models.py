@@ -238,6 +238,32 @@ class ModelPromoted(Message):
     timestamp: Finite
 
 
+class FloorPlan(Message):
+    """Top-down map of the scene an actor flies in: the signed clearance on a horizontal slice.
+
+    `clearance` (H, W) float32 meters at height `z`, sampled at the centres of square cells of
+    `cell_size` meters: cell (row i, column j) is centred at (origin_x + (j + 0.5) * cell_size,
+    origin_y + (i + 0.5) * cell_size). Positive is free space, zero or less is inside geometry.
+    """
+
+    schema_version: Literal[1] = 1
+    scene: str = Field(min_length=1, max_length=256)
+    run_id: str = Field(default="", max_length=128)
+    origin_x: Finite
+    origin_y: Finite
+    cell_size: Finite = Field(gt=0)
+    z: Finite
+    clearance: F32_2D  # (H, W) float32 meters
+    timestamp: Finite
+
+    @model_validator(mode="after")
+    def _bounded(self) -> FloorPlan:
+        h, w = self.clearance.shape
+        if not (1 <= h <= 1024 and 1 <= w <= 1024):
+            raise ValueError(f"clearance must be between 1x1 and 1024x1024 cells, got {h}x{w}")
+        return self
+
+
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     DistanceMatrix,
     Action,
@@ -248,4 +274,5 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     CompileJob,
     CompileResult,
     ModelPromoted,
+    FloorPlan,
 )

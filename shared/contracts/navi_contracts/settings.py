@@ -27,7 +27,8 @@ class NaviSettings(BaseSettings):
         "tcp/127.0.0.1:7447", description="Comma-separated Zenoh endpoints to connect to."
     )
     zenoh_listen: str = Field(
-        "tcp/0.0.0.0:7447", description="Comma-separated endpoints the router listens on."
+        "tcp/127.0.0.1:7447",
+        description="Comma-separated endpoints the router listens on (tcp/0.0.0.0:7447 for other hosts).",
     )
     zenoh_config: Path | None = Field(None, description="A Zenoh JSON5 config file; overrides the endpoints.")
     api_token: SecretStr = Field(SecretStr(""), description="Bearer token for control-plane mutations.")
@@ -35,6 +36,11 @@ class NaviSettings(BaseSettings):
     auditor_port: int = Field(8080, gt=0, lt=65536, description="Web dashboard port.")
     metrics_port: int = Field(
         9100, gt=0, lt=65536, description="Prometheus port of services without an HTTP API."
+    )
+    max_source_bytes: int = Field(
+        256 * 2**20,
+        gt=0,
+        description="Largest scene source file or archive member a compile reads (checked before reading).",
     )
     artifacts_dir: Path = Field(
         Path("artifacts"), description="Root of runs, models, corpora and recordings."

@@ -15,8 +15,10 @@ from navi_contracts.models import (
     CompileJob,
     CompileResult,
     DistanceMatrix,
+    FloorPlan,
     Message,
     ModelPromoted,
+    RobotPose,
     StepRequest,
     StepResult,
     TelemetryEvent,
@@ -67,9 +69,32 @@ COMPILE_JOBS = Topic(
 MODEL_PROMOTED = Topic(
     "navi/models/promoted", "control plane -> inference services, auditor", ModelPromoted, "reliable", "block"
 )
+POSES = Topic(
+    "navi/actor/pose",
+    "learner -> auditor (actor 0's pose, at the observation rate)",
+    RobotPose,
+    "best_effort",
+    "drop",
+)
+FLOOR_PLAN = Topic(
+    "navi/env/floor_plan",
+    "learner -> auditor (the floor plan of actor 0's scene, when it changes and every 5 s)",
+    FloorPlan,
+    "best_effort",
+    "drop",
+)
 ALIVE = "navi/alive"
 
-ALL_TOPICS: tuple[Topic, ...] = (OBSERVATIONS, ACTIONS, STEP, TELEMETRY, COMPILE_JOBS, MODEL_PROMOTED)
+ALL_TOPICS: tuple[Topic, ...] = (
+    OBSERVATIONS,
+    ACTIONS,
+    STEP,
+    TELEMETRY,
+    COMPILE_JOBS,
+    MODEL_PROMOTED,
+    POSES,
+    FLOOR_PLAN,
+)
 
 
 def alive_key(service: str, instance_id: str) -> str:

@@ -47,6 +47,12 @@ CorpusOpt = Annotated[
     Path, typer.Option("--corpus", help="Corpus folder (the default corpus is built when empty).")
 ]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed of the environment (and of training).")]
+MetricsHostOpt = Annotated[
+    str,
+    typer.Option(
+        "--metrics-host", help="Interface of GET /metrics (127.0.0.1: this machine only; 0.0.0.0: all)."
+    ),
+]
 
 
 def fail(message: str) -> typer.Exit:
@@ -156,7 +162,17 @@ def serve_compiler(
     device: Annotated[
         str, typer.Option("--device", help="cpu (C++ core) or cuda[:N] (GPU engine); auto picks.")
     ] = "cpu",
+    max_source_mb: Annotated[
+        float | None,
+        typer.Option(
+            "--max-source-mb",
+            min=0.001,
+            help="Largest source file or .pk3 member a job may read, MiB, checked before reading "
+            "(default NAVI_MAX_SOURCE_BYTES, 256 MiB).",
+        ),
+    ] = None,
     metrics_port: MetricsPortOpt = None,
+    metrics_host: MetricsHostOpt = "127.0.0.1",
     connect: ConnectOpt = None,
     zenoh_config: ZenohConfigOpt = None,
 ) -> None:
@@ -170,6 +186,10 @@ def serve_compiler(
         threads=threads,
         device=_device(device),
         metrics_port=metrics_port or settings.metrics_port,
+        metrics_host=metrics_host,
+        max_source_bytes=(
+            settings.max_source_bytes if max_source_mb is None else max(1, int(max_source_mb * 2**20))
+        ),
         session=_session_config(settings, connect, zenoh_config),
     )
     run_service(lambda stop: serve(cfg, stop))
@@ -185,10 +205,14 @@ def serve_env(
         float, typer.Option("--observation-hz", min=0.1, help="Rate of actor 0's published observation.")
     ] = 10.0,
     metrics_port: MetricsPortOpt = None,
+    metrics_host: MetricsHostOpt = "127.0.0.1",
     connect: ConnectOpt = None,
     zenoh_config: ZenohConfigOpt = None,
 ) -> None:
-    """The drone environment over Zenoh: StepRequest queryable, observations published."""
+    """The drone environment over Zenoh: StepRequest queryable, observations published.
+
+    /metrics answers at once; while the corpus folder has no manifest the service waits for it (the
+    learner builds the default corpus over compile jobs, or run `navi corpus build`), then serves."""
     from navi_env.config import EnvConfig
     from navi_env.service import EnvServiceConfig
     from navi_env.service import serve_env as serve
@@ -208,17 +232,37 @@ def serve_env(
         seed=seed,
         observation_hz=observation_hz,
         metrics_port=metrics_port or settings.metrics_port,
+        metrics_host=metrics_host,
         env=env,
         session=_session_config(settings, connect, zenoh_config),
     )
-    if not (corpus / "manifest.json").is_file():
-        from navi_env.corpus import build_default_corpus
-
-        typer.echo(f"building the procedural default corpus into {corpus}", err=True)
-        build_default_corpus(corpus)
     from navi_env.corpus import CorpusError
 
-    run_service(lambda stop: serve(cfg, stop), errors=(CorpusError,))
+    def body(stop: threading.Event) -> None:
+        if wait_for_corpus(corpus, stop, cfg.metrics_port, cfg.metrics_host):
+            serve(cfg, stop)
+
+    run_service(body, errors=(CorpusError,))
+
+
+def wait_for_corpus(corpus: Path, stop: threading.Event, metrics_port: int, metrics_host: str) -> bool:
+    """Serve /metrics and wait until `corpus` has a manifest (True) or `stop` is set (False)."""
+    from navi_mesh import metrics
+
+    metrics.serve_metrics(metrics_port, metrics_host)
+    manifest = corpus / "manifest.json"
+    waited = 0.0
+    while not manifest.is_file():
+        if waited % 30.0 == 0.0:
+            logging.getLogger("navi_mesh.cli").info(
+                "waiting for the corpus %s (the learner builds the default corpus over compile jobs; "
+                "or run `navi corpus build`)",
+                corpus,
+            )
+        if stop.wait(1.0):
+            return False
+        waited += 1.0
+    return True
 
 
 @serve_app.command("learner")
@@ -255,9 +299,39 @@ def serve_learner(
     ] = 0,
     device: DeviceOpt = "auto",
     seed: SeedOpt = 0,
-    host: Annotated[str, typer.Option("--host", help="Control plane interface.")] = "0.0.0.0",
+    host: Annotated[
+        str,
+        typer.Option("--host", help="Control plane interface (127.0.0.1: this machine only; 0.0.0.0: all)."),
+    ] = "127.0.0.1",
     port: Annotated[
         int | None, typer.Option("--port", help="Control plane port (default NAVI_API_PORT; 0: none).")
+    ] = None,
+    read_only: Annotated[
+        bool,
+        typer.Option(
+            "--read-only",
+            help="Serve the model registry read-only (mutations answer 503). Without it the control plane "
+            "refuses to start when NAVI_API_TOKEN is empty.",
+        ),
+    ] = False,
+    corpus_build: Annotated[
+        str,
+        typer.Option(
+            "--corpus-build",
+            help="How a missing default corpus is built: jobs (on the compiler workers, over Zenoh) or "
+            "local (in this process).",
+        ),
+    ] = "jobs",
+    corpus_scenes: Annotated[
+        int, typer.Option("--corpus-scenes", min=1, help="Procedural scenes of a default corpus built here.")
+    ] = 16,
+    corpus_resolution: Annotated[
+        int | None,
+        typer.Option(
+            "--corpus-resolution",
+            min=8,
+            help="Resolution of a default corpus built here (NAVI_GMDAG_RESOLUTION).",
+        ),
     ] = None,
     observation_hz: Annotated[
         float,
@@ -280,6 +354,8 @@ def serve_learner(
         raise typer.BadParameter(f"--mode must be train or infer, got {mode!r}")
     if env_kind not in ("sdfdag", "toy"):
         raise typer.BadParameter(f"--env must be sdfdag or toy, got {env_kind!r}")
+    if corpus_build not in ("jobs", "local"):
+        raise typer.BadParameter(f"--corpus-build must be jobs or local, got {corpus_build!r}")
     settings = _settings()
     dev = _device(device)
     train = train_config(
@@ -288,6 +364,9 @@ def serve_learner(
     cfg = LearnerServiceConfig(
         mode="train" if mode == "train" else "infer",
         corpus=corpus,
+        corpus_build="local" if corpus_build == "local" else "jobs",
+        corpus_scenes=corpus_scenes,
+        corpus_resolution=corpus_resolution or settings.gmdag_resolution,
         env_kind="toy" if env_kind == "toy" else "sdfdag",
         train=train,
         resume_from=checkpoint,
@@ -300,19 +379,26 @@ def serve_learner(
         api_host=host,
         api_port=settings.api_port if port is None else port,
         api_token=settings.api_token.get_secret_value(),
+        api_read_only=read_only,
         exit_when_done=exit_when_done,
         session=_session_config(settings, connect, zenoh_config),
     )
+    from navi_env.corpus import CorpusError
     from navi_learner.envs import EnvUnavailable
+    from navi_mesh.corpus_jobs import CorpusBuildError
 
-    summary = run_service(lambda stop: serve(cfg, stop), interrupt=True, errors=(EnvUnavailable,))
+    summary = run_service(
+        lambda stop: serve(cfg, stop), interrupt=True, errors=(EnvUnavailable, CorpusBuildError, CorpusError)
+    )
     if summary is not None:
         typer.echo(json.dumps(summary, default=str))
 
 
 @serve_app.command("auditor")
 def serve_auditor(
-    host: Annotated[str, typer.Option("--host", help="Dashboard interface.")] = "0.0.0.0",
+    host: Annotated[
+        str, typer.Option("--host", help="Dashboard interface (127.0.0.1: this machine only; 0.0.0.0: all).")
+    ] = "127.0.0.1",
     port: Annotated[
         int | None, typer.Option("--port", help="Dashboard port (default NAVI_AUDITOR_PORT).")
     ] = None,
@@ -330,9 +416,10 @@ def serve_auditor(
 def _print_status(cfg_root: Path, connect: tuple[str, ...], as_json: bool, timeout_s: float) -> None:
     from navi_mesh.liveliness import live_tokens
     from navi_mesh.session import MeshError, SessionConfig, open_new_session
-    from navi_mesh.stack import read_states
+    from navi_mesh.stack import learner_health, read_states
 
     states = read_states(cfg_root)
+    health = learner_health(cfg_root) if any(s.name == "learner" and s.running for s in states) else None
     tokens: list[str] = []
     error = ""
     try:
@@ -353,6 +440,7 @@ def _print_status(cfg_root: Path, connect: tuple[str, ...], as_json: bool, timeo
                     ],
                     "alive": tokens,
                     "router_error": error,
+                    "learner": health,
                 }
             )
         )
@@ -364,6 +452,17 @@ def _print_status(cfg_root: Path, connect: tuple[str, ...], as_json: bool, timeo
         typer.echo(
             f"{s.name:<9} pid {s.pid:<8} {'running' if s.running else 'stopped':<8} since {since}  {s.log}"
         )
+    if health is not None:
+        corpus = health.get("corpus")
+        line = f"learner: {health.get('phase') or '?'}"
+        if isinstance(corpus, dict):
+            line += (
+                f"; corpus {corpus.get('state')}: {corpus.get('scenes_ready')}/{corpus.get('scenes_total')} "
+                f"scenes ready, {corpus.get('rejected')} rejected"
+            )
+            if corpus.get("error"):
+                line += f" ({corpus['error']})"
+        typer.echo(line)
     typer.echo(f"live tokens ({len(tokens)}):" if not error else f"router unreachable: {error}")
     for key in tokens:
         typer.echo(f"  {key}")
@@ -374,28 +473,58 @@ def stack_up(
     corpus: CorpusOpt = Path("artifacts/corpus/default"),
     actors: Annotated[int, typer.Option("--actors", min=1, help="Learner actors.")] = 4,
     env_actors: Annotated[int, typer.Option("--env-actors", min=1, help="Env-service actors.")] = 2,
-    device: DeviceOpt = "auto",
-    router_port: Annotated[int, typer.Option("--router-port", help="Zenoh router port on 127.0.0.1.")] = 7447,
+    device: Annotated[
+        str,
+        typer.Option(
+            "--device",
+            help="Torch device of learner, env and compiler (auto: CUDA and the GPU compile engine when present).",
+        ),
+    ] = "auto",
+    host: Annotated[
+        str,
+        typer.Option(
+            "--host",
+            help="Interface every service binds: 127.0.0.1 (this machine only) or 0.0.0.0 (all; then set "
+            "NAVI_API_TOKEN yourself and mind your firewall).",
+        ),
+    ] = "127.0.0.1",
+    router_port: Annotated[int, typer.Option("--router-port", help="Zenoh router port.")] = 7447,
     api_port: Annotated[
         int | None, typer.Option("--api-port", help="Control plane port (NAVI_API_PORT).")
     ] = None,
     auditor: Annotated[
         bool, typer.Option("--auditor/--no-auditor", help="Start the auditor dashboard.")
     ] = True,
+    corpus_scenes: Annotated[
+        int, typer.Option("--corpus-scenes", min=1, help="Scenes of the default corpus when it is built.")
+    ] = 16,
+    corpus_resolution: Annotated[
+        int | None,
+        typer.Option("--corpus-resolution", min=8, help="Its resolution (default NAVI_GMDAG_RESOLUTION)."),
+    ] = None,
+    compiler_workers: Annotated[
+        int, typer.Option("--compiler-workers", min=1, help="Compile worker threads.")
+    ] = 1,
     wait_s: Annotated[
-        float, typer.Option("--wait", min=0.0, help="Seconds to wait for every service's token.")
-    ] = 120.0,
+        float, typer.Option("--wait", min=0.0, help="Seconds to wait for every service's health check.")
+    ] = 60.0,
 ) -> None:
-    """Start router, compiler, env, learner (and auditor) as local processes (pid files in artifacts/stack)."""
-    from navi_mesh.stack import STACK_DIR, StackConfig, StackError, up
+    """Start router, compiler, env, learner (and auditor) at once as local processes (pid files in
+    artifacts/stack); returns when each answers its health check. A missing corpus is built in the
+    background over compile jobs; training starts when it is ready (`navi stack status` shows progress)."""
+    from navi_mesh.stack import STACK_DIR, StackConfig, StackError, probe_host, up
 
     settings = _settings()
     cfg = StackConfig(
         root=STACK_DIR,
+        host=host,
         router_port=router_port,
         api_port=api_port or settings.api_port,
         auditor_port=settings.auditor_port,
         corpus=corpus,
+        corpus_scenes=corpus_scenes,
+        corpus_resolution=corpus_resolution or settings.gmdag_resolution,
+        compiler_workers=compiler_workers,
         actors=actors,
         env_actors=env_actors,
         device=device,
@@ -405,7 +534,7 @@ def stack_up(
         up(cfg, wait_s, lambda line: typer.echo(line, err=True), typer.echo)
     except StackError as err:
         raise fail(str(err)) from err
-    _print_status(cfg.root, (f"tcp/127.0.0.1:{router_port}",), False, 2.0)
+    _print_status(cfg.root, (f"tcp/{probe_host(host)}:{router_port}",), False, 2.0)
 
 
 @stack_app.command("down")

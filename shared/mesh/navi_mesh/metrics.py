@@ -98,6 +98,25 @@ PUBLISH_SECONDS = Counter(
     registry=REGISTRY,
 )
 
+CORPUS_SCENES_READY = Gauge(
+    "navi_corpus_scenes_ready",
+    "Scenes of the service's corpus compiled and qualified (all of them once the corpus is ready).",
+    registry=REGISTRY,
+)
+CORPUS_SCENES_PLANNED = Gauge(
+    "navi_corpus_scenes_planned",
+    "Scenes the corpus build makes (the corpus size once it is ready; 0 while unknown).",
+    registry=REGISTRY,
+)
+CORPUS_SCENES_REJECTED = Gauge(
+    "navi_corpus_scenes_rejected",
+    "Scenes of the corpus build rejected by spawn qualification.",
+    registry=REGISTRY,
+)
+CORPUS_READY = Gauge(
+    "navi_corpus_ready", "1 once the service's corpus is built and loaded, else 0.", registry=REGISTRY
+)
+
 
 def record_gpu_memory(device: torch.device) -> None:
     """Set navi_gpu_memory_bytes from torch's allocator counters (no device synchronisation)."""
@@ -118,7 +137,7 @@ _served: set[int] = set()
 _served_lock = threading.Lock()
 
 
-def serve_metrics(port: int, host: str = "0.0.0.0") -> None:
+def serve_metrics(port: int, host: str = "127.0.0.1") -> None:
     """Expose GET /metrics on `port` from a daemon thread (services without their own HTTP API)."""
     with _served_lock:
         if port in _served:

@@ -21,7 +21,7 @@ log = logging.getLogger("navi_mesh.router")
 class RouterConfig:
     """Where the router listens."""
 
-    listen: tuple[str, ...] = ("tcp/0.0.0.0:7447",)
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     """Endpoints to listen on (NAVI_ZENOH_LISTEN)."""
     config_file: Path | None = None
     """A Zenoh JSON5 router config (e.g. deploy/zenoh/router.json5); overrides `listen`."""

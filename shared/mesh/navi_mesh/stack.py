@@ -2,8 +2,13 @@
 
 Each service is `python -m navi serve <name> ...` started in its own session (process group), its
 output in artifacts/stack/<name>.log and a pid file artifacts/stack/<name>.pid (JSON: pid, argv,
-start time). `down` sends SIGTERM in reverse start order and SIGKILL to what is still alive after
-the grace period. `status` joins the pid files with the live liveliness tokens.
+start time). All five start at once, bound to `host` (127.0.0.1 unless told otherwise); `up` returns
+when each answers its health check (router: a Zenoh session opens; compiler, env: GET /metrics;
+learner: GET /healthz; auditor: GET /healthz). A missing corpus does not hold anything up: the
+learner builds it over compile jobs in the background (progress in its /healthz and in
+`navi stack status`), the env waits for it, and training starts when it is ready. `down` sends
+SIGTERM in reverse start order and SIGKILL to what is still alive after the grace period. `status`
+joins the pid files with the live liveliness tokens and the learner's /healthz.
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ def navi_argv() -> tuple[str, ...]:
 
 
 TOKEN_FILE = "api_token"
+CONFIG_FILE = "stack.json"
+"""Ports and host of the running stack (written by `up`, read by `status`)."""
 ORDER = ("router", "compiler", "env", "learner", "auditor")
 
 
@@ -37,8 +44,10 @@ class StackConfig:
 
     root: Path = STACK_DIR
     """Pid files, logs and the generated token."""
+    host: str = "127.0.0.1"
+    """Interface every service binds (router, control plane, dashboard, /metrics); 0.0.0.0 for all."""
     router_port: int = 7447
-    """Zenoh router port on 127.0.0.1."""
+    """Zenoh router port."""
     api_port: int = 8000
     """Learner control plane port."""
     auditor_port: int = 8080
@@ -49,12 +58,18 @@ class StackConfig:
     """Env /metrics port."""
     corpus: Path = Path("artifacts/corpus/default")
     """Corpus of the learner and the env (the procedural default corpus is built when missing)."""
+    corpus_scenes: int = 16
+    """Scenes of the default corpus when it is built."""
+    corpus_resolution: int = 512
+    """Resolution of the default corpus when it is built."""
+    compiler_workers: int = 1
+    """Compile worker threads (each takes one job at a time)."""
     actors: int = 4
     """Learner actors."""
     env_actors: int = 2
     """Env-service actors (for an external brain)."""
     device: str = "auto"
-    """Torch device of the learner and the env."""
+    """Torch device of the learner, the env and the compiler (auto: the GPU engine on a CUDA host)."""
     total_steps: int = 10_000_000
     """Learner training budget."""
     auditor: bool = True
@@ -90,8 +105,22 @@ def service_specs(cfg: StackConfig, with_auditor: bool) -> list[ServiceSpec]:
     """The processes of the stack in start order: the same `navi serve` commands compose runs."""
     navi = (*cfg.navi, "serve")
     specs = [
-        ServiceSpec("router", (*navi, "router", "--listen", f"tcp/127.0.0.1:{cfg.router_port}")),
-        ServiceSpec("compiler", (*navi, "compiler", "--metrics-port", str(cfg.compiler_metrics_port))),
+        ServiceSpec("router", (*navi, "router", "--listen", f"tcp/{cfg.host}:{cfg.router_port}")),
+        ServiceSpec(
+            "compiler",
+            (
+                *navi,
+                "compiler",
+                "--workers",
+                str(cfg.compiler_workers),
+                "--device",
+                cfg.device,
+                "--metrics-port",
+                str(cfg.compiler_metrics_port),
+                "--metrics-host",
+                cfg.host,
+            ),
+        ),
         ServiceSpec(
             "env",
             (
@@ -105,6 +134,8 @@ def service_specs(cfg: StackConfig, with_auditor: bool) -> list[ServiceSpec]:
                 cfg.device,
                 "--metrics-port",
                 str(cfg.env_metrics_port),
+                "--metrics-host",
+                cfg.host,
             ),
         ),
         ServiceSpec(
@@ -116,20 +147,44 @@ def service_specs(cfg: StackConfig, with_auditor: bool) -> list[ServiceSpec]:
                 "train",
                 "--corpus",
                 str(cfg.corpus),
+                "--corpus-scenes",
+                str(cfg.corpus_scenes),
+                "--corpus-resolution",
+                str(cfg.corpus_resolution),
                 "--actors",
                 str(cfg.actors),
                 "--device",
                 cfg.device,
                 "--total-steps",
                 str(cfg.total_steps),
+                "--host",
+                cfg.host,
                 "--port",
                 str(cfg.api_port),
             ),
         ),
     ]
     if with_auditor:
-        specs.append(ServiceSpec("auditor", (*navi, "auditor", "--port", str(cfg.auditor_port))))
+        specs.append(
+            ServiceSpec("auditor", (*navi, "auditor", "--host", cfg.host, "--port", str(cfg.auditor_port)))
+        )
     return specs
+
+
+def probe_host(host: str) -> str:
+    """Where to reach a service bound to `host` from this machine."""
+    return "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+
+
+def health_urls(cfg: StackConfig) -> dict[str, str]:
+    """The HTTP health check of each service that has one (the router's is a Zenoh session)."""
+    h = probe_host(cfg.host)
+    return {
+        "compiler": f"http://{h}:{cfg.compiler_metrics_port}/metrics",
+        "env": f"http://{h}:{cfg.env_metrics_port}/metrics",
+        "learner": f"http://{h}:{cfg.api_port}/healthz",
+        "auditor": f"http://{h}:{cfg.auditor_port}/healthz",
+    }
 
 
 def pid_file(root: Path, name: str) -> Path:
@@ -231,16 +286,6 @@ def has_auditor() -> bool:
     )
 
 
-def ensure_corpus(corpus: Path, progress: Callable[[str], None]) -> None:
-    """Build the procedural default corpus into `corpus` once (before env and learner start)."""
-    if (corpus / "manifest.json").is_file():
-        return
-    from navi_env.corpus import build_default_corpus
-
-    progress(f"building the procedural default corpus into {corpus} (once)")
-    build_default_corpus(corpus, progress=lambda line: progress(f"  {line}"))
-
-
 def wait_for_tokens(router_port: int, names: list[str], wait_s: float) -> list[str]:
     """Wait until every named service holds a liveliness token; returns the names still missing."""
     from navi_mesh.liveliness import live_tokens
@@ -266,27 +311,106 @@ def wait_for_tokens(router_port: int, names: list[str], wait_s: float) -> list[s
         sess.close()
 
 
+def http_ok(url: str, timeout_s: float = 1.0) -> bool:
+    """GET url answers 200."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(url, timeout=timeout_s) as r:
+            return int(r.status) == 200
+    except (urllib.error.URLError, OSError, ValueError):
+        return False
+
+
+def router_ok(host: str, port: int, timeout_s: float = 1.0) -> bool:
+    """A Zenoh client session to the router opens within timeout_s."""
+    from navi_mesh.session import MeshError, SessionConfig, open_new_session
+
+    try:
+        sess = open_new_session(SessionConfig(connect=(f"tcp/{host}:{port}",), connect_timeout_s=timeout_s))
+    except MeshError:
+        return False
+    sess.close()
+    return True
+
+
+def wait_for_health(cfg: StackConfig, names: list[str], t0: float, wait_s: float) -> dict[str, float | None]:
+    """Seconds from t0 (time.monotonic()) until each named service passed its health check; None for
+    those that did not within wait_s."""
+    urls = health_urls(cfg)
+    healthy: dict[str, float | None] = dict.fromkeys(names)
+    deadline = t0 + wait_s
+    while any(v is None for v in healthy.values()) and time.monotonic() < deadline:
+        for name in [n for n, v in healthy.items() if v is None]:
+            ok = router_ok(probe_host(cfg.host), cfg.router_port) if name == "router" else http_ok(urls[name])
+            if ok:
+                healthy[name] = time.monotonic() - t0
+        if any(v is None for v in healthy.values()):
+            time.sleep(0.2)
+    return healthy
+
+
+@dataclass(frozen=True)
+class StackStarted:
+    """What `up` started and how long each service took to pass its health check."""
+
+    states: list[ProcessState]
+    healthy_after_s: dict[str, float | None]
+    """Seconds from the start of `up` to each service's first good health check (None: not within the wait)."""
+
+
+def learner_health(root: Path, timeout_s: float = 1.0) -> dict[str, object] | None:
+    """The running stack's learner /healthz as JSON (phase, corpus progress), None when unreachable."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        saved = json.loads((root / CONFIG_FILE).read_text())
+        url = f"http://{probe_host(saved['host'])}:{int(saved['api_port'])}/healthz"
+        with urllib.request.urlopen(url, timeout=timeout_s) as r:
+            body: dict[str, object] = json.loads(r.read())
+            return body
+    except (OSError, ValueError, KeyError, urllib.error.URLError):
+        return None
+
+
 def up(
     cfg: StackConfig, wait_s: float, progress: Callable[[str], None], announce: Callable[[str], None]
-) -> list[ProcessState]:
-    """Start the stack: corpus first, a token when NAVI_API_TOKEN is unset (announced once), then the
-    services in order; waits up to wait_s for their liveliness tokens."""
+) -> StackStarted:
+    """Start the stack: a token when NAVI_API_TOKEN is unset (announced once), then every service at
+    once; waits up to wait_s for their health checks. A missing corpus is built in the background."""
+    t0 = time.monotonic()
     cfg.root.mkdir(parents=True, exist_ok=True)
     if any(s.running for s in read_states(cfg.root)):
         raise StackError(f"the stack is already running (see `navi stack status`; pid files in {cfg.root})")
-    ensure_corpus(cfg.corpus, progress)
     token, generated = api_token(cfg.root)
     if generated:
         announce(f"NAVI_API_TOKEN was unset; generated one for this stack (also in {cfg.root / TOKEN_FILE}):")
         announce(f"  {token}")
-    env = {**os.environ, "NAVI_API_TOKEN": token, "NAVI_ZENOH_CONNECT": f"tcp/127.0.0.1:{cfg.router_port}"}
+    env = {
+        **os.environ,
+        "NAVI_API_TOKEN": token,
+        "NAVI_ZENOH_CONNECT": f"tcp/{probe_host(cfg.host)}:{cfg.router_port}",
+    }
     specs = service_specs(cfg, cfg.auditor and has_auditor())
+    (cfg.root / CONFIG_FILE).write_text(
+        json.dumps({"host": cfg.host, "api_port": cfg.api_port, "router_port": cfg.router_port})
+    )
     states = []
     for spec in specs:
         state = start(spec, cfg.root, env)
         states.append(state)
         progress(f"started {state.name:<9} pid {state.pid}  log {state.log}")
-    missing = wait_for_tokens(cfg.router_port, [s.name for s in specs], wait_s)
-    if missing:
-        progress(f"warning: no liveliness token yet from {', '.join(missing)} (see their logs in {cfg.root})")
-    return states
+    healthy = wait_for_health(cfg, [s.name for s in specs], t0, wait_s)
+    for name, after in healthy.items():
+        if after is None:
+            progress(f"warning: {name} did not pass its health check within {wait_s:g} s (see {cfg.root})")
+        else:
+            progress(f"{name:<9} healthy after {after:.1f} s")
+    if not (cfg.corpus / "manifest.json").is_file():
+        progress(
+            f"the corpus {cfg.corpus} is being built in the background over compile jobs; training starts "
+            f"when it is ready (progress: `navi stack status`, GET /healthz on port {cfg.api_port})"
+        )
+    return StackStarted(states, healthy)

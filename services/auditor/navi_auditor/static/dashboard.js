@@ -2,9 +2,20 @@
 "use strict";
 
 const $ = (id) => document.getElementById(id);
+const CHARTS = ["reward", "sps", "episode_return", "collisions", "coverage", "entropy", "value_loss"];
 
 function fmt(value, digits) {
   return value === null || value === undefined ? "–" : Number(value).toFixed(digits);
+}
+
+// The newest point of a chart (the series with the largest step), as text with 4 significant digits.
+function latest(series) {
+  let best = null;
+  for (const points of Object.values(series || {})) {
+    const last = points[points.length - 1];
+    if (last && (best === null || last[0] >= best[0])) best = last;
+  }
+  return best === null ? "–" : String(Number(best[1].toPrecision(4)));
 }
 
 function render(msg) {
@@ -15,12 +26,27 @@ function render(msg) {
   $("sps").textContent = "SPS=" + fmt(msg.sps, 0);
   $("obs").textContent = "Obs=" + fmt(msg.obs_age_ms, 0) + " ms";
   $("step").textContent = "Step=" + msg.step;
-  $("run").textContent = msg.run_id ? "run " + msg.run_id : "";
+  $("run").textContent = "Run=" + (msg.run_id || "–");
+  const corpus = $("corpus");
+  if (msg.corpus) {
+    corpus.textContent = "Corpus=" + msg.corpus.ready + "/" + msg.corpus.planned + (msg.corpus.done ? " ready" : " building");
+    corpus.className = "";
+  } else {
+    corpus.className = "hidden";
+  }
   $("rejected").textContent = "Rejected=" + msg.rejected;
   $("waiting").className = msg.mode === "WAITING" ? "overlay" : "overlay hidden";
   if (msg.frame && String(msg.frame.seq) !== $("heatmap").dataset.seq) naviDrawFrame($("heatmap"), msg.frame);
-  naviDrawChart($("reward-chart"), msg.reward);
-  naviDrawChart($("sps-chart"), msg.sps_history);
+  for (const chart of CHARTS) {
+    const series = (msg.charts || {})[chart];
+    naviDrawChart($("chart-" + chart), series);
+    $("last-" + chart).textContent = latest(series);
+  }
+  naviDrawTrail($("trail"), msg.plan, msg.trail, msg.pose);
+  $("pose").textContent = msg.pose
+    ? "Pose=" + fmt(msg.pose.x, 2) + "," + fmt(msg.pose.y, 2) + "," + fmt(msg.pose.z, 2)
+    : "Pose=–";
+  $("plan").textContent = msg.plan ? "Plan=" + msg.plan.scene + " @ z " + fmt(msg.plan.z, 2) + " m" : "Plan=–";
 }
 
 naviConnect("/ws", render, (up) => {

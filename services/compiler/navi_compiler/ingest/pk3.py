@@ -1,4 +1,8 @@
-"""Quake 3 .pk3 archives (zip files): list the maps they hold and read one BSP out of them."""
+"""Quake 3 .pk3 archives (zip files): list the maps they hold and read one BSP out of them.
+
+A member is read only when the size its header declares is within the source size cap, and then with a
+bounded read (navi_compiler.ingest.limits): a small archive of a huge member fails before it is inflated.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +12,7 @@ import zlib
 from pathlib import Path
 
 from navi_compiler.ingest.errors import IngestError
+from navi_compiler.ingest.limits import MAX_SOURCE_BYTES, checked_limit, read_stream_capped, too_large
 
 
 def _open(path: str | os.PathLike[str]) -> zipfile.ZipFile:
@@ -42,8 +47,13 @@ def _normalise(map_name: str) -> str:
     return name.removesuffix(".bsp")
 
 
-def read_pk3_map(path: str | os.PathLike[str], map_name: str | None) -> tuple[str, bytes]:
-    """(map name, BSP bytes) of one map; with no name the archive must hold exactly one map."""
+def read_pk3_map(
+    path: str | os.PathLike[str], map_name: str | None, max_bytes: int = MAX_SOURCE_BYTES
+) -> tuple[str, bytes]:
+    """(map name, BSP bytes) of one map; with no name the archive must hold exactly one map.
+
+    SourceTooLargeError when the member is larger than max_bytes (checked before it is read)."""
+    checked_limit(max_bytes)
     with _open(path) as archive:
         members = _map_members(archive)
         if not members:
@@ -60,7 +70,12 @@ def read_pk3_map(path: str | os.PathLike[str], map_name: str | None) -> tuple[st
                 raise IngestError(
                     f"map {map_name!r} is not in {path}; it holds: {', '.join(sorted(members))}"
                 )
+        member = members[key]
+        declared = archive.getinfo(member).file_size
+        if declared > max_bytes:
+            raise too_large(f"{path}:{member}", declared, max_bytes)
         try:
-            return Path(members[key]).stem, archive.read(members[key])
+            with archive.open(member) as stream:
+                return Path(member).stem, read_stream_capped(stream, f"{path}:{member}", max_bytes)
         except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as err:
-            raise IngestError(f"cannot read {members[key]} from {path}: {err}") from err
+            raise IngestError(f"cannot read {member} from {path}: {err}") from err
