@@ -47,7 +47,7 @@ class EnvServiceConfig:
     """Upper bound on the rate of actor 0's published observation."""
     metrics_port: int = 9100
     """Port of GET /metrics (Prometheus)."""
-    metrics_host: str = "0.0.0.0"
+    metrics_host: str = "127.0.0.1"
     """Interface of the metrics endpoint."""
     env: EnvConfig = field(default_factory=EnvConfig)
     """Observation, physics and reward settings."""

@@ -151,7 +151,16 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> Che
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
-    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError, struct.error) as err:
+    except (
+        RuntimeError,
+        EOFError,
+        OSError,
+        ValueError,
+        IndexError,
+        KeyError,
+        pickle.UnpicklingError,
+        struct.error,
+    ) as err:  # torch's unpickler raises any of these on a file that is not a checkpoint
         raise CheckpointError(f"{path} is not a loadable checkpoint: {err}") from err
     if not isinstance(payload, dict) or "format_version" not in payload:
         raise CheckpointError(
@@ -179,9 +188,10 @@ def checkpoint_name(step_id: int) -> str:
 
 
 def prune_checkpoints(folder: Path, keep: int) -> list[Path]:
-    """Delete all but the newest `keep` ckpt_step_*.pt in folder (by step); returns the deleted paths."""
+    """Delete all but the newest `keep` ckpt_step_*.pt in folder (by step), and temp files that a killed
+    save left behind (.ckpt_step_*.tmp; the folder has one writer); returns the deleted paths."""
     found = sorted(folder.glob("ckpt_step_*.pt"))
-    doomed = found[: max(0, len(found) - keep)]
+    doomed = found[: max(0, len(found) - keep)] + sorted(folder.glob(".ckpt_step_*.tmp"))
     for p in doomed:
         p.unlink(missing_ok=True)
     return doomed
