@@ -20,7 +20,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -274,6 +274,41 @@ def build_corpus(
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return manifest
+
+
+def merge_corpora(parts: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str]) -> CorpusManifest:
+    """One corpus folder `out` holding every scene of the corpus folders `parts` (copied, in order;
+    a repeated name gets a suffix), transactionally like build_corpus. The resolution recorded is the
+    first part's; scenes keep their own."""
+    if not parts:
+        raise CorpusError("no corpus to merge")
+    target = Path(out)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{target.name}.merge-", dir=target.parent))
+    try:
+        scenes: list[SceneEntry] = []
+        rejected: list[dict[str, str]] = []
+        taken: set[str] = set()
+        resolution = 0
+        for part in parts:
+            manifest = read_manifest(part)
+            resolution = resolution or manifest.resolution
+            rejected += manifest.rejected
+            for scene in manifest.scenes:
+                name = _scene_name(scene.name, taken)
+                shutil.copyfile(Path(part) / scene.file, work / f"{name}.gmdag")
+                scenes.append(replace(scene, name=name, file=f"{name}.gmdag"))
+        merged = CorpusManifest(
+            created_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            resolution=resolution,
+            scenes=tuple(scenes),
+            rejected=tuple(rejected),
+        )
+        _write_manifest(work, merged)
+        replace_directory(work, target)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return merged
 
 
 def build_default_corpus(

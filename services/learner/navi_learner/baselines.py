@@ -65,10 +65,12 @@ class ReactiveConfig:
     """Free distances beyond this count as equally open (m)."""
     ahead_preference: float = 3.0
     """Meters of free distance a heading straight ahead is worth over one straight behind."""
-    stop_distance: float = 1.2
-    """Forward speed is zero when the free distance ahead is this or less (m)."""
-    brake_distance: float = 4.0
-    """Forward speed ramps from zero at stop_distance to full at stop_distance + brake_distance (m)."""
+    stop_distance: float = 0.8
+    """Forward speed is zero when the free distance ahead is this or less (m): the drone radius (0.3 m)
+    plus one step of full-speed flight (0.5 m)."""
+    brake_distance: float = 3.0
+    """Forward speed ramps from zero at stop_distance to full at stop_distance + brake_distance (m): the
+    env's speed limiter distance."""
     side_distance: float = 2.5
     """Surfaces closer than this to the side or above/below push the drone away (m)."""
     turn_angle: float = 60.0

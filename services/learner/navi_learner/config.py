@@ -105,6 +105,8 @@ class TrainConfig:
     """T steps per actor per update; 0 picks 512, capped so the rollout fits `rollout_memory_gb`."""
     total_steps: int = 100_000
     """Budget in env steps (actor-steps); the run ends with a final checkpoint."""
+    time_limit_s: float = 0.0
+    """Budget in seconds of training (a monitor's evaluations excluded); 0: no limit."""
     checkpoint_every: int = 25_000
     """Env steps between periodic checkpoints."""
     keep_checkpoints: int = 5

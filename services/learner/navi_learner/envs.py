@@ -34,10 +34,15 @@ def corpus_summary(corpus: Path | None, kind: EnvKind) -> dict[str, Any]:
 
 
 def make_env(
-    corpus: Path | None, n_actors: int, device: str, seed: int, kind: EnvKind = "sdfdag"
+    corpus: Path | None,
+    n_actors: int,
+    device: str,
+    seed: int,
+    kind: EnvKind = "sdfdag",
+    episode_steps: int = 0,
 ) -> BatchedEnv:
     """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
-    qualified positions)."""
+    qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation)."""
     if kind == "toy":
         return ToyEnv(n_actors, device, seed=seed)
     if corpus is None:
@@ -45,6 +50,7 @@ def make_env(
     if not corpus.is_dir():
         raise EnvUnavailable(f"corpus folder {corpus} does not exist (build one with `navi corpus build`)")
     try:
+        from navi_env.config import EnvConfig
         from navi_env.corpus import CorpusError, load_corpus
         from navi_env.env import SdfDagEnv
     except ImportError as err:
@@ -53,5 +59,8 @@ def make_env(
         scenes, manifest = load_corpus(corpus, torch.device(device))
     except CorpusError as err:
         raise EnvUnavailable(str(err)) from err
-    env: BatchedEnv = SdfDagEnv(scenes, n_actors, torch.device(device), None, manifest.spawn_tensors(), seed)
+    config = EnvConfig(max_steps_per_episode=episode_steps) if episode_steps > 0 else EnvConfig()
+    env: BatchedEnv = SdfDagEnv(
+        scenes, n_actors, torch.device(device), config, manifest.spawn_tensors(), seed
+    )
     return env

@@ -86,18 +86,32 @@ class RunFiles:
 
 
 class Progress:
-    """A one-line progress bar with SPS on stderr, shown only on a terminal."""
+    """A one-line progress bar on stderr (steps, SPS, ETA, extra text), shown only on a terminal unless
+    `enabled` says otherwise. With a time limit the bar and the ETA follow whichever budget ends first."""
 
-    def __init__(self, total: int, enabled: bool | None = None) -> None:
+    def __init__(self, total: int, enabled: bool | None = None, time_limit_s: float = 0.0) -> None:
         self.total = total
+        self.time_limit_s = time_limit_s
         self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        self.start_step: int | None = None
 
-    def update(self, step: int, sps: float, extra: str = "") -> None:
+    def eta_s(self, step: int, sps: float, elapsed_s: float) -> float:
+        """Seconds left: the step budget at the current SPS, or the time limit, whichever ends first."""
+        left = (self.total - step) / sps if sps > 0 else float("inf")
+        if self.time_limit_s > 0:
+            left = min(left, self.time_limit_s - elapsed_s)
+        return max(left, 0.0)
+
+    def update(self, step: int, sps: float, elapsed_s: float = 0.0, extra: str = "") -> None:
         if not self.enabled:
             return
         frac = min(1.0, step / max(self.total, 1))
+        if self.time_limit_s > 0:
+            frac = max(frac, min(1.0, elapsed_s / self.time_limit_s))
         bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
-        sys.stderr.write(f"\r[{bar}] {step:,}/{self.total:,} steps  {sps:,.0f} SPS  {extra}   ")
+        eta = self.eta_s(step, sps, elapsed_s)
+        clock = f"{int(eta) // 60}:{int(eta) % 60:02d}" if eta < 1e7 else "--"
+        sys.stderr.write(f"\r[{bar}] {step:,} steps  {sps:,.0f} SPS  ETA {clock}  {extra}   ")
         sys.stderr.flush()
 
     def close(self) -> None:

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 
@@ -36,6 +36,17 @@ from navi_learner.stats import EpisodeStats
 from navi_learner.temporal import CoreState
 
 STAGES = ("env", "forward", "learn")
+
+
+class Monitor(Protocol):
+    """Called after every PPO update with the live policy; returns True to end training there.
+
+    `status` is a short line for the progress bar. The loop does not count the time a call takes as
+    training time (train_s excludes it, and SPS windows skip it)."""
+
+    status: str
+
+    def __call__(self, policy: CognitiveMambaPolicy, step_id: int, train_s: float) -> bool: ...
 
 
 class StageTimers:
@@ -208,8 +219,10 @@ def train(
     corpus_summary: dict[str, Any] | None = None,
     run_id: str | None = None,
     progress: bool | None = None,
+    monitor: Monitor | None = None,
 ) -> TrainResult:
-    """Train until cfg.total_steps (final checkpoint) or Ctrl+C (checkpoint first, then return)."""
+    """Train until cfg.total_steps, cfg.time_limit_s of training time, the monitor says stop (final
+    checkpoint each time), or Ctrl+C (checkpoint first, then return)."""
     device = env.device
     cfg = resolve(replace(cfg, n_actors=cfg.n_actors or env.n_actors, device=str(device)), env.obs_shape)
     if cfg.n_actors != env.n_actors:
@@ -245,6 +258,12 @@ def train(
         },
     )
     run.logger.info(f"start: {cfg.n_actors} actors, T={cfg.rollout_length}, core={cfg.engine.temporal_core}")
+    shaping_gamma = getattr(getattr(getattr(env, "config", None), "reward", None), "shaping_gamma", None)
+    if shaping_gamma is not None and abs(shaping_gamma - cfg.ppo.gamma) > 1e-9:
+        run.logger.warning(
+            f"the env's shaping_gamma {shaping_gamma} differs from PPO's gamma {cfg.ppo.gamma}: "
+            "potential-based shaping is then no longer policy-invariant"
+        )
     buf = RolloutStorage(
         cfg.rollout_length,
         cfg.n_actors,
@@ -265,8 +284,9 @@ def train(
     first_obs = env.reset(seed=cfg.seed)  # (N, 3, Az, El)
     starts = torch.ones(cfg.n_actors, dtype=torch.bool, device=device)  # (N,) every actor starts an episode
     carry = (first_obs, starts, policy.initial_state(cfg.n_actors, device))
-    bar = Progress(cfg.total_steps, progress)
+    bar = Progress(cfg.total_steps, progress, cfg.time_limit_s)
     start_step, t_start, t_window, steps_window = st.step_id, time.perf_counter(), time.perf_counter(), 0
+    paused = 0.0  # seconds spent in the monitor, not training
     next_ckpt = (st.step_id // cfg.checkpoint_every + 1) * cfg.checkpoint_every
     row: dict[str, float] = {}
     updates = 0
@@ -299,9 +319,12 @@ def train(
         run.logger.info(f"checkpoint {path}")
         return path
 
-    interrupted = False
+    def train_seconds() -> float:
+        return time.perf_counter() - t_start - paused
+
+    interrupted, stopped = False, False
     try:
-        while st.step_id < cfg.total_steps:
+        while st.step_id < cfg.total_steps and not stopped:
             policy.eval()
             carry, ext_mean = collect(policy, env, buf, memory, stats, cfg, carry, timers)
             with timers("learn"):
@@ -315,12 +338,21 @@ def train(
             st.step_id += buf.t_len * buf.n
             steps_window += buf.t_len * buf.n
             updates += 1
-            if updates % cfg.log_every == 0 or st.step_id >= cfg.total_steps:
+            if monitor is not None:
+                t_call = time.perf_counter()
+                stopped = monitor(policy, st.step_id, train_seconds())
+                spent = time.perf_counter() - t_call
+                paused += spent
+                t_window += spent
+            if cfg.time_limit_s > 0 and train_seconds() >= cfg.time_limit_s:
+                stopped = True
+            if updates % cfg.log_every == 0 or st.step_id >= cfg.total_steps or stopped:
                 now = time.perf_counter()
                 sps = steps_window / (now - t_window)
                 sync_state()
                 row = {
                     "step": float(st.step_id),
+                    "train_s": train_seconds(),
                     "sps": sps,
                     "reward_ema": st.reward_ema,
                     "episode_count": float(st.episode_count),
@@ -330,9 +362,12 @@ def train(
                     **timers.read(steps_window // buf.n),
                 }
                 run.log_metrics(row)
-                bar.update(st.step_id, sps, f"reward_ema {st.reward_ema:+.3f}")
+                status = monitor.status if monitor is not None else ""
+                bar.update(
+                    st.step_id, sps, train_seconds(), f"reward_ema {st.reward_ema:+.3f} {status}".rstrip()
+                )
                 t_window, steps_window = now, 0
-            if st.step_id >= next_ckpt and st.step_id < cfg.total_steps:
+            if st.step_id >= next_ckpt and st.step_id < cfg.total_steps and not stopped:
                 latest = checkpoint()
                 next_ckpt += cfg.checkpoint_every
     except KeyboardInterrupt:
@@ -357,6 +392,8 @@ def train(
         "skipped updates": st.skipped_updates,
         "final checkpoint": latest,
         "interrupted": interrupted,
+        "stopped early": stopped and st.step_id < cfg.total_steps,
+        "training seconds": f"{train_seconds():.1f}",
         "promoted": promoted or "no",
         "temporal core": cfg.engine.temporal_core,
         "actors": cfg.n_actors,
