@@ -9,10 +9,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 what=${1:-tests}; corpus=${2:-artifacts/bench-corpus}
 out=${OUT:-artifacts/gpu-suite}; mkdir -p "$out"
-export PYTHONPATH=$PWD:$PWD/services/compiler:$PWD/services/env:$PWD/services/learner:$PWD/artifacts/pytest-vendor:${PYTHONPATH:-}
-export PYTHONUNBUFFERED=1
-for pkg in compiler env; do (cd services/$pkg && python setup.py -q build_ext --inplace >/dev/null); done
-navi() { python -c "from navi_compiler.cli import register as rc; from navi_env.cli import register as re; from navi_learner.cli import register as rl; import typer; app=typer.Typer(); bench=typer.Typer(); [r(app, bench) for r in (rc, re, rl)]; app.add_typer(bench, name='bench'); app()" "$@"; }
+source tests/gpu_env.sh
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 if [ "$what" = tests ] || [ "$what" = all ]; then
   python -m pytest -q -p no:cacheprovider -m gpu tests/env/test_env_gpu.py tests/env/test_env_trace_parity.py \

@@ -17,7 +17,7 @@ import torch
 
 from navi_auditor.bc import BCConfig, action_error, run_bc, train_bc
 from navi_auditor.demos import DemoBuffer, load_demos
-from navi_learner.baselines import RandomPolicy, ReactivePolicy
+from navi_learner.baselines import RandomPolicy, reactive_for_env
 from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.evaluate import CheckpointPolicy, evaluate
@@ -41,7 +41,8 @@ pytestmark = pytest.mark.usefixtures("single_thread")
 
 def reactive_flights(folder: Path, actors: int, steps: int, seed: int) -> None:
     """Fly the reactive controller in the toy env and save one demonstration per actor."""
-    env, pilot = ToyEnv(actors, seed=seed, max_steps=64), ReactivePolicy()
+    env = ToyEnv(actors, seed=seed, max_steps=64)
+    pilot = reactive_for_env(env)
     obs = env.reset(seed=seed)  # (N, 3, Az, El)
     resets = torch.ones(actors, dtype=torch.bool)  # (N,)
     buffers = [DemoBuffer(scene=f"toy-{seed}") for _ in range(actors)]

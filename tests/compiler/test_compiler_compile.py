@@ -148,7 +148,7 @@ def test_inside_seeds_and_leaks_set_flags_and_never_invert(caplog: pytest.LogCap
 def test_accuracy_against_an_exact_box() -> None:
     centre, half = np.array([0.1, -0.2, 0.05]), np.array([0.9, 0.6, 0.45])
     scene = _mesh_scene([_box(tuple(2 * half), tuple(centre))], [1])
-    g, _ = compile_scene(scene, resolution=64)
+    g, _ = compile_scene(scene, resolution=64, min_band_m=0.0)  # the 4-voxel band's quantisation
     dense = dense_lattice(g).astype(np.float64)  # (65, 65, 65) voxels
     exact = _box_sdf(_lattice_points(g), centre, half) / g.voxel_size  # (65, 65, 65) voxels, signed
     band = np.abs(exact) <= 4.0
@@ -196,7 +196,8 @@ def test_thin_walls_always_show_a_sign_change(thickness: float) -> None:
 def test_brick_classes_follow_the_nearest_surface() -> None:
     a = _box((0.6, 0.6, 0.6), (-0.8, 0.0, 0.0))
     b = _box((0.6, 0.6, 0.6), (0.8, 0.0, 0.0))
-    g, _ = compile_scene(_mesh_scene([a, b], [1, 2]), resolution=64)
+    # the 4-voxel band: every brick is then within the 12-voxel class reach of a surface
+    g, _ = compile_scene(_mesh_scene([a, b], [1, 2]), resolution=64, min_band_m=0.0)
     words, _, corner = leaf_cubes(g)
     is_brick = (words >> 30) == 1
     centre_x = (corner[is_brick, 0] + 4) * g.voxel_size + g.origin[0]

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from navi_learner.baselines import RandomPolicy, ReactivePolicy
+from navi_learner.baselines import RandomPolicy, reactive_for_env
 from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.evaluate import CheckpointPolicy, evaluate
@@ -121,7 +121,7 @@ def test_run_folder_and_resume_continue_counters_and_optimizer(tmp_path: Path) -
 
 def test_baselines_on_the_toy_env() -> None:
     """The reactive baseline steers toward the open direction, so it clearly beats random."""
-    reactive = evaluate(ToyEnv(16, seed=3), ReactivePolicy(), 200, seed=3)
+    reactive = evaluate(ToyEnv(16, seed=3), reactive_for_env(ToyEnv(16)), 200, seed=3)
     rand = evaluate(ToyEnv(16, seed=3), RandomPolicy(3), 200, seed=3)
     assert reactive.reward_per_step > rand.reward_per_step + 0.3
     assert reactive.coverage_per_1k > 0 and reactive.distance_per_1k > rand.distance_per_1k

@@ -219,6 +219,15 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         timeout: Annotated[
             float, typer.Option(help="With --remote: seconds to wait for the worker's answer.", min=1.0)
         ] = 3600.0,
+        band_m: Annotated[
+            float,
+            typer.Option(
+                "--band-m",
+                min=0.0,
+                help="Meters from every surface within which the field is exact (the band widens to fit; "
+                "0: the 4-voxel band alone). Navi's drones need 0.5.",
+            ),
+        ] = 0.5,
         max_source_mb: Annotated[
             float | None,
             typer.Option(
@@ -245,6 +254,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             g, stats = compile_scene(
                 scene,
                 resolution=resolution,
+                min_band_m=band_m,
                 engine=engine.value,
                 threads=threads,
                 progress=_progress(show),

@@ -8,6 +8,7 @@ produce byte-identical files for the same scene and options. `engine="torch"` ru
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -96,12 +97,26 @@ def _compile_torch(inp: SdfInput, device: str) -> tuple[SdfResult, DagArrays]:
     return sdf, out.arrays
 
 
+EXACT_DISTANCE_M = 0.5
+"""Meters from every surface within which a compiled field is exact by default: the drone physics must
+tell a 0.3 m contact apart and certify a full-speed 0.5 m step (navi_env.physics), which a far cube's
+bound can do only if it is at least 0.4 m."""
+
+
+def band_for(band: float, min_band_m: float, voxel_size: float) -> float:
+    """The band (voxels) that keeps the field exact min_band_m meters out: at least `band`, widened in
+    steps of 1/8 voxel until (band - sqrt(3)/2) * voxel_size >= min_band_m."""
+    need = min_band_m / voxel_size + math.sqrt(3.0) / 2.0
+    return max(band, math.ceil(need * 8.0) / 8.0) if min_band_m > 0 else band
+
+
 def compile_scene(
     scene: Scene,
     *,
     resolution: int = 512,
     padding: int = 2,
     band: float = 4.0,
+    min_band_m: float = EXACT_DISTANCE_M,
     seeds: Sequence[Sequence[float]] = (),
     engine: Engine = "cpp",
     threads: int = 0,
@@ -112,6 +127,9 @@ def compile_scene(
 
     resolution: cells per cube edge, rounded up to a power of two. padding: free cells kept on each
     side of the scene's longest axis. band: voxels of quantised distance kept around the surface.
+    min_band_m: the band is widened (in steps of 1/8 voxel) so that the field is exact at least this
+    many meters from every surface, i.e. (band - sqrt(3)/2) * voxel >= min_band_m: a far cube then
+    certifies at least min_band_m of clearance (navi_env needs the drone radius plus half a step).
     seeds: extra known-free points (meters) added to scene.seeds. engine: "cpp", "ref" or "torch".
     threads: C++ worker threads (0: all cores; the output does not depend on it).
     progress: called with (stage, fraction done). device: torch device of engine="torch".
@@ -120,6 +138,7 @@ def compile_scene(
     t0 = time.perf_counter()
     lo, hi = scene.bounds
     placement = place(lo, hi, resolution, padding)
+    band = band_for(band, min_band_m, placement.voxel_size)
     all_seeds = np.concatenate([scene.seeds, np.asarray(seeds, np.float64).reshape(-1, 3)])  # (S, 3) meters
     inp = SdfInput(
         resolution=placement.resolution,

@@ -16,6 +16,7 @@ All state lives in buffers allocated once on the device and written in place. Th
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -121,6 +122,14 @@ class SdfDagEnv:
         self._graph: torch.cuda.CUDAGraph | None = None
         self._eager_steps = 0
         n_scenes = len(corpus)
+        for info in corpus.infos:
+            certified = (info.band - math.sqrt(3.0) / 2.0) * info.voxel_size  # a far cube's least bound, m
+            if certified < cfg.drone_radius:
+                raise ValueError(
+                    f"scene {info.name!r} is exact only {certified:.3f} m from its surfaces (band {info.band} "
+                    f"voxels of {info.voxel_size:.3f} m), less than the drone radius {cfg.drone_radius} m: far "
+                    "from walls the drone would read contact. Recompile it with `navi compile --band-m 0.5`."
+                )
         spawn_lists = (
             list(spawns) if spawns is not None else [scene_spawns(corpus, s) for s in range(n_scenes)]
         )

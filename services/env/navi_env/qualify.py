@@ -1,8 +1,9 @@
 """Spawn qualification: probe a grid of candidate positions and keep those with a useful view.
 
 A scene's candidates are a 5 x 7 x 5 grid (x, y, z) over its geometry bounds, cell-centred, plus the
-spawn points stored in the .gmdag. A candidate is *free* when its clearance is at least
-`min_clearance`. Each free candidate casts a 48 x 12 full-sphere pattern; its profile is the fraction
+spawn points stored in the .gmdag. Each candidate casts a 48 x 12 full-sphere pattern; it is *free*
+when it lies on the free side of the field and its clearance (the shortest of those rays, as the env
+measures clearance) is at least `min_clearance`. A candidate's profile is the fraction
 of rays that miss (starvation) and the fraction closer than `near_distance`. A candidate is *viable*
 when it is free, its starvation is below `max_starvation` and its near fraction below `max_near`;
 viable candidates are ranked by score = (1 - starvation) * (1 - near) * min(clearance / 2 m, 1).
@@ -102,8 +103,7 @@ def qualify_scene(corpus: SceneCorpus, scene: int, config: QualifyConfig | None 
     points = torch.cat([grid, torch.from_numpy(info.spawns).reshape(-1, 3)]).to(dev).contiguous()  # (C, 3)
     c = points.shape[0]
     ids = torch.full((c,), scene, dtype=torch.int64, device=dev)  # (C,)
-    clearance = sample_distance(corpus, ids, points)  # (C,)
-    free = clearance >= cfg.min_clearance  # (C,) bool
+    inside = sample_distance(corpus, ids, points) > 0.0  # (C,) bool: on the free side of the field
     dirs = ray_pattern(cfg.azimuth_bins, cfg.elevation_bins, SensorConfig(), dev)  # (R, 3)
     depth = torch.empty(c, dirs.shape[0], dtype=torch.float32, device=dev)  # (C, R)
     semantic = torch.empty(c, dirs.shape[0], dtype=torch.uint8, device=dev)  # (C, R) 0 = miss
@@ -119,6 +119,9 @@ def qualify_scene(corpus: SceneCorpus, scene: int, config: QualifyConfig | None 
         hit_epsilon=0.01,
     )
     starvation, near = observation_profile(depth, semantic > 0, cfg.near_distance)  # (C,), (C,)
+    # the clearance is the shortest ray, as in the env (a far cube's bound can be far below the truth)
+    clearance = torch.where(inside, depth.amin(dim=1), -1.0)  # (C,) meters
+    free = clearance >= cfg.min_clearance  # (C,) bool
     viable = free & (starvation < cfg.max_starvation) & (near < cfg.max_near)  # (C,) bool
     score = candidate_score(starvation, near, clearance)  # (C,)
     order = torch.argsort(torch.where(viable, score, -1.0), descending=True, stable=True)  # (C,)

@@ -61,7 +61,7 @@ class ReactiveConfig:
     """Rays within +-band of the horizontal plane decide where the drone can fly."""
     body_half_angle: float = 10.0
     """A heading is as free as the nearest surface within +-this azimuth of it (the drone's width)."""
-    open_cap: float = 15.0
+    open_cap: float = 30.0
     """Free distances beyond this count as equally open (m)."""
     ahead_preference: float = 3.0
     """Meters of free distance a heading straight ahead is worth over one straight behind."""
@@ -142,3 +142,15 @@ def reactive_for(horizon: float, elevation_min: float, elevation_max: float) -> 
     return ReactivePolicy(
         ReactiveConfig(horizon=horizon, elevation_min=elevation_min, elevation_max=elevation_max)
     )
+
+
+def reactive_for_env(env: object) -> ReactivePolicy:
+    """The reactive baseline tuned to an env: the drone env's horizon and ray pattern (`config`), a
+    toy env's `horizon`, or the defaults."""
+    cfg = getattr(env, "config", None)
+    if cfg is not None and hasattr(cfg, "sensor"):
+        return reactive_for(cfg.horizon, cfg.sensor.elevation_min_deg, cfg.sensor.elevation_max_deg)
+    horizon = getattr(env, "horizon", None)
+    if isinstance(horizon, (int, float)):
+        return reactive_for(float(horizon), -90.0, 90.0)
+    return ReactivePolicy()

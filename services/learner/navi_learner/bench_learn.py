@@ -122,8 +122,12 @@ def prepare_splits(
         )
     }
     notes = []
-    if pk3 is not None and pk3.is_file():
-        train_maps, held = split_openarena(openarena_maps(pk3))
+    built = all(
+        (root / f"openarena-{k}-{resolution}" / "manifest.json").is_file() for k in ("train", "unseen")
+    )
+    if built or (pk3 is not None and pk3.is_file()):
+        maps = openarena_maps(pk3) if pk3 is not None and pk3.is_file() else []
+        train_maps, held = split_openarena(maps)
         train_parts["openarena"] = part(
             "openarena-train",
             lambda f: build_corpus(

@@ -20,6 +20,7 @@ PANEL = "Learner"
 MODELS_DIR = Path("artifacts/models")
 RUNS_DIR = Path("artifacts/runs")
 DEFAULT_CORPUS = Path("artifacts/corpus/default")
+UNSEEN_CORPUS = Path("artifacts/corpus/unseen")
 
 EnvOpt = Annotated[str, typer.Option("--env", help="Environment: sdfdag (the drone env) or toy (tests).")]
 CorpusOpt = Annotated[Path | None, typer.Option("--corpus", help="Corpus folder of .gmdag scenes.")]
@@ -135,11 +136,11 @@ def print_metrics(rows: list[EvalMetrics], as_json: bool) -> None:
         typer.echo(comparison_table(rows))
 
 
-def eval_policy(spec: str, device: str, seed: int, deterministic: bool) -> EvalPolicy:
-    """'random', 'reactive', or a checkpoint path / registry version."""
+def eval_policy(spec: str, device: str, seed: int, deterministic: bool, env: object = None) -> EvalPolicy:
+    """'random', 'reactive' (tuned to env's horizon and ray pattern), or a checkpoint path / registry version."""
     import torch
 
-    from navi_learner.baselines import RandomPolicy, ReactivePolicy
+    from navi_learner.baselines import RandomPolicy, reactive_for_env
     from navi_learner.checkpoint import CheckpointError
     from navi_learner.evaluate import CheckpointPolicy
     from navi_learner.registry import ModelRegistry, RegistryError
@@ -147,7 +148,7 @@ def eval_policy(spec: str, device: str, seed: int, deterministic: bool) -> EvalP
     if spec == "random":
         return RandomPolicy(seed)
     if spec == "reactive":
-        return ReactivePolicy()
+        return reactive_for_env(env)
     path = Path(spec)
     if not path.is_file():
         try:
@@ -179,6 +180,9 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", help="PPO epochs per rollout.")] = 1,
         lr: Annotated[float, typer.Option("--lr", help="Learning rate.")] = 5e-4,
         total_steps: Annotated[int, typer.Option("--total-steps", help="Env-step budget.")] = 1_000_000,
+        time_limit: Annotated[
+            float, typer.Option("--time-limit-s", min=0.0, help="Training-seconds budget (0: none).")
+        ] = 0.0,
         checkpoint_every: Annotated[
             int, typer.Option("--checkpoint-every", help="Env steps between checkpoints.")
         ] = 25_000,
@@ -209,7 +213,9 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         cfg = train_config(
             actors, temporal_core, rollout_length, ppo_epochs, lr, total_steps, checkpoint_every, dev, seed
         )
-        resume, cfg = resume_choice(checkpoint, fresh, replace(cfg, compile=compile_encoder))
+        resume, cfg = resume_choice(
+            checkpoint, fresh, replace(cfg, compile=compile_encoder, time_limit_s=time_limit)
+        )
         n = cfg.n_actors or default_actors(torch.device(dev))
         environment = build_env(env, corpus, n, dev, seed)
         summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
@@ -257,10 +263,10 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         from navi_learner.evaluate import evaluate
 
         dev = pick_device(device)
-        policy = eval_policy(str(checkpoint), dev, seed, deterministic)
         if remote:
             from navi_learner.remote_env import RemoteEnv, RemoteEnvError
 
+            policy = eval_policy(str(checkpoint), dev, seed, deterministic)
             try:
                 metrics = evaluate(RemoteEnv(actors, dev), policy, total_steps, seed, progress=True)
             except RemoteEnvError as err:
@@ -268,6 +274,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             print_metrics([metrics], as_json)
             return
         environment = build_env(env, corpus, actors, dev, seed)
+        policy = eval_policy(str(checkpoint), dev, seed, deterministic, environment)
         print_metrics([evaluate(environment, policy, total_steps, seed, progress=True)], as_json)
 
     @app.command(name="evaluate", rich_help_panel=PANEL)
@@ -292,8 +299,8 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         if policy is not None:
             check_choice(policy, ("random", "reactive"), "--policy")
         dev = pick_device(device)
-        chosen = eval_policy(policy or str(checkpoint), dev, seed, True)
         environment = build_env(env, corpus, actors, dev, seed)
+        chosen = eval_policy(policy or str(checkpoint), dev, seed, True, environment)
         print_metrics([evaluate(environment, chosen, steps, seed, progress=True)], as_json)
 
     @app.command(rich_help_panel=PANEL)
@@ -315,10 +322,9 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         dev = pick_device(device)
         rows = []
         for spec in policies:
-            chosen = eval_policy(spec, dev, seed, True)
-            rows.append(
-                evaluate(build_env(env, corpus, actors, dev, seed), chosen, steps, seed, progress=True)
-            )
+            environment = build_env(env, corpus, actors, dev, seed)
+            chosen = eval_policy(spec, dev, seed, True, environment)
+            rows.append(evaluate(environment, chosen, steps, seed, progress=True))
         print_metrics(rows, as_json)
 
     @models.command(name="list")
@@ -393,23 +399,43 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     @app.command(name="run", rich_help_panel=PANEL)
     def run_cmd(
         corpus: Annotated[
-            Path, typer.Option("--corpus", help="Corpus folder (built when missing).")
+            Path, typer.Option("--corpus", help="Training corpus (procedural seed 0, built when missing).")
         ] = DEFAULT_CORPUS,
-        total_steps: Annotated[
-            int, typer.Option("--total-steps", help="Budget (0: 1,024 on CPU, 2M on CUDA).")
-        ] = 0,
-        eval_steps: Annotated[
-            int, typer.Option("--eval-steps", help="Batched steps per evaluated policy.")
-        ] = 300,
+        unseen: Annotated[
+            Path,
+            typer.Option(
+                "--unseen", help="Unseen corpus for evaluation (procedural seed 1000, built when missing)."
+            ),
+        ] = UNSEEN_CORPUS,
+        budget: Annotated[
+            float,
+            typer.Option(
+                "--budget-s", min=1.0, help="CUDA: training seconds at most (stops earlier at competence)."
+            ),
+        ] = 600.0,
+        eval_every: Annotated[
+            float,
+            typer.Option(
+                "--eval-every-s", min=1.0, help="CUDA: training seconds between unseen evaluations."
+            ),
+        ] = 30.0,
+        cpu_steps: Annotated[
+            int,
+            typer.Option(
+                "--cpu-steps", min=0, help="CPU: env steps of fine-tuning the reference checkpoint."
+            ),
+        ] = 2048,
         device: DeviceOpt = "auto",
         seed: SeedOpt = 0,
     ) -> None:
-        """The main job: build the default corpus, train a bounded budget, promote, evaluate vs baselines."""
-        from navi_learner.main_job import MainJobError, main_job
+        """The main job: build the corpora, train (CUDA: until competent on unseen scenes or the budget; CPU:
+        fine-tune the shipped reference checkpoint), promote, evaluate against random and reactive on unseen scenes."""
+        from navi_learner.main_job import MainJobConfig, MainJobError, main_job
 
         dev = pick_device(device)
+        job = MainJobConfig(corpus, unseen, MODELS_DIR, dev, seed, budget, eval_every, cpu_steps)
         try:
-            report = main_job(corpus, total_steps, eval_steps, dev, seed, MODELS_DIR)
+            report = main_job(job)
         except MainJobError as err:
             raise fail(str(err)) from err
         typer.echo(f"report: {report}")

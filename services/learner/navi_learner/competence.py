@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from navi_learner.baselines import RandomPolicy, ReactivePolicy, reactive_for
+from navi_learner.baselines import RandomPolicy, reactive_for_env
 from navi_learner.evaluate import EvalMetrics, ModulePolicy, competent, evaluate
 from navi_learner.policy import CognitiveMambaPolicy
 from navi_learner.protocol import BatchedEnv
@@ -39,14 +39,6 @@ class EvalProtocol:
     def for_device(cls, device: torch.device) -> EvalProtocol:
         """256 actors x 1,000 steps on a GPU; 8 actors x 400 steps (episodes of 200) on a CPU."""
         return cls() if device.type == "cuda" else cls(actors=8, steps=400, episode_steps=200)
-
-
-def reactive_for_env(env: BatchedEnv) -> ReactivePolicy:
-    """The reactive baseline tuned to an env's horizon and ray pattern (defaults for other envs)."""
-    cfg = getattr(env, "config", None)
-    if cfg is None or not hasattr(cfg, "sensor"):
-        return ReactivePolicy()
-    return reactive_for(cfg.horizon, cfg.sensor.elevation_min_deg, cfg.sensor.elevation_max_deg)
 
 
 def evaluate_baselines(env: BatchedEnv, protocol: EvalProtocol) -> dict[str, EvalMetrics]:

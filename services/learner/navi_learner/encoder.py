@@ -1,6 +1,9 @@
 """RayViTEncoder: DistanceMatrix (N, 3, Az, El) -> embedding (N, D).
 
-Non-overlapping patches (patch 8: 32×6 = 192 tokens at 256×48) are embedded linearly, a fixed
+Channel 0 (depth / horizon, linear) resolves the near field poorly (a wall at 0.5 m and one at 1 m
+differ by 0.005), so the encoder adds a log-depth channel, `near_field`, that spreads it out (1 at
+contact, 0.67 at 1% of the horizon, 0 at the horizon). Non-overlapping patches of the four channels
+(patch 8: 32×6 = 192 tokens at 256×48) are embedded linearly, a fixed
 spherical sin/cos positional encoding (computed once, a buffer, never trained) is added, a few lean
 pre-norm transformer blocks with fused attention (F.scaled_dot_product_attention) mix the tokens,
 and the mean token is projected to the embedding.
@@ -51,6 +54,15 @@ def patchify(obs: torch.Tensor, patch: int) -> torch.Tensor:
     return x.reshape(n, (az // patch) * (el // patch), c * patch * patch)  # (N, P, C·p·p)
 
 
+NEAR_FIELD_EPS = 1e-3
+"""Depth (as a fraction of the horizon) below which near_field saturates at 1."""
+
+
+def near_field(depth: torch.Tensor) -> torch.Tensor:
+    """log(depth + eps) / log(eps) of normalised depth (any shape) in [0, 1]: 1 at contact, 0 at the horizon."""
+    return torch.log(depth.clamp(0.0, 1.0) + NEAR_FIELD_EPS) * (1.0 / math.log(NEAR_FIELD_EPS))
+
+
 class Block(nn.Module):
     """Pre-norm transformer block: fused multi-head attention and a GELU MLP."""
 
@@ -85,7 +97,7 @@ class RayViTEncoder(nn.Module):
         if az % p or el % p:
             raise ValueError(f"observation {az}x{el} is not divisible by patch size {p}")
         self.patch = p
-        self.embed = nn.Linear(c * p * p, cfg.embed_dim)
+        self.embed = nn.Linear((c + 1) * p * p, cfg.embed_dim)  # the channels and near_field
         self.register_buffer(
             "pos", spherical_positions(az // p, el // p, cfg.embed_dim), persistent=False
         )  # (P, D) float32
@@ -101,7 +113,8 @@ class RayViTEncoder(nn.Module):
         return int(self.pos.shape[0])
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        x = self.embed(patchify(obs, self.patch).to(self.embed.weight.dtype)) + self.pos  # (N, P, D)
+        x = torch.cat([near_field(obs[:, :1].float()), obs.float()], dim=1)  # (N, 4, Az, El)
+        x = self.embed(patchify(x, self.patch).to(self.embed.weight.dtype)) + self.pos  # (N, P, D)
         for block in self.blocks:
             x = block(x)  # (N, P, D)
         return self.out(self.norm(x.mean(dim=1))).float()  # (N, D) float32

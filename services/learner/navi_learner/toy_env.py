@@ -25,6 +25,9 @@ SPEED = 1.0
 class ToyEnv:
     """BatchedEnv with obs (N, 3, Az, El); default Az×El = 16×8."""
 
+    horizon = 10.0
+    """Meters that depth 1.0 in channel 0 stands for (the reported clearance is 10 · depth ahead)."""
+
     def __init__(
         self,
         n_actors: int,
@@ -96,7 +99,7 @@ class ToyEnv:
         self.t = self.t + 1
         truncated = self.t >= self.max_steps  # (N,) bool
         info = {
-            "clearance": 10.0 * front,
+            "clearance": self.horizon * front,
             "collision": collision,
             "position": self.position.clone(),
             "starved": torch.zeros_like(truncated),  # (N,) bool

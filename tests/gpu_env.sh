@@ -1,0 +1,8 @@
+# Source this on a CUDA host without a package registry (our lent H100/H200 machines): builds Navi's
+# extensions in place, puts the packages on PYTHONPATH and defines a `navi` shell function.
+# Needs torch (CUDA), numpy, nvcc, pybind11, setuptools, typer; pytest may come from artifacts/pytest-vendor.
+root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+export PYTHONPATH=$root:$root/services/compiler:$root/services/env:$root/services/learner:$root/shared/contracts:$root/artifacts/pytest-vendor:${PYTHONPATH:-}
+export PYTHONUNBUFFERED=1
+for pkg in compiler env; do (cd "$root/services/$pkg" && python setup.py -q build_ext --inplace >/dev/null); done
+navi() { python "$root/tests/navi_device.py" "$@"; }
