@@ -4,5 +4,7 @@
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 export PYTHONPATH=$root:$root/services/compiler:$root/services/env:$root/services/learner:$root/shared/contracts:$root/artifacts/pytest-vendor:${PYTHONPATH:-}
 export PYTHONUNBUFFERED=1
+# Pure-Python wheels carried in .whl/ (trimesh for procedural scenes) import straight from the zip.
+for whl in "$root"/.whl/*.whl; do [ -f "$whl" ] && export PYTHONPATH=$PYTHONPATH:$whl; done
 for pkg in compiler env; do (cd "$root/services/$pkg" && python setup.py -q build_ext --inplace >/dev/null); done
 navi() { python "$root/tests/navi_device.py" "$@"; }

@@ -67,6 +67,8 @@ class LearnConfig:
     """0: 64 on CUDA, 32 on CPU."""
     ppo_epochs: int = 2
     lr: float = 3e-4
+    max_minibatch: int = 16_384
+    """Most samples per PPO minibatch (about 25 GB of activations at 16,384 with the default engine)."""
     total_steps: int = 10**12
     """Step cap per run (the time budget normally ends a run first)."""
     compile: bool = True
@@ -165,7 +167,7 @@ def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -
         device=str(device),
         compile=cfg.compile,
         engine=engine,
-        ppo=PPOConfig(lr=cfg.lr, ppo_epochs=cfg.ppo_epochs),
+        ppo=PPOConfig(lr=cfg.lr, ppo_epochs=cfg.ppo_epochs, max_minibatch=cfg.max_minibatch),
     )
 
 

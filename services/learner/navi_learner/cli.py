@@ -468,6 +468,14 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         ] = 0,
         ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", min=1, help="PPO epochs per rollout.")] = 2,
         lr: Annotated[float, typer.Option("--lr", help="Learning rate.")] = 3e-4,
+        max_minibatch: Annotated[
+            int,
+            typer.Option(
+                "--max-minibatch",
+                min=256,
+                help="Most samples per PPO minibatch (GPU memory; lower it for --parallel).",
+            ),
+        ] = 16_384,
         eval_actors: Annotated[
             int, typer.Option("--eval-actors", help="Actors per evaluation (0: protocol default).")
         ] = 0,
@@ -534,6 +542,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             rollout_length=rollout_length,
             ppo_epochs=ppo_epochs,
             lr=lr,
+            max_minibatch=max_minibatch,
             compile=compile_encoder,
             parallel=parallel,
             protocol=protocol,

@@ -37,8 +37,8 @@ class EvalProtocol:
 
     @classmethod
     def for_device(cls, device: torch.device) -> EvalProtocol:
-        """256 actors x 1,000 steps on a GPU; 8 actors x 400 steps (episodes of 200) on a CPU."""
-        return cls() if device.type == "cuda" else cls(actors=8, steps=400, episode_steps=200)
+        """256 actors x 1,000 steps on a GPU; 16 actors x 400 steps (episodes of 200) on a CPU."""
+        return cls() if device.type == "cuda" else cls(actors=16, steps=400, episode_steps=200)
 
 
 def evaluate_baselines(env: BatchedEnv, protocol: EvalProtocol) -> dict[str, EvalMetrics]:

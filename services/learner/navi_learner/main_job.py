@@ -41,6 +41,17 @@ REFERENCE = Path(__file__).resolve().parent / "reference" / "mamba2.pt"
 UNSEEN_SEED = 1000
 """Seed of the procedural scenes the main job evaluates on (the default corpus uses seed 0)."""
 
+UNSEEN_SCENES = 8
+"""Unseen scenes: one of each procedural kind (rooms, corridors, hall, maze, caves, forest, building,
+yard), as in `navi bench learn`'s procedural-unseen split."""
+
+CPU_TRAIN_SCENES = 4
+"""Scenes of the default corpus the CPU path builds and fine-tunes on (16 on CUDA)."""
+
+CORPUS_RESOLUTION = 512
+"""Cells per cube edge of the main job's scenes on both paths: the reference checkpoint was trained at
+512^3, and a policy flies differently through the blockier geometry of coarser scenes."""
+
 
 class MainJobError(RuntimeError):
     """A piece the main job needs is missing."""
@@ -64,9 +75,9 @@ class MainJobConfig:
     reference: Path = REFERENCE
 
 
-def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int = 0) -> None:
-    """Build procedural scenes of `seed` into `corpus` unless it already has a manifest. On a CPU the
-    corpus is smaller (4 scenes at 128^3) so that `make run` stays within minutes on 2 cores."""
+def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int = 16) -> None:
+    """Build `count` procedural scenes of `seed` at 512^3 into `corpus` unless it already has a
+    manifest (8 scenes of 512^3 take about 75 s on 2 CPU cores; the GPU builds them in seconds)."""
     if (corpus / "manifest.json").is_file():
         return
     try:
@@ -75,8 +86,7 @@ def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int 
         raise MainJobError(
             f"no corpus at {corpus} and navi_env's corpus builder is not importable ({err})"
         ) from err
-    default_count, resolution = (4, 128) if device.type == "cpu" else (16, 512)
-    count = count or default_count
+    resolution = CORPUS_RESOLUTION
     print(
         f"[navi run] building procedural scenes of seed {seed} ({count} scenes, {resolution}^3) into {corpus}",
         flush=True,
@@ -140,8 +150,8 @@ def main_job(job: MainJobConfig) -> Path:
     """Returns the path of the evaluation report."""
     dev = torch.device(job.device)
     cuda = dev.type == "cuda"
-    ensure_corpus(job.corpus, dev)
-    ensure_corpus(job.unseen, dev, seed=UNSEEN_SEED)
+    ensure_corpus(job.corpus, dev, count=16 if dev.type == "cuda" else CPU_TRAIN_SCENES)
+    ensure_corpus(job.unseen, dev, seed=UNSEEN_SEED, count=UNSEEN_SCENES)
     protocol = EvalProtocol.for_device(dev)
     registry = ModelRegistry(job.models_dir)
     try:

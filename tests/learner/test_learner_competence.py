@@ -1,0 +1,188 @@
+"""Evaluation statistics, the competence monitor and `navi bench learn` end to end on a CPU.
+
+- evaluate() against a slow per-actor twin written out step by step: finished-episode returns only
+  (NaN when no episode finished), per-actor sums, coverage as distinct cells per actor-episode, and
+  bootstrap intervals that contain the estimate and repeat exactly.
+- The monitor evaluates at its cadence, marks exactly the points that pass the bar, and stops training
+  at the first one when asked.
+- bench learn writes the split, the baselines, one curve per run, the summary and the plot.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from navi_env.corpus import build_default_corpus
+from navi_learner.baselines import RandomPolicy
+from navi_learner.bench_learn import LearnConfig, bench_learn, split_openarena
+from navi_learner.competence import CompetenceMonitor, EvalProtocol
+from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.evaluate import EvalMetrics, competent, evaluate
+from navi_learner.toy_env import ToyEnv
+from navi_learner.train import train
+
+ENGINE = EngineConfig(
+    embed_dim=32,
+    patch_size=4,
+    encoder_layers=1,
+    encoder_heads=2,
+    ssm_head_dim=16,
+    ssm_chunk=16,
+    memory_slots=8,
+    head_hidden=32,
+    rnd_dim=16,
+)
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+
+
+def evaluate_ref(env: ToyEnv, policy: RandomPolicy, steps: int, seed: int) -> dict[str, float]:
+    """Slow twin of evaluate(): Python bookkeeping per actor and step."""
+    n = env.n_actors
+    policy.reset(n, torch.device("cpu"))
+    obs, resets = env.reset(seed=seed), torch.ones(n, dtype=torch.bool)
+    running, finished, episodes, reward = [0.0] * n, [], 0, 0.0
+    cells: list[set[tuple[int, int, int, int]]] = [set() for _ in range(n)]
+    episode = [0] * n
+    for _ in range(steps):
+        out = env.step(policy.act(obs, resets))
+        for i in range(n):
+            r = float(out.reward[i])
+            running[i] += r
+            reward += r
+            x, y, z = (math.floor(float(v)) for v in out.info["position"][i])
+            cells[i].add((episode[i], x, y, z))
+            if bool(out.truncated[i] | out.done[i]):
+                finished.append(running[i])
+                running[i], episodes, episode[i] = 0.0, episodes + 1, episode[i] + 1
+        obs, resets = out.obs, out.done | out.truncated
+    return {
+        "episodes": episodes,
+        "episode_return": sum(finished) / episodes if episodes else math.nan,
+        "reward_per_step": reward / (n * steps),
+        "coverage_per_1k": 1000.0 * sum(len(c) for c in cells) / (n * steps),
+    }
+
+
+@pytest.mark.parametrize("max_steps", [16, 10**6])
+def test_evaluate_matches_its_slow_twin(max_steps: int) -> None:
+    fast = evaluate(ToyEnv(6, seed=4, max_steps=max_steps), RandomPolicy(9), 40, seed=4)
+    slow = evaluate_ref(ToyEnv(6, seed=4, max_steps=max_steps), RandomPolicy(9), 40, seed=4)
+    assert fast.episodes == slow["episodes"]
+    if max_steps > 40:  # counters start in [0, 1e6): no episode can finish, so there is no return
+        assert slow["episodes"] == 0 and math.isnan(fast.episode_return)
+    else:
+        assert fast.episode_return == pytest.approx(slow["episode_return"], rel=1e-9, abs=1e-9)
+    assert fast.reward_per_step == pytest.approx(slow["reward_per_step"], rel=1e-6, abs=1e-9)
+    assert fast.coverage_per_1k == pytest.approx(slow["coverage_per_1k"])
+
+
+def test_bootstrap_intervals_contain_the_estimate_and_repeat() -> None:
+    a = evaluate(ToyEnv(32, seed=1, max_steps=16), RandomPolicy(2), 48, seed=1)
+    b = evaluate(ToyEnv(32, seed=1, max_steps=16), RandomPolicy(2), 48, seed=1)
+    assert a.ci == b.ci
+    for key in ("reward_per_step", "coverage_per_1k", "distance_per_1k", "episode_return"):
+        lo, hi = a.ci[key]
+        assert lo <= getattr(a, key) <= hi and lo < hi, key
+    lo, hi = a.ci["coverage_per_1k"]  # across 32 actors the spread is real, not a point
+    assert np.isfinite([lo, hi]).all()
+
+
+def metrics(collisions: float, coverage: float) -> EvalMetrics:
+    return EvalMetrics("x", 1, 1, 0, math.nan, 0.0, collisions, 1.0, coverage, 0.0, 0.0, 1.0)
+
+
+def test_competence_bar() -> None:
+    reactive = metrics(2.0, 100.0)
+    assert competent(metrics(1.0, 150.0), reactive)
+    assert not competent(metrics(1.01, 150.0), reactive)
+    assert not competent(metrics(0.0, 149.9), reactive)
+    assert competent(metrics(0.0, 150.0), metrics(0.0, 100.0))  # 0 against 0 meets "half as many"
+    assert not competent(metrics(0.1, 500.0), metrics(0.0, 100.0))
+
+
+def toy_config(total: int) -> TrainConfig:
+    ppo = PPOConfig(lr=2e-3, num_minibatches=2, bptt_chunk=16, ppo_epochs=1)
+    return TrainConfig(
+        n_actors=8, rollout_length=16, total_steps=total, engine=ENGINE, ppo=ppo, checkpoint_every=10**9
+    )
+
+
+def test_monitor_marks_competent_points_and_keeps_going_when_told(tmp_path: Path) -> None:
+    protocol = EvalProtocol(actors=8, steps=32, episode_steps=16, seed=3)
+    monitor = CompetenceMonitor(
+        ToyEnv(8, seed=3, max_steps=16), protocol, every_s=1e-6, stop_at_competence=False
+    )
+    result = train(
+        ToyEnv(8, seed=0), toy_config(8 * 16 * 4), run_dir=tmp_path / "run", progress=False, monitor=monitor
+    )
+    assert result.step_id == 8 * 16 * 4  # not stopped
+    assert [p["step"] for p in monitor.curve] == [128, 256, 384, 512]
+    assert all(a["train_s"] < b["train_s"] for a, b in zip(monitor.curve, monitor.curve[1:], strict=False))
+    reactive = monitor.baselines["reactive"]
+    for p in monitor.curve:
+        assert p["competent"] == competent(metrics(p["collisions_per_1k"], p["coverage_per_1k"]), reactive)
+    first = next((p for p in monitor.curve if p["competent"]), None)
+    assert monitor.competence == (
+        None if first is None else {k: first[k] for k in ("step", "train_s", "wall_s")}
+    )
+
+
+def test_monitor_stops_training_at_the_first_competent_point(tmp_path: Path) -> None:
+    protocol = EvalProtocol(actors=8, steps=32, episode_steps=16, seed=3)
+    beaten = {"random": metrics(math.inf, 0.0), "reactive": metrics(math.inf, 0.0)}  # every policy passes
+    monitor = CompetenceMonitor(ToyEnv(8, seed=3, max_steps=16), protocol, every_s=1e-6, baselines=beaten)
+    result = train(
+        ToyEnv(8, seed=0), toy_config(10**6), run_dir=tmp_path / "run", progress=False, monitor=monitor
+    )
+    assert result.step_id == 128 and len(monitor.curve) == 1
+    assert monitor.competence is not None and monitor.competence["step"] == 128
+
+
+def test_split_openarena_holds_out_every_fifth_map() -> None:
+    maps = [f"m{i:02d}" for i in range(12)]
+    train_maps, held = split_openarena(maps)
+    assert held == ["m00", "m05", "m10"] and set(train_maps) | set(held) == set(maps)
+    assert not set(train_maps) & set(held)
+
+
+def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
+    root = tmp_path / "corpora"
+    build_default_corpus(root / "procedural-train-64", resolution=64, count=2, seed=0)
+    build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
+    cfg = LearnConfig(
+        seeds=(0, 1),
+        temporal_cores=("gru",),
+        time_budget_s=1.0,
+        eval_every_s=0.5,
+        actors=4,
+        rollout_length=16,
+        compile=False,
+        protocol=EvalProtocol(actors=4, steps=24, episode_steps=12, seed=5),
+    )
+    out = tmp_path / "out"
+    result = bench_learn(cfg, out, "cpu", 64, root, None, say=lambda _: None)
+    saved = json.loads((out / "result.json").read_text())
+    assert saved["splits"]["scenes"] == {
+        "train/procedural": ["rooms_0000", "corridors_0001"],
+        "unseen/procedural": ["rooms_0000"],
+    }
+    assert any("OpenArena" in note for note in saved["splits"]["notes"])
+    assert set(saved["baselines"]) == {"all", "procedural"}
+    assert [(r["temporal_core"], r["seed"]) for r in saved["runs"]] == [("gru", 0), ("gru", 1)]
+    curves = json.loads((out / "curves.json").read_text())
+    for run in saved["runs"]:
+        assert run["curve"] and run["curve"][-1]["step"] == run["steps"] and run["train_s"] >= 1.0
+        assert curves[f"gru seed {run['seed']}"] == run["curve"]
+        assert set(run["final_by_split"]) == {"procedural"}
+    summary = result["summary"]["gru"]
+    assert summary["seeds"] == 2
+    assert summary["competent_seeds"] == sum(r["competence"] is not None for r in saved["runs"])
+    assert (out / "learning_curves.png").stat().st_size > 10_000
+    assert "| gru | 2 |" in (out / "report.md").read_text()
