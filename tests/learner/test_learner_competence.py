@@ -20,7 +20,7 @@ import torch
 
 from navi_env.corpus import build_default_corpus
 from navi_learner.baselines import RandomPolicy
-from navi_learner.bench_learn import LearnConfig, bench_learn, split_openarena
+from navi_learner.bench_learn import LearnConfig, bench_learn, run_devices, split_openarena
 from navi_learner.competence import CompetenceMonitor, EvalProtocol
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.evaluate import EvalMetrics, competent, evaluate
@@ -186,3 +186,10 @@ def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     assert summary["competent_seeds"] == sum(r["competence"] is not None for r in saved["runs"])
     assert (out / "learning_curves.png").stat().st_size > 10_000
     assert "| gru | 2 |" in (out / "report.md").read_text()
+
+
+def test_runs_spread_over_gpus_round_robin() -> None:
+    assert run_devices("cpu", 0, 3) == ["cpu"] * 3
+    assert run_devices("cuda", 4, 6) == ["cuda:0", "cuda:1", "cuda:2", "cuda:3", "cuda:0", "cuda:1"]
+    with pytest.raises(ValueError, match="CUDA"):
+        run_devices("cpu", 2, 2)

@@ -74,6 +74,9 @@ class LearnConfig:
     compile: bool = True
     parallel: int = 1
     """Runs at once (processes sharing the device); their wall times then overlap."""
+    gpus: int = 0
+    """> 0: spread the runs round-robin over cuda:0 .. cuda:gpus-1, one process per run and at most
+    `parallel` at once (so gpus = parallel = number of runs gives every run a GPU of its own)."""
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
 
 
@@ -258,8 +261,19 @@ def baselines_by_split(
     return out
 
 
+def run_devices(device: str, gpus: int, runs: int) -> list[str]:
+    """The device of each run: `device` for all, or cuda:0 .. cuda:gpus-1 round-robin when gpus > 0."""
+    if gpus <= 0:
+        return [device] * runs
+    if not device.startswith("cuda"):
+        raise ValueError("--gpus needs a CUDA device")
+    return [f"cuda:{i % gpus}" for i in range(runs)]
+
+
 def _child(args: tuple[Splits, LearnConfig, str, int, str, Path, dict[str, EvalMetrics]]) -> dict[str, Any]:
     splits, cfg, core, seed, device, run_dir, baselines = args
+    if device.startswith("cuda:"):
+        torch.cuda.set_device(torch.device(device))  # extensions and graphs use the current device
     return run_one(splits, cfg, core, seed, device, run_dir, baselines)
 
 
@@ -342,10 +356,11 @@ def bench_learn(
     baselines = baselines_by_split(splits, cfg.protocol, device)
     for part, b in baselines.items():
         say(f"[bench learn] baselines on unseen {part}:\n" + comparison_table(list(b.values())))
+    runs_wanted = [(core, seed) for core in cfg.temporal_cores for seed in cfg.seeds]
+    places = run_devices(device, cfg.gpus, len(runs_wanted))
     jobs = [
-        (splits, cfg, core, seed, device, out / "runs" / f"{core}-seed{seed}", baselines["all"])
-        for core in cfg.temporal_cores
-        for seed in cfg.seeds
+        (splits, cfg, core, seed, place, out / "runs" / f"{core}-seed{seed}", baselines["all"])
+        for (core, seed), place in zip(runs_wanted, places, strict=True)
     ]
     started = time.perf_counter()
     if cfg.parallel > 1:
@@ -355,7 +370,8 @@ def bench_learn(
         runs = [_child(job) for job in jobs]
     notes = list(splits.notes)
     result: dict[str, Any] = {
-        "device": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu",
+        "device": (torch.cuda.get_device_name() if device.startswith("cuda") else "cpu")
+        + (f" x {cfg.gpus} (one run per GPU at a time)" if cfg.gpus > 0 else ""),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "config": asdict(replace(cfg, seeds=list(cfg.seeds), temporal_cores=list(cfg.temporal_cores))),  # type: ignore[arg-type]
         "resolution": resolution,

@@ -490,6 +490,15 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             int,
             typer.Option("--parallel", min=1, help="Runs at once, sharing the device (wall times overlap)."),
         ] = 1,
+        gpus: Annotated[
+            int,
+            typer.Option(
+                "--gpus",
+                min=0,
+                help="Spread the runs over this many GPUs (cuda:0..), round-robin; with --parallel equal to it, "
+                "each GPU trains one run at a time.",
+            ),
+        ] = 0,
         resolution: Annotated[
             int, typer.Option("--resolution", help="Cells per cube edge of every scene.")
         ] = 512,
@@ -545,6 +554,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             max_minibatch=max_minibatch,
             compile=compile_encoder,
             parallel=parallel,
+            gpus=gpus,
             protocol=protocol,
         )
         folder = out or Path("artifacts/bench/learn") / time.strftime("%Y%m%d-%H%M%S")
