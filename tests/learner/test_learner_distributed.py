@@ -19,11 +19,12 @@ from typing import Any
 
 import pytest
 import torch
+import torch.distributed as tdist
 import typer
 
 from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.dist import strip_option
+from navi_learner.dist import Dist, setup, strip_option
 from navi_learner.ppo import normalize
 from navi_learner.toy_env import ToyEnv
 from navi_learner.train import train, update
@@ -280,3 +281,37 @@ def test_the_launchers_pass_the_command_on_without_nproc() -> None:
     serve = group.commands["serve"].commands["learner"]
     assert serve.make_context("navi serve learner", list(learner[3:])).params["nproc"] == 2
     assert "--nproc" not in service_specs(StackConfig(navi=("navi",)), with_auditor=False)[3].argv
+
+
+def test_a_single_process_run_makes_no_collective_call(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, single_thread: None
+) -> None:
+    """World size 1 keeps today's loop: no process group, and any collective would raise here."""
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a single-process run called torch.distributed")
+
+    for name in (
+        "init_process_group",
+        "all_reduce",
+        "broadcast",
+        "broadcast_object_list",
+        "all_gather_object",
+    ):
+        monkeypatch.setattr(tdist, name, refuse)
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    cfg = TrainConfig(
+        n_actors=ACTORS,
+        rollout_length=ROLLOUT,
+        total_steps=2 * PER_RANK_UPDATE,
+        checkpoint_every=10**9,
+        engine=EngineConfig(
+            temporal_core="gru", embed_dim=32, patch_size=4, encoder_layers=1, head_hidden=32
+        ),
+    )
+    d, device = setup("cpu")
+    result = train(ToyEnv(ACTORS, seed=0), cfg, run_dir=tmp_path / "run", progress=False, dist=d)
+    assert d == Dist(timeout_s=d.timeout_s) and device == "cpu" and not d.active
+    assert result.step_id == 2 * PER_RANK_UPDATE and "world_size" not in json.loads(
+        (tmp_path / "run" / "manifests" / "run.json").read_text()
+    )
