@@ -44,18 +44,11 @@ def navi_env(**extra: str) -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": "1", **extra}
 
 
+TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
+
+
 def torchrun(*args: str) -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "torch.distributed.run",
-        "--standalone",
-        "--nproc-per-node",
-        "2",
-        "-m",
-        "navi",
-        *args,
-    ]
+    return [*TORCHRUN, "-m", "navi", *args]
 
 
 def run_folder(cwd: Path) -> Path:
@@ -113,7 +106,8 @@ def test_two_ranks_hold_bit_identical_replicas_and_rank_0_alone_writes(two_rank_
     ranks = [json.loads((cwd / "debug" / f"rank{r}.json").read_text()) for r in (0, 1)]
     assert ranks[0]["step_id"] == ranks[1]["step_id"] == 1024 == 4 * 2 * PER_RANK_UPDATE
     assert ranks[0]["model"] == ranks[1]["model"] and ranks[0]["optimizer"] == ranks[1]["optimizer"]
-    summary = json.loads((cwd / "stdout.txt").read_text().strip().splitlines()[-1])  # rank 0 alone prints
+    (line,) = [x for x in (cwd / "stdout.txt").read_text().splitlines() if x.startswith("{")]
+    summary = json.loads(line)  # rank 0 alone prints
     assert summary["steps"] == 1024 and summary["promoted"] == "v001" and not summary["interrupted"]
     run = run_folder(cwd)  # one run folder: rank 1 wrote nothing
     ckpts = sorted(p.name for p in (run / "checkpoints").iterdir())
@@ -210,16 +204,8 @@ def test_a_killed_rank_ends_the_run_with_an_error_naming_the_timeout(tmp_path: P
 
 def test_one_update_on_two_ranks_equals_one_update_on_the_union(tmp_path: Path) -> None:
     script = Path(__file__).with_name("dist_parity.py")
-    cmd = [
-        sys.executable,
-        "-m",
-        "torch.distributed.run",
-        "--standalone",
-        "--nproc-per-node",
-        "2",
-        str(script),
-    ]
-    out = subprocess.run([*cmd, str(tmp_path)], env=navi_env(), capture_output=True, text=True, timeout=120)
+    cmd = [*TORCHRUN, str(script), str(tmp_path)]
+    out = subprocess.run(cmd, env=navi_env(), capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-3000:]
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1)]
     spec = importlib.util.spec_from_file_location("dist_parity", script)
@@ -266,6 +252,18 @@ def test_bench_train_nproc_reports_ranks_totals_and_scaling(tmp_path: Path) -> N
         expected = report["total"][col] / (2 * report["single"][col])
         assert report["scaling_efficiency"][col.removesuffix("_sps")] == pytest.approx(expected, abs=1e-3)
     assert report["single"]["actors"] == ACTORS and all(r["actors"] == ACTORS for r in report["ranks"])
+
+
+def test_one_gpu_per_rank_is_checked_before_joining(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("LOCAL_RANK", str(torch.cuda.device_count()))  # one past the last GPU
+    with pytest.raises(ValueError, match="one rank per GPU"):
+        setup("cuda")
+    monkeypatch.setenv("NAVI_DIST_TIMEOUT_S", "soon")
+    with pytest.raises(ValueError, match="NAVI_DIST_TIMEOUT_S"):
+        setup("cpu")
+    assert not tdist.is_initialized()
 
 
 def test_the_launchers_pass_the_command_on_without_nproc() -> None:

@@ -109,6 +109,11 @@ def setup(device: str) -> tuple[Dist, str]:
     rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
     dev = rank_device(device, local)
     if dev.startswith("cuda"):
+        if local >= torch.cuda.device_count():
+            raise ValueError(
+                f"rank {rank} needs GPU cuda:{local} but this machine has {torch.cuda.device_count()} "
+                "(one rank per GPU: lower --nproc / --nproc-per-node)"
+            )
         os.environ.setdefault("TORCH_NCCL_ASYNC_ERROR_HANDLING", "1")
         torch.cuda.set_device(dev)
     backend = "nccl" if dev.startswith("cuda") else "gloo"
