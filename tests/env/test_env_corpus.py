@@ -88,6 +88,17 @@ def test_build_list_and_load(sources: Path, tmp_path: Path) -> None:
     assert not list(tmp_path.glob(".corpus.*"))  # no temporary folder left behind
 
 
+def test_data_parallel_ranks_load_disjoint_shares_of_the_scenes(sources: Path, tmp_path: Path) -> None:
+    out = tmp_path / "corpus"
+    full = build_corpus(find_sources(sources), out, resolution=32)
+    shares = [load_corpus(out, "cpu", rank, 2) for rank in (0, 1)]
+    assert [[s.name for s in m.scenes] for _, m in shares] == [["room_a"], ["room_b"]]  # scenes[rank::2]
+    assert [len(scenes) for scenes, _ in shares] == [1, 1]
+    assert [m.scenes[0] for _, m in shares] == list(full.scenes)
+    with pytest.raises(CorpusError, match="cannot be shared by 3 ranks"):
+        load_corpus(out, "cpu", 0, 3)
+
+
 def test_a_failing_source_leaves_the_old_corpus_intact(sources: Path, tmp_path: Path) -> None:
     out = tmp_path / "corpus"
     build_corpus([sources / "room_a.gmdag"], out, resolution=32)

@@ -117,16 +117,23 @@ def read_manifest(corpus_dir: str | os.PathLike[str]) -> CorpusManifest:
 
 
 def load_corpus(
-    corpus_dir: str | os.PathLike[str], device: torch.device | str = "cpu"
+    corpus_dir: str | os.PathLike[str], device: torch.device | str = "cpu", rank: int = 0, world: int = 1
 ) -> tuple[SceneCorpus, CorpusManifest]:
-    """Load every scene of a corpus onto `device`, in manifest order, with its manifest.
+    """Load the scenes of a corpus onto `device`, in manifest order, with its manifest.
 
-    Use `manifest.spawn_tensors()` as SdfDagEnv's `spawns`.
+    With world > 1 (data-parallel training) only this rank's share, scenes[rank::world], is loaded and
+    the returned manifest lists just those. Use `manifest.spawn_tensors()` as SdfDagEnv's `spawns`.
     """
     root = Path(corpus_dir)
     manifest = read_manifest(root)
     if not manifest.scenes:
         raise CorpusError(f"{root}: the corpus holds no scene")
+    if world > 1:
+        if len(manifest.scenes) < world:
+            raise CorpusError(
+                f"{root}: {len(manifest.scenes)} scenes cannot be shared by {world} ranks (one scene each at least)"
+            )
+        manifest = replace(manifest, scenes=manifest.scenes[rank::world])
     files = []
     for s in manifest.scenes:
         path = root / s.file

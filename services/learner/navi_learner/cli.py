@@ -55,8 +55,21 @@ def check_choice(value: str, choices: tuple[str, ...], what: str) -> str:
     return value
 
 
-def build_env(env_kind: str, corpus: Path | None, n_actors: int, device: str, seed: int) -> Any:
-    """The environment for a command, or exit 2 with the reason."""
+NprocOpt = Annotated[
+    int,
+    typer.Option(
+        "--nproc",
+        min=1,
+        help="Data-parallel ranks on this machine, one per GPU (runs the command again through torchrun "
+        "--standalone --nproc-per-node N; ignored inside torchrun).",
+    ),
+]
+
+
+def build_env(
+    env_kind: str, corpus: Path | None, n_actors: int, device: str, seed: int, rank: int = 0, world: int = 1
+) -> Any:
+    """The environment for a command (a data-parallel rank: its share of the scenes), or exit 2."""
     from navi_learner.envs import EnvUnavailable, make_env
 
     kind: Literal["sdfdag", "toy"] = (
@@ -64,7 +77,13 @@ def build_env(env_kind: str, corpus: Path | None, n_actors: int, device: str, se
     )
     try:
         return make_env(
-            corpus if corpus is not None or kind == "toy" else DEFAULT_CORPUS, n_actors, device, seed, kind
+            corpus if corpus is not None or kind == "toy" else DEFAULT_CORPUS,
+            n_actors,
+            device,
+            seed,
+            kind,
+            rank=rank,
+            world=world,
         )
     except EnvUnavailable as err:
         raise fail(str(err)) from err
@@ -198,30 +217,61 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         compile_encoder: Annotated[
             bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
         ] = True,
+        nproc: NprocOpt = 1,
     ) -> None:
-        """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first."""
+        """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first. Under torchrun
+        (or with --nproc N) every rank trains its own actors on its own device with synchronous
+        data-parallel PPO; --actors is per rank."""
         from dataclasses import replace
 
         import torch
 
+        from navi_learner import dist
         from navi_learner.config import default_actors
         from navi_learner.envs import corpus_summary
         from navi_learner.registry import ModelRegistry
         from navi_learner.train import train as run_train
 
-        dev = pick_device(device)
-        cfg = train_config(
-            actors, temporal_core, rollout_length, ppo_epochs, lr, total_steps, checkpoint_every, dev, seed
-        )
-        resume, cfg = resume_choice(
-            checkpoint, fresh, replace(cfg, compile=compile_encoder, time_limit_s=time_limit)
-        )
-        n = cfg.n_actors or default_actors(torch.device(dev))
-        environment = build_env(env, corpus, n, dev, seed)
-        summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
-        result = run_train(
-            environment, cfg, resume_from=resume, registry=ModelRegistry(MODELS_DIR), corpus_summary=summary
-        )
+        if nproc > 1 and not dist.launched():
+            raise typer.Exit(dist.relaunch(nproc, dist.strip_option(sys.argv[1:], "--nproc")))
+        try:
+            d, dev = dist.setup(pick_device(device))
+        except ValueError as err:
+            raise fail(str(err)) from err
+        signals = dist.StopSignals().install() if d.active else None
+        try:
+            cfg = train_config(
+                actors,
+                temporal_core,
+                rollout_length,
+                ppo_epochs,
+                lr,
+                total_steps,
+                checkpoint_every,
+                dev,
+                seed,
+            )
+            resume, cfg = resume_choice(
+                checkpoint, fresh, replace(cfg, compile=compile_encoder, time_limit_s=time_limit)
+            )
+            n = cfg.n_actors or default_actors(torch.device(dev))
+            environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world)
+            summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
+            result = run_train(
+                environment,
+                cfg,
+                resume_from=resume,
+                registry=ModelRegistry(MODELS_DIR) if d.main else None,
+                corpus_summary=summary,
+                dist=d,
+                should_stop=None if signals is None else signals.requested,
+            )
+        except dist.DistError as err:
+            raise fail(str(err)) from err
+        finally:
+            dist.shutdown(d)
+        if not d.main:
+            return  # rank 0 reports (and exits 130 when interrupted)
         typer.echo(
             json.dumps(
                 {
@@ -587,19 +637,52 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
         ] = True,
         as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+        nproc: Annotated[
+            int,
+            typer.Option(
+                "--nproc",
+                min=1,
+                help="Also measure N data-parallel ranks (torchrun, one per GPU, --actors each) after one "
+                "process: per-rank and total SPS, scaling efficiency SPS(N) / (N x SPS(1)).",
+            ),
+        ] = 1,
+        result_file: Annotated[
+            Path | None, typer.Option("--result-file", hidden=True, help="Write the JSON here instead.")
+        ] = None,
     ) -> None:
         """Env only / env + inference / env + training SPS and ms per stage."""
         from dataclasses import replace
 
         import torch
 
-        from navi_learner.bench import bench_train
+        from navi_learner import dist
+        from navi_learner.bench import bench_train, bench_train_scaling
         from navi_learner.config import default_actors
 
-        dev = pick_device(device)
-        cfg = train_config(actors, temporal_core, rollout_length, 1, 5e-4, 0, 10**12, dev, 0)
-        cfg = replace(cfg, compile=compile_encoder)
-        n = actors or default_actors(torch.device(dev))
-        result = bench_train(build_env(env, corpus, n, dev, 0), replace(cfg, n_actors=n), updates=updates)
+        if nproc > 1 and not dist.launched():
+            args = dist.strip_option(dist.strip_option(sys.argv[1:], "--nproc"), "--result-file")
+            try:
+                result = bench_train_scaling(nproc, args)
+            except RuntimeError as err:
+                raise fail(str(err)) from err
+        else:
+            try:
+                d, dev = dist.setup(pick_device(device))
+            except ValueError as err:
+                raise fail(str(err)) from err
+            try:
+                cfg = train_config(actors, temporal_core, rollout_length, 1, 5e-4, 0, 10**12, dev, 0)
+                cfg = replace(cfg, compile=compile_encoder)
+                n = actors or default_actors(torch.device(dev))
+                environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)
+                result = bench_train(environment, replace(cfg, n_actors=n), updates=updates, dist=d)
+            except dist.DistError as err:
+                raise fail(str(err)) from err
+            finally:
+                dist.shutdown(d)
+            if result_file is not None:
+                if d.main:
+                    result_file.write_text(json.dumps(result))
+                return
         typer.echo(json.dumps(result) if as_json else "\n".join(f"{k}: {v}" for k, v in result.items()))
         sys.stdout.flush()

@@ -40,9 +40,12 @@ def make_env(
     seed: int,
     kind: EnvKind = "sdfdag",
     episode_steps: int = 0,
+    rank: int = 0,
+    world: int = 1,
 ) -> BatchedEnv:
     """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
-    qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation)."""
+    qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation). With
+    world > 1 the drone env flies only this rank's scenes, scenes[rank::world] (data-parallel training)."""
     if kind == "toy":
         return ToyEnv(n_actors, device, seed=seed)
     if corpus is None:
@@ -56,7 +59,7 @@ def make_env(
     except ImportError as err:
         raise EnvUnavailable(f"navi_env's SdfDagEnv is not importable: {err}") from err
     try:
-        scenes, manifest = load_corpus(corpus, torch.device(device))
+        scenes, manifest = load_corpus(corpus, torch.device(device), rank, world)
     except CorpusError as err:
         raise EnvUnavailable(str(err)) from err
     config = EnvConfig(max_steps_per_episode=episode_steps) if episode_steps > 0 else EnvConfig()

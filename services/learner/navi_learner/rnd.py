@@ -6,8 +6,12 @@ standard deviation (kept on the device: no host sync).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import nn
+
+from navi_learner.dist import pooled_moments
 
 
 def mlp(dim_in: int, hidden: int, dim_out: int) -> nn.Sequential:
@@ -38,10 +42,19 @@ class RND(nn.Module):
         return (self.predictor(x) - self.target(x)).pow(2).mean(dim=-1)  # (N,)
 
     @torch.no_grad()
-    def intrinsic(self, emb: torch.Tensor) -> torch.Tensor:
-        """Normalised novelty (N,): z-score of the error under running stats (clipped to ±5), updated here."""
+    def intrinsic(
+        self, emb: torch.Tensor, reduce: Callable[[torch.Tensor], torch.Tensor] | None = None
+    ) -> torch.Tensor:
+        """Normalised novelty (N,): z-score of the error under running stats (clipped to ±5), updated here.
+
+        `reduce` (data-parallel runs: Sync.sum_) sums a tensor over ranks in place; the running stats
+        then follow the batch of every rank's actors, so they stay identical on all ranks."""
         err = self.error(emb)  # (N,)
-        mean, var = err.mean(), err.var(unbiased=False)  # () each
+        if reduce is None:
+            mean, var = err.mean(), err.var(unbiased=False)  # () each
+        else:
+            pooled_mean, pooled_var = pooled_moments(err, reduce)  # () float64 each
+            mean, var = pooled_mean.float(), pooled_var.float()  # () float32 each
         m = torch.where(self.initialised, torch.full_like(mean, self.momentum), torch.ones_like(mean))  # ()
         delta = mean - self.err_mean  # ()
         self.err_mean.add_(m * delta)

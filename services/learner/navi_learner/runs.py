@@ -28,20 +28,32 @@ def new_run_id() -> str:
 
 
 class RunFiles:
-    """Owns the files of one run; `log_metrics` fans a row out to JSONL, TensorBoard and a callback."""
+    """Owns the files of one run; `log_metrics` fans a row out to JSONL, TensorBoard and a callback.
+
+    With write=False (the ranks other than 0 of a data-parallel run) nothing is written: no folder, log
+    file, metrics, TensorBoard, manifest or report; rows still reach the callback."""
 
     def __init__(
-        self, root: Path, run_id: str, on_log: Callable[[str, dict[str, float]], None] | None = None
+        self,
+        root: Path,
+        run_id: str,
+        on_log: Callable[[str, dict[str, float]], None] | None = None,
+        write: bool = True,
     ) -> None:
-        self.root, self.run_id, self.on_log = Path(root), run_id, on_log
-        for sub in SUBDIRS:
-            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        self.root, self.run_id, self.on_log, self.write = Path(root), run_id, on_log, write
+        if write:
+            for sub in SUBDIRS:
+                (self.root / sub).mkdir(parents=True, exist_ok=True)
         self.metrics_path = self.root / "metrics" / "metrics.jsonl"
         self.checkpoints = self.root / "checkpoints"
         self.rows: list[dict[str, float]] = []
         self.logger = logging.getLogger(f"navi_learner.run.{run_id}")
         self.logger.setLevel(logging.INFO)
         self.logger.propagate = False
+        self.tb: Any = None
+        if not write:
+            self.logger.addHandler(logging.NullHandler())
+            return
         handler = RotatingFileHandler(self.root / "logs" / "train.log", maxBytes=10 * 2**20, backupCount=5)
         handler.setFormatter(logging.Formatter(f"%(asctime)s %(levelname)s run={run_id} %(message)s"))
         self.logger.addHandler(handler)
@@ -58,6 +70,8 @@ class RunFiles:
     def write_manifest(self, name: str, data: dict[str, Any]) -> Path:
         """manifests/<name>.json with run_id, code version and time stamped in."""
         path = self.root / "manifests" / f"{name}.json"
+        if not self.write:
+            return path
         body = {"run_id": self.run_id, "code_version": code_version(), "written_at": utc_now(), **data}
         text = json.dumps(body, indent=2, sort_keys=True, default=str).encode()
         atomic_write(path, lambda f: f.write(text))
@@ -66,8 +80,9 @@ class RunFiles:
     def log_metrics(self, row: dict[str, float]) -> None:
         """Append a metrics row (must hold 'step')."""
         self.rows.append(row)
-        with self.metrics_path.open("a") as f:
-            f.write(json.dumps({"run_id": self.run_id, **row}) + "\n")
+        if self.write:
+            with self.metrics_path.open("a") as f:
+                f.write(json.dumps({"run_id": self.run_id, **row}) + "\n")
         if self.tb is not None:
             for key, value in row.items():
                 if key != "step":
@@ -145,8 +160,10 @@ def plot_png(rows: list[dict[str, float]], path: Path) -> str | None:
 
 
 def write_report(run: RunFiles, summary: dict[str, Any]) -> Path:
-    """reports/report.md (and report.png) summarising the run."""
+    """reports/report.md (and report.png) summarising the run (not written when run.write is False)."""
     reports = run.root / "reports"
+    if not run.write:
+        return reports / "report.md"
     why_not = plot_png(run.rows, reports / "report.png") if run.rows else "no metrics rows were logged"
     lines = [f"# Training run {run.run_id}", "", "| key | value |", "| --- | --- |"]
     lines += [f"| {k} | {v} |" for k, v in summary.items()]

@@ -22,6 +22,11 @@ The loop is the learner's own (`train.train` or the inference loop below); this 
   (navi/env/floor_plan: clearance on a horizontal slice at the drone's height, 128 cells on the long
   side) when the scene changes and every 5 s, computed on its own thread.
 SIGTERM or Ctrl+C ends training through its KeyboardInterrupt path (a checkpoint is saved first).
+
+Several GPUs (`navi serve learner --nproc N`, run through torchrun; navi_learner/dist.py): rank 0 is
+the service above (control plane, mesh, telemetry, corpus build) and trains its share; every other
+rank waits for the corpus, trains its own actors on its own GPU and publishes nothing. A signal sets
+the stop event, which ends training after the update in progress on every rank (one checkpoint).
 """
 
 from __future__ import annotations
@@ -50,8 +55,9 @@ from navi_contracts.models import (
     TelemetryEvent,
 )
 from navi_contracts.topics import ACTIONS, FLOOR_PLAN, MODEL_PROMOTED, OBSERVATIONS, POSES, TELEMETRY
-from navi_learner.config import TrainConfig
+from navi_learner.config import TrainConfig, default_actors
 from navi_learner.control_plane import ControlPlaneConfig, create_app
+from navi_learner.dist import Dist
 from navi_learner.envs import EnvKind, corpus_summary, make_env
 from navi_learner.protocol import BatchedEnv, StepLike
 from navi_learner.registry import ModelRegistry, RegistryError
@@ -364,13 +370,15 @@ class TrainingMetrics:
         tap: TelemetryTap,
         device: torch.device,
         status: ServiceStatus | None = None,
+        world: int = 1,
     ) -> None:
         self.pubs, self.tap, self.device, self.status = pubs, tap, device, status
-        self.counted_steps = 0  # actor-steps of this process already added to navi_steps_total
+        self.world = world  # data-parallel ranks stepping as many actors as this one, in lockstep
+        self.counted_steps = 0  # actor-steps of this run already added to navi_steps_total
         self.t0 = time.monotonic()
 
     def __call__(self, run_id: str, row: dict[str, float]) -> None:
-        taken = self.tap.steps * self.tap.n_actors
+        taken = self.tap.steps * self.tap.n_actors * self.world
         metrics.STEPS.labels("train").inc(taken - self.counted_steps)
         self.counted_steps = taken
         metrics.EPISODES.labels("train").inc(max(0.0, row.get("episodes", 0.0)))  # this log window's
@@ -524,16 +532,23 @@ class Heartbeat:
 
 
 def run_training(
-    cfg: LearnerServiceConfig, env: TelemetryTap, pubs: MeshPublishers, status: ServiceStatus
+    cfg: LearnerServiceConfig,
+    env: TelemetryTap,
+    pubs: MeshPublishers,
+    status: ServiceStatus,
+    dist: Dist | None = None,
+    stop: threading.Event | None = None,
 ) -> dict[str, Any]:
-    """`train` with the tap and the metrics callback; returns the run summary."""
+    """`train` with the tap and the metrics callback; returns the run summary. Rank 0 of a
+    data-parallel learner passes its Dist and the stop event (signals end training through it)."""
     from navi_learner.runs import new_run_id
     from navi_learner.train import train
 
+    d = dist or Dist()
     run_id = new_run_id()
     env.run_id = run_id
-    status.update(phase="training", run_id=run_id, actors=env.n_actors)
-    on_log = TrainingMetrics(pubs, env, env.device, status)
+    status.update(phase="training", run_id=run_id, actors=env.n_actors * d.world)
+    on_log = TrainingMetrics(pubs, env, env.device, status, d.world)
     result = train(
         env,
         cfg.train,
@@ -544,6 +559,8 @@ def run_training(
         registry=ModelRegistry(cfg.models_dir),
         corpus_summary=corpus_summary(cfg.corpus if cfg.env_kind == "sdfdag" else None, cfg.env_kind),
         progress=False,
+        dist=d if d.active else None,
+        should_stop=stop.is_set if d.active and stop is not None else None,
     )
     summary = {
         "run_id": result.run_id,
@@ -663,18 +680,53 @@ def start_control_plane(
     return server, thread
 
 
-def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str, Any]:
+def train_rank(cfg: LearnerServiceConfig, stop: threading.Event, d: Dist) -> dict[str, Any]:
+    """A rank other than 0 of a data-parallel learner: no control plane, mesh or telemetry. Waits for the
+    corpus (rank 0 builds it when missing), then trains its own actors on its share of the scenes."""
+    from navi_learner.train import train
+
+    if cfg.mode != "train":
+        raise ValueError("only training runs on several ranks (--nproc); inference is one process")
+    if cfg.env_kind == "sdfdag":
+        from navi_env.corpus import MANIFEST
+
+        while not (cfg.corpus / MANIFEST).is_file():
+            if stop.wait(1.0):
+                return {"steps": 0, "interrupted": True}
+    n = cfg.train.n_actors or default_actors(torch.device(cfg.train.device))
+    corpus = cfg.corpus if cfg.env_kind == "sdfdag" else None
+    env = make_env(
+        corpus, n, cfg.train.device, cfg.train.seed + d.rank, cfg.env_kind, rank=d.rank, world=d.world
+    )
+    result = train(  # rank 0's run id and folder are broadcast; this rank writes nothing
+        env, cfg.train, resume_from=cfg.resume_from, progress=False, dist=d, should_stop=stop.is_set
+    )
+    return {
+        "rank": d.rank,
+        "run_id": result.run_id,
+        "steps": result.step_id,
+        "interrupted": result.interrupted,
+    }
+
+
+def serve_learner(
+    cfg: LearnerServiceConfig, stop: threading.Event, dist: Dist | None = None
+) -> dict[str, Any]:
     """Run the learner service; returns the run summary (also written to the log as JSON).
 
     Order: control plane and liveliness token (the service answers /healthz within seconds), then the
-    corpus (built over compile jobs when missing), then the environment and the run."""
+    corpus (built over compile jobs when missing), then the environment and the run. On a data-parallel
+    learner (`dist`, several ranks) this is rank 0; the other ranks run `train_rank`."""
+    d = dist or Dist()
+    if not d.main:
+        return train_rank(cfg, stop, d)
+    if d.active and cfg.mode != "train":
+        raise ValueError("only training runs on several ranks (--nproc); inference is one process")
     if cfg.api_port != 0:
         control_plane_config(cfg).check()  # fail fast: mutations enabled without a token
     for action in ModelRegistry(cfg.models_dir).recover():  # after a writer was killed mid-write
         log.warning("model registry %s: %s", cfg.models_dir, action)
     device = torch.device(cfg.train.device)
-    from navi_learner.config import default_actors
-
     n = cfg.train.n_actors or default_actors(device)
     sess = session(cfg.session)
     pubs = MeshPublishers(sess, cfg.telemetry_capacity)
@@ -698,6 +750,8 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
             cfg.train.device,
             cfg.train.seed,
             cfg.env_kind,
+            rank=d.rank,
+            world=d.world,
         )
         tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
         heartbeat.tap = tap
@@ -707,7 +761,7 @@ def serve_learner(cfg: LearnerServiceConfig, stop: threading.Event) -> dict[str,
             planner = FloorPlanner(scenes, pubs, lambda: tap.run_id)
             tap.on_pose = planner.request
         if cfg.mode == "train":
-            summary = run_training(cfg, tap, pubs, status)
+            summary = run_training(cfg, tap, pubs, status, d, stop)
         else:
             status.update(phase="inference", actors=tap.n_actors)
             summary = run_inference(cfg, tap, pubs, sess, stop)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from navi_learner.protocol import StepLike
@@ -48,12 +50,21 @@ class EpisodeStats:
         self.ep_len *= 1.0 - endf
         self.steps += out.reward.shape[0]
 
-    def read(self) -> dict[str, float]:
-        """Host-side means for the window (one transfer), then clear the window."""
-        names = list(self.sums)
-        values = torch.stack([self.sums[k] for k in names]).tolist() if names else []  # (K,) -> host
-        raw = dict(zip(names, values, strict=True))
-        steps = max(self.steps, 1)
+    def read(self, reduce: Callable[[torch.Tensor], torch.Tensor] | None = None) -> dict[str, float]:
+        """Host-side means for the window (one transfer), then clear the window. `reduce` (data-parallel
+        runs: Sync.sum_) sums the window's sums and step count over ranks first (every rank calls it)."""
+        if reduce is None:
+            names = list(self.sums)
+            values = torch.stack([self.sums[k] for k in names]).tolist() if names else []  # (K,) -> host
+            raw = dict(zip(names, values, strict=True))
+            steps = max(self.steps, 1)
+        else:
+            names = sorted(self.sums)
+            window = torch.tensor([float(self.steps)], device=self.device)  # (1,) float32 actor-steps
+            summed = reduce(torch.cat([*(self.sums[k].reshape(1) for k in names), window]))  # (K + 1,)
+            *values, total = summed.tolist()
+            raw = dict(zip(names, values, strict=True))
+            steps = max(int(total), 1)
         episodes = raw.get("episodes", 0.0)
         out: dict[str, float] = {"episodes": episodes}
         for k, v in raw.items():

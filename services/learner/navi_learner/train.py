@@ -24,6 +24,7 @@ from navi_learner.checkpoint import (
     save_checkpoint,
 )
 from navi_learner.config import TrainConfig, resolve, storage_dtype
+from navi_learner.dist import Dist, Sync, write_debug
 from navi_learner.gae import bootstrap_truncated, gae
 from navi_learner.memory import EpisodicMemory
 from navi_learner.policy import CognitiveMambaPolicy
@@ -112,16 +113,18 @@ def collect(
     cfg: TrainConfig,
     carry: tuple[torch.Tensor, torch.Tensor, CoreState],
     timers: StageTimers,
+    sync: Sync | None = None,
 ) -> tuple[tuple[torch.Tensor, torch.Tensor, CoreState], torch.Tensor]:
     """Fill the storage with one rollout; returns the new (obs, resets, state) carry and the mean
-    extrinsic reward per actor-step (a device scalar)."""
+    extrinsic reward per actor-step (a device scalar). With `sync` the RND normaliser follows every
+    rank's actors (3 numbers all-reduced per step)."""
     obs, resets, state = carry
     ext_sum = torch.zeros((), device=env.device)  # () float32
     for t in range(buf.t_len):
         with timers("forward"), torch.no_grad():
             buf.store_state(t, state)
             out = policy.act(obs, resets, state)
-            novelty = policy.rnd.intrinsic(out.emb)  # (N,)
+            novelty = policy.rnd.intrinsic(out.emb, None if sync is None else sync.sum_)  # (N,)
             loop = memory.step(out.emb, resets)  # (N,)
             intrinsic = cfg.ppo.intrinsic_rnd_weight * novelty - cfg.ppo.intrinsic_episodic_weight * loop
             buf.obs[t].copy_(obs)
@@ -166,9 +169,15 @@ def update(
     cfg: TrainConfig,
     gen: torch.Generator,
     logger: logging.Logger | None = None,
+    sync: Sync | None = None,
 ) -> tuple[dict[str, torch.Tensor], int]:
     """PPO epochs over sequence minibatches. A non-finite loss or gradient norm skips that optimizer
-    step (one host read per minibatch) and is counted. Returns mean metrics (device) and the skip count."""
+    step (one host read per minibatch) and is counted. Returns mean metrics (device) and the skip count.
+
+    With `sync` (a data-parallel run, equal minibatches on every rank) the advantages are normalised
+    over the union of the ranks' minibatches and the gradients averaged over ranks before clipping (one
+    all-reduce of a flat buffer that carries the non-finite-loss flags too): a step on W ranks is a
+    single-process step on the union, and every rank takes the same skip decision."""
     p = cfg.ppo
     params = [q for q in policy.parameters() if q.requires_grad]
     sums: dict[str, torch.Tensor] = {}
@@ -176,10 +185,13 @@ def update(
     for _ in range(p.ppo_epochs):
         for mb in buf.minibatches(p.num_minibatches, gen):
             ev = policy.evaluate(mb.obs, mb.resets, mb.state, mb.actions)
+            adv, norm_adv = mb.advantages, p.norm_adv  # (L, M)
+            if sync is not None and p.norm_adv:
+                adv, norm_adv = sync.normalize(mb.advantages), False  # (L, M) over all ranks
             loss, metrics = ppo_loss(
                 ev.logp,
                 mb.logp,
-                mb.advantages,
+                adv,
                 ev.value,
                 mb.values,
                 mb.returns,
@@ -188,14 +200,20 @@ def update(
                 value_clip_coef=p.value_clip_coef,
                 vf_coef=p.vf_coef,
                 ent_coef=p.ent_coef,
-                norm_adv=p.norm_adv,
+                norm_adv=norm_adv,
             )
             rnd_loss = policy.rnd.loss(ev.emb)
             total = loss + p.rnd_coef * rnd_loss
             optimizer.zero_grad(set_to_none=True)
             total.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(params, p.max_grad_norm)
-            if bool(torch.isfinite(total) & torch.isfinite(grad_norm)):
+            if sync is None:
+                grad_norm = torch.nn.utils.clip_grad_norm_(params, p.max_grad_norm)
+                ok = torch.isfinite(total) & torch.isfinite(grad_norm)  # () bool
+            else:
+                some_loss_bad = sync.average_grads(total)  # () bool, the same on every rank
+                grad_norm = torch.nn.utils.clip_grad_norm_(params, p.max_grad_norm)
+                ok = ~some_loss_bad & torch.isfinite(grad_norm)  # () bool
+            if bool(ok):
                 optimizer.step()
             else:
                 skipped += 1
@@ -206,6 +224,12 @@ def update(
                 sums[k] = sums.get(k, torch.zeros((), device=v.device)) + v  # () float32
             count += 1
     return {k: v / max(count, 1) for k, v in sums.items()}, skipped
+
+
+def scene_names(env: BatchedEnv) -> list[str]:
+    """Names of the scenes an env flies (the drone env's corpus), [] for the toy env."""
+    infos = getattr(getattr(env, "corpus", None), "infos", None) or []
+    return [str(getattr(info, "name", "")) for info in infos]
 
 
 def train(
@@ -220,19 +244,34 @@ def train(
     run_id: str | None = None,
     progress: bool | None = None,
     monitor: Monitor | None = None,
+    dist: Dist | None = None,
+    should_stop: Callable[[], bool] | None = None,
 ) -> TrainResult:
     """Train until cfg.total_steps, cfg.time_limit_s of training time, the monitor says stop (final
-    checkpoint each time), or Ctrl+C (checkpoint first, then return)."""
+    checkpoint each time), or Ctrl+C (checkpoint first, then return).
+
+    `should_stop` is polled once per update and ends the run like Ctrl+C. With `dist` (a rank of a
+    data-parallel run, dist.py) every rank calls this with its own env of cfg.n_actors actors; the
+    ranks agree on stopping once per update, steps count every rank's actors, and rank 0 alone writes
+    (checkpoints, metrics, TensorBoard, manifest, report, registry) and runs the monitor."""
+    d = dist or Dist()
     device = env.device
     cfg = resolve(replace(cfg, n_actors=cfg.n_actors or env.n_actors, device=str(device)), env.obs_shape)
     if cfg.n_actors != env.n_actors:
         raise ValueError(f"config asks for {cfg.n_actors} actors but the env has {env.n_actors}")
     torch.manual_seed(cfg.seed)
+    rank_seed = cfg.seed + d.rank  # env resets, action sampling and minibatch order differ per rank
     run_id = run_id or new_run_id()
-    run = RunFiles(run_dir or Path("artifacts/runs") / run_id, run_id, on_log)
+    root = run_dir or Path("artifacts/runs") / run_id
     policy = CognitiveMambaPolicy(env.obs_shape, cfg.engine).to(device)
     policy.amp = cfg.amp and device.type == "cuda"
-    optimizer = torch.optim.Adam([q for q in policy.parameters() if q.requires_grad], lr=cfg.ppo.lr, eps=1e-5)
+    params = [q for q in policy.parameters() if q.requires_grad]
+    optimizer = torch.optim.Adam(params, lr=cfg.ppo.lr, eps=1e-5)
+    sync = Sync(d, params, device) if d.active else None
+    if sync is not None:
+        run_id, root = sync.broadcast_object((run_id, root))
+        monitor = monitor if d.main else None
+    run = RunFiles(root, run_id, on_log, write=d.main)
     st = TrainState()
     if resume_from is not None:
         ckpt = load_checkpoint(resume_from, device)
@@ -245,18 +284,23 @@ def train(
             optimizer.load_state_dict(ckpt.optimizer)
         m = ckpt.meta
         st = TrainState(m.step_id, m.episode_count, m.reward_ema, m.wall_time_hours, 0, str(resume_from))
+    manifest: dict[str, Any] = {
+        "config": cfg.to_dict(),
+        "obs_shape": list(env.obs_shape),
+        "device": str(device),
+        "resume_from": st.parent_checkpoint,
+        "corpus_summary": corpus_summary or {},
+    }
+    if sync is not None:
+        sync.broadcast_module(policy)  # identical replicas, fresh or resumed
+        torch.manual_seed(rank_seed)
+        ranks = sync.gather_object(
+            {"rank": d.rank, "seed": rank_seed, "device": str(device), "scenes": scene_names(env)}
+        )
+        manifest.update(world_size=d.world, actors_per_rank=cfg.n_actors, ranks=ranks)
     if cfg.compile and device.type == "cuda":
         policy.encoder.compile(dynamic=False)
-    run.write_manifest(
-        "run",
-        {
-            "config": cfg.to_dict(),
-            "obs_shape": list(env.obs_shape),
-            "device": str(device),
-            "resume_from": st.parent_checkpoint,
-            "corpus_summary": corpus_summary or {},
-        },
-    )
+    run.write_manifest("run", manifest)
     run.logger.info(f"start: {cfg.n_actors} actors, T={cfg.rollout_length}, core={cfg.engine.temporal_core}")
     shaping_gamma = getattr(getattr(getattr(env, "config", None), "reward", None), "shaping_gamma", None)
     if shaping_gamma is not None and abs(shaping_gamma - cfg.ppo.gamma) > 1e-9:
@@ -278,13 +322,14 @@ def train(
     )
     stats = EpisodeStats(cfg.n_actors, device)
     timers = StageTimers(cfg.sync_timers and device.type == "cuda")
-    gen = torch.Generator().manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(rank_seed)
     ema = torch.full((), st.reward_ema, device=device)  # () float32
     fresh_ema = resume_from is None
-    first_obs = env.reset(seed=cfg.seed)  # (N, 3, Az, El)
+    first_obs = env.reset(seed=rank_seed)  # (N, 3, Az, El)
     starts = torch.ones(cfg.n_actors, dtype=torch.bool, device=device)  # (N,) every actor starts an episode
     carry = (first_obs, starts, policy.initial_state(cfg.n_actors, device))
-    bar = Progress(cfg.total_steps, progress, cfg.time_limit_s)
+    bar = Progress(cfg.total_steps, progress if d.main else False, cfg.time_limit_s)
+    per_update = buf.t_len * buf.n * d.world  # env steps of one update, all ranks
     start_step, t_start, t_window, steps_window = st.step_id, time.perf_counter(), time.perf_counter(), 0
     paused = 0.0  # seconds spent in the monitor, not training
     next_ckpt = (st.step_id // cfg.checkpoint_every + 1) * cfg.checkpoint_every
@@ -295,11 +340,15 @@ def train(
 
     def sync_state() -> None:
         st.reward_ema = float(ema)
-        st.episode_count = base_episodes + int(stats.episodes_total)
+        episodes = stats.episodes_total if sync is None else sync.sum_(stats.episodes_total.clone())  # ()
+        st.episode_count = base_episodes + int(episodes)
         st.wall_time_hours = base_hours + (time.perf_counter() - t_start) / 3600.0
 
     def checkpoint() -> Path:
         sync_state()
+        path = run.checkpoints / checkpoint_name(st.step_id)
+        if not d.main:
+            return path
         meta = CheckpointMeta(
             step_id=st.step_id,
             episode_count=st.episode_count,
@@ -312,9 +361,7 @@ def train(
             parent_checkpoint=st.parent_checkpoint,
             corpus_summary=corpus_summary or {},
         )
-        path = save_checkpoint(
-            run.checkpoints / checkpoint_name(st.step_id), policy.state_dict(), optimizer.state_dict(), meta
-        )
+        save_checkpoint(path, policy.state_dict(), optimizer.state_dict(), meta)
         prune_checkpoints(run.checkpoints, cfg.keep_checkpoints)
         run.logger.info(f"checkpoint {path}")
         return path
@@ -324,19 +371,16 @@ def train(
 
     interrupted, stopped = False, False
     try:
-        while st.step_id < cfg.total_steps and not stopped:
+        while st.step_id < cfg.total_steps and not stopped and not interrupted:
             policy.eval()
-            carry, ext_mean = collect(policy, env, buf, memory, stats, cfg, carry, timers)
+            carry, ext_mean = collect(policy, env, buf, memory, stats, cfg, carry, timers, sync)
             with timers("learn"):
                 advantages(policy, buf, cfg, carry)
                 policy.train()
-                metrics, skipped = update(policy, optimizer, buf, cfg, gen, run.logger)
+                metrics, skipped = update(policy, optimizer, buf, cfg, gen, run.logger, sync)
             st.skipped_updates += skipped
-            decay = 0.0 if fresh_ema else cfg.ppo.reward_ema_decay
-            ema = decay * ema + (1 - decay) * ext_mean
-            fresh_ema = False
-            st.step_id += buf.t_len * buf.n
-            steps_window += buf.t_len * buf.n
+            st.step_id += per_update
+            steps_window += per_update
             updates += 1
             if monitor is not None:
                 t_call = time.perf_counter()
@@ -346,10 +390,19 @@ def train(
                 t_window += spent
             if cfg.time_limit_s > 0 and train_seconds() >= cfg.time_limit_s:
                 stopped = True
+            if should_stop is not None and should_stop():
+                interrupted = True
+                run.logger.warning("stop requested: saving a checkpoint")
+            if sync is not None:
+                interrupted, stopped, ext_mean = sync.agree(interrupted, stopped, ext_mean)
+            decay = 0.0 if fresh_ema else cfg.ppo.reward_ema_decay
+            ema = decay * ema + (1 - decay) * ext_mean
+            fresh_ema = False
             if updates % cfg.log_every == 0 or st.step_id >= cfg.total_steps or stopped:
                 now = time.perf_counter()
                 sps = steps_window / (now - t_window)
                 sync_state()
+                metrics = metrics if sync is None else sync.mean(metrics)  # averaged over ranks
                 row = {
                     "step": float(st.step_id),
                     "train_s": train_seconds(),
@@ -358,8 +411,8 @@ def train(
                     "episode_count": float(st.episode_count),
                     "skipped_updates": float(st.skipped_updates),
                     **{k: float(v) for k, v in metrics.items()},
-                    **stats.read(),
-                    **timers.read(steps_window // buf.n),
+                    **stats.read(None if sync is None else sync.sum_),
+                    **timers.read(steps_window // (buf.n * d.world)),
                 }
                 run.log_metrics(row)
                 status = monitor.status if monitor is not None else ""
@@ -367,10 +420,12 @@ def train(
                     st.step_id, sps, train_seconds(), f"reward_ema {st.reward_ema:+.3f} {status}".rstrip()
                 )
                 t_window, steps_window = now, 0
-            if st.step_id >= next_ckpt and st.step_id < cfg.total_steps and not stopped:
+            if st.step_id >= next_ckpt and st.step_id < cfg.total_steps and not (stopped or interrupted):
                 latest = checkpoint()
                 next_ckpt += cfg.checkpoint_every
     except KeyboardInterrupt:
+        if sync is not None:
+            raise  # mid-collective: this rank cannot checkpoint with the others (signals set a flag instead)
         interrupted = True
         run.logger.warning("interrupted: saving a checkpoint")
     bar.close()
@@ -378,7 +433,7 @@ def train(
     elapsed = time.perf_counter() - t_start
     sps_total = (st.step_id - start_step) / max(elapsed, 1e-9)
     promoted = None
-    if registry is not None and not interrupted:
+    if registry is not None and not interrupted and d.main:
         entry = registry.maybe_promote(
             latest, notes=f"auto-promote of run {run_id}", tags=("rl", cfg.engine.temporal_core)
         )
@@ -400,8 +455,13 @@ def train(
         "rollout length": cfg.rollout_length,
         "device": str(device),
     }
+    if sync is not None:
+        summary["ranks"] = d.world
     report = write_report(run, summary)
     run.logger.info(f"done: {summary}")
+    write_debug(d, policy, optimizer, st.step_id)
+    if sync is not None:
+        sync.barrier()  # no rank leaves before rank 0's checkpoint and report are on disk
     run.close()
     return TrainResult(
         run_id,

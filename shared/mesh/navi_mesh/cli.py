@@ -342,22 +342,39 @@ def serve_learner(
     exit_when_done: Annotated[
         bool, typer.Option("--exit-when-done", help="Exit after the run instead of serving until stopped.")
     ] = False,
+    nproc: Annotated[
+        int,
+        typer.Option(
+            "--nproc",
+            min=1,
+            help="train: data-parallel ranks on this machine, one per GPU (runs again through torchrun; "
+            "rank 0 serves, every rank trains --actors actors).",
+        ),
+    ] = 1,
     connect: ConnectOpt = None,
     zenoh_config: ZenohConfigOpt = None,
 ) -> None:
     """Training or inference in-process, publishing telemetry, with the REST control plane."""
+    from navi_learner import dist
     from navi_learner.cli import train_config
     from navi_learner.service import LearnerServiceConfig
     from navi_learner.service import serve_learner as serve
 
     if mode not in ("train", "infer"):
         raise typer.BadParameter(f"--mode must be train or infer, got {mode!r}")
+    if nproc > 1 and mode != "train":
+        raise typer.BadParameter("--nproc > 1 needs --mode train (inference is one process)")
+    if nproc > 1 and not dist.launched():
+        raise typer.Exit(dist.relaunch(nproc, dist.strip_option(sys.argv[1:], "--nproc")))
     if env_kind not in ("sdfdag", "toy"):
         raise typer.BadParameter(f"--env must be sdfdag or toy, got {env_kind!r}")
     if corpus_build not in ("jobs", "local"):
         raise typer.BadParameter(f"--corpus-build must be jobs or local, got {corpus_build!r}")
     settings = _settings()
-    dev = _device(device)
+    try:
+        rank, dev = dist.setup(_device(device))
+    except ValueError as err:
+        raise fail(str(err)) from err
     train = train_config(
         actors, temporal_core, rollout_length, 1, 5e-4, total_steps, checkpoint_every, dev, seed
     )
@@ -387,10 +404,15 @@ def serve_learner(
     from navi_learner.envs import EnvUnavailable
     from navi_mesh.corpus_jobs import CorpusBuildError
 
-    summary = run_service(
-        lambda stop: serve(cfg, stop), interrupt=True, errors=(EnvUnavailable, CorpusBuildError, CorpusError)
-    )
-    if summary is not None:
+    try:
+        summary = run_service(
+            lambda stop: serve(cfg, stop, rank),
+            interrupt=not rank.active,  # ranks stop together after an update, never mid-collective
+            errors=(EnvUnavailable, CorpusBuildError, CorpusError, dist.DistError),
+        )
+    finally:
+        dist.shutdown(rank)
+    if summary is not None and rank.main:
         typer.echo(json.dumps(summary, default=str))
 
 
@@ -471,7 +493,10 @@ def _print_status(cfg_root: Path, connect: tuple[str, ...], as_json: bool, timeo
 @stack_app.command("up")
 def stack_up(
     corpus: CorpusOpt = Path("artifacts/corpus/default"),
-    actors: Annotated[int, typer.Option("--actors", min=1, help="Learner actors.")] = 4,
+    actors: Annotated[int, typer.Option("--actors", min=1, help="Learner actors (per rank).")] = 4,
+    nproc: Annotated[
+        int, typer.Option("--nproc", min=1, help="Learner data-parallel ranks, one per GPU (DD-PPO).")
+    ] = 1,
     env_actors: Annotated[int, typer.Option("--env-actors", min=1, help="Env-service actors.")] = 2,
     device: Annotated[
         str,
@@ -526,6 +551,7 @@ def stack_up(
         corpus_resolution=corpus_resolution or settings.gmdag_resolution,
         compiler_workers=compiler_workers,
         actors=actors,
+        nproc=nproc,
         env_actors=env_actors,
         device=device,
         auditor=auditor,

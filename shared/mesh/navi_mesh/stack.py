@@ -65,7 +65,9 @@ class StackConfig:
     compiler_workers: int = 1
     """Compile worker threads (each takes one job at a time)."""
     actors: int = 4
-    """Learner actors."""
+    """Learner actors (per rank with nproc > 1)."""
+    nproc: int = 1
+    """Learner data-parallel ranks, one per GPU (`navi serve learner --nproc`)."""
     env_actors: int = 2
     """Env-service actors (for an external brain)."""
     device: str = "auto"
@@ -161,6 +163,7 @@ def service_specs(cfg: StackConfig, with_auditor: bool) -> list[ServiceSpec]:
                 cfg.host,
                 "--port",
                 str(cfg.api_port),
+                *(("--nproc", str(cfg.nproc)) if cfg.nproc > 1 else ()),
             ),
         ),
     ]
@@ -260,7 +263,8 @@ def start(spec: ServiceSpec, root: Path, env: dict[str, str]) -> ProcessState:
 
 
 def stop_all(root: Path, grace_s: float = 20.0) -> list[ProcessState]:
-    """SIGTERM every running service (reverse start order), SIGKILL after grace_s; remove pid files."""
+    """SIGTERM every running service (reverse start order), SIGKILL after grace_s to the service's process
+    group (its own session: a multi-GPU learner's torchrun and ranks go with it); remove pid files."""
     states = read_states(root)
     for st in reversed(states):
         if st.running:
@@ -270,7 +274,10 @@ def stop_all(root: Path, grace_s: float = 20.0) -> list[ProcessState]:
         time.sleep(0.1)
     for st in states:
         if is_running(st.pid):
-            os.kill(st.pid, signal.SIGKILL)
+            try:
+                os.killpg(st.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                os.kill(st.pid, signal.SIGKILL)
     for st in states:
         pid_file(root, st.name).unlink(missing_ok=True)
     return [ProcessState(st.name, st.pid, is_running(st.pid), st.started_at, st.log) for st in states]

@@ -1,0 +1,345 @@
+"""Synchronous data-parallel PPO (DD-PPO) over torch.distributed: one process per device.
+
+Launched by torchrun (`torchrun --standalone --nproc-per-node N -m navi train ...`, or `navi train
+--nproc N`, which runs exactly that). Each rank owns its actors, its share of the corpus scenes
+(scenes[rank::world]), its env, rollout storage and engine copy on its own device (cuda:LOCAL_RANK, or
+the CPU). What crosses ranks, and when:
+- start: the run id and folder, then every parameter and buffer of rank 0 (broadcast; after a resume
+  too), so all replicas start identical;
+- every env step: the RND error's sum, sum of squares and count (3 numbers), so the novelty normaliser
+  is the one running estimate a single process would keep over all actors;
+- every minibatch: the advantages' sum, sum of squares and count (global normalisation), then ONE flat
+  buffer holding every gradient and a non-finite-loss flag (a sum: the skip decision is the same on
+  every rank);
+- every update: the stop flags (max: a signal on any rank, a time limit, a monitor) and the mean
+  extrinsic reward;
+- every log row and checkpoint: the episode statistics (sums).
+With world size 1 there is no process group and none of these calls are made.
+
+Collectives fail after NAVI_DIST_TIMEOUT_S seconds (default 120): gloo raises, and the error becomes a
+DistError naming the timeout; NCCL's watchdog tears the process down (TORCH_NCCL_ASYNC_ERROR_HANDLING=1,
+set here unless already set). NAVI_DIST_DEBUG_DIR makes every rank write a hash of its replica there at
+the end of a run (the only file a rank other than 0 writes; for tests of replica consistency).
+"""
+
+from __future__ import annotations
+
+import gc
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from datetime import timedelta
+from pathlib import Path
+from types import FrameType
+from typing import Any, TypeVar
+
+import torch
+import torch.distributed as tdist
+from torch import nn
+
+TIMEOUT_ENV = "NAVI_DIST_TIMEOUT_S"
+"""Seconds a collective may wait for the other ranks before the run fails."""
+DEBUG_DIR_ENV = "NAVI_DIST_DEBUG_DIR"
+"""Folder where every rank writes rank<r>.json (replica hashes) at the end of a run."""
+DEFAULT_TIMEOUT_S = 120.0
+
+T = TypeVar("T")
+
+
+class DistError(RuntimeError):
+    """A collective failed: a peer rank died, or did not answer within the timeout."""
+
+
+@dataclass(frozen=True)
+class Dist:
+    """This process's place in a data-parallel run; the default is a plain single-process run."""
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+    timeout_s: float = DEFAULT_TIMEOUT_S
+
+    @property
+    def active(self) -> bool:
+        """More than one rank: there is a process group."""
+        return self.world > 1
+
+    @property
+    def main(self) -> bool:
+        """Rank 0, the only rank that writes files (checkpoints, metrics, reports, registry)."""
+        return self.rank == 0
+
+
+def launched() -> bool:
+    """This process was started by torchrun (or another launcher that sets WORLD_SIZE)."""
+    return "WORLD_SIZE" in os.environ
+
+
+def timeout_from_env() -> float:
+    """NAVI_DIST_TIMEOUT_S as seconds (default 120)."""
+    raw = os.environ.get(TIMEOUT_ENV, "").strip()
+    try:
+        value = float(raw) if raw else DEFAULT_TIMEOUT_S
+    except ValueError as err:
+        raise ValueError(f"{TIMEOUT_ENV}={raw!r} is not a number of seconds") from err
+    if value <= 0:
+        raise ValueError(f"{TIMEOUT_ENV} must be positive, got {value}")
+    return value
+
+
+def rank_device(device: str, local_rank: int) -> str:
+    """One device per rank: any CUDA device becomes cuda:LOCAL_RANK; the CPU stays the CPU."""
+    return f"cuda:{local_rank}" if device.startswith("cuda") else device
+
+
+def setup(device: str) -> tuple[Dist, str]:
+    """Join the process group torchrun describes (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR/PORT):
+    gloo on the CPU, NCCL on CUDA, collectives failing after NAVI_DIST_TIMEOUT_S. Returns this rank's
+    Dist and device. Without a launcher, or with WORLD_SIZE 1: Dist() and `device`, no process group."""
+    limit = timeout_from_env()
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return Dist(timeout_s=limit), device
+    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    dev = rank_device(device, local)
+    if dev.startswith("cuda"):
+        if local >= torch.cuda.device_count():
+            raise ValueError(
+                f"rank {rank} needs GPU cuda:{local} but this machine has {torch.cuda.device_count()} "
+                "(one rank per GPU: lower --nproc / --nproc-per-node)"
+            )
+        os.environ.setdefault("TORCH_NCCL_ASYNC_ERROR_HANDLING", "1")
+        torch.cuda.set_device(dev)
+    backend = "nccl" if dev.startswith("cuda") else "gloo"
+    tdist.init_process_group(backend, timeout=timedelta(seconds=limit))
+    return Dist(rank, world, local, limit), dev
+
+
+def shutdown(d: Dist) -> None:
+    """Leave the process group (no-op for a single process). The garbage is collected right away: a
+    process group still reachable from a reference cycle would otherwise be freed during interpreter
+    shutdown, where gloo aborts the process ("terminate called without an active exception")."""
+    if d.active and tdist.is_initialized():
+        tdist.destroy_process_group()
+        gc.collect()
+
+
+def collective(d: Dist, what: str, call: Callable[[], T]) -> T:
+    """Run one collective; a backend failure becomes a DistError that names the rank and the timeout."""
+    try:
+        return call()
+    except RuntimeError as err:
+        raise DistError(
+            f"rank {d.rank} of {d.world}: {what} failed: a peer rank died or did not answer within "
+            f"{TIMEOUT_ENV}={d.timeout_s:g} s ({str(err).splitlines()[0] if str(err) else type(err).__name__})"
+        ) from err
+
+
+class Sync:
+    """The collectives of one data-parallel run on `device`; the gradient buffer is allocated once."""
+
+    def __init__(self, d: Dist, params: list[nn.Parameter], device: torch.device) -> None:
+        if not d.active:
+            raise ValueError("Sync needs a process group (world size > 1)")
+        if any(p.dtype != torch.float32 for p in params):
+            raise ValueError("the flat gradient buffer holds float32 parameters only")
+        self.d, self.params, self.device = d, params, device
+        sizes = [p.numel() for p in params]
+        self.flat = torch.zeros(sum(sizes) + 1, device=device)  # (P + 1,) float32 gradients, then the flag
+        self.views = list(self.flat[:-1].split(sizes))  # each (numel_i,) float32, a view into flat
+
+    def _all_reduce(self, what: str, t: torch.Tensor, op: Any = tdist.ReduceOp.SUM) -> torch.Tensor:
+        collective(self.d, what, lambda: tdist.all_reduce(t, op=op))
+        return t
+
+    def sum_(self, t: torch.Tensor) -> torch.Tensor:
+        """Sum t over ranks, in place; returns t."""
+        return self._all_reduce("all-reduce", t)
+
+    def barrier(self) -> None:
+        """Wait for every rank (an all-reduce of one number: the same on gloo and NCCL)."""
+        self._all_reduce("barrier", torch.zeros(1, device=self.device))  # (1,) float32
+
+    def mean(self, values: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Each () tensor of `values` averaged over ranks (one all-reduce; the same keys on every rank)."""
+        names = sorted(values)
+        if not names:
+            return {}
+        stacked = self.sum_(torch.stack([values[k].detach().float() for k in names])) / self.d.world  # (K,)
+        return dict(zip(names, stacked.unbind(), strict=True))
+
+    def average_grads(self, loss: torch.Tensor) -> torch.Tensor:
+        """One all-reduce of every gradient and of a non-finite-loss flag, gradients divided by the world
+        size in place; returns () bool: some rank's loss was non-finite (the same on every rank)."""
+        for view, p in zip(self.views, self.params, strict=True):
+            if p.grad is None:
+                view.zero_()
+            else:
+                view.copy_(p.grad.reshape(-1))
+        self.flat[-1:].copy_((~torch.isfinite(loss.detach())).float().reshape(1))
+        self._all_reduce("gradient all-reduce", self.flat)
+        self.flat[:-1].div_(self.d.world)
+        for view, p in zip(self.views, self.params, strict=True):
+            if p.grad is not None:
+                p.grad.copy_(view.view_as(p))
+        return self.flat[-1] > 0  # () bool
+
+    def normalize(self, x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+        """x normalised over the union of every rank's x: zero mean, unit population std (ppo.normalize
+        on the global batch). Moments in float64; one all-reduce of 3 numbers."""
+        mean, var = pooled_moments(x, self.sum_)  # () float64 each
+        return (x - mean.float()) / (var.sqrt().float() + eps)  # same shape as x
+
+    def agree(self, interrupt: bool, stop: bool, ext_mean: torch.Tensor) -> tuple[bool, bool, torch.Tensor]:
+        """Once per update: any rank's interrupt / stop flag (max) and the mean extrinsic reward over
+        ranks. The flags are read on the host (the one sync of the update)."""
+        flags = torch.tensor([float(interrupt), float(stop)], device=self.device)  # (2,) float32
+        self._all_reduce("stop-flag all-reduce", flags, tdist.ReduceOp.MAX)
+        mean = self.sum_(ext_mean.detach().clone().reshape(1)) / self.d.world  # (1,) float32
+        got = flags.tolist()
+        return got[0] > 0, got[1] > 0, mean[0]
+
+    def broadcast_module(self, module: nn.Module) -> None:
+        """Every parameter and buffer of rank 0's module into this rank's (bool buffers as uint8)."""
+        with torch.no_grad():
+            for t in [*module.parameters(), *module.buffers()]:
+                tmp = t.to(torch.uint8) if t.dtype == torch.bool else t.data  # same shape as t
+                self._broadcast(tmp)
+                if t.dtype == torch.bool:
+                    t.copy_(tmp.bool())
+
+    def _broadcast(self, t: torch.Tensor) -> None:
+        collective(self.d, "parameter broadcast", lambda: tdist.broadcast(t, src=0))
+
+    def broadcast_object(self, obj: T) -> T:
+        """Rank 0's picklable object."""
+        box = [obj]
+        collective(self.d, "broadcast", lambda: tdist.broadcast_object_list(box, src=0))
+        return box[0]
+
+    def gather_object(self, obj: T) -> list[T]:
+        """Every rank's picklable object, in rank order (on every rank)."""
+        out: list[Any] = [None] * self.d.world
+        collective(self.d, "gather", lambda: tdist.all_gather_object(out, obj))
+        return out
+
+
+def pooled_moments(
+    x: torch.Tensor, reduce: Callable[[torch.Tensor], torch.Tensor]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and population variance () float64 of the union of every rank's x (any shape); `reduce`
+    sums a tensor over ranks in place (Sync.sum_)."""
+    v = x.detach().double().reshape(-1)  # (n,) float64
+    count = torch.full((), float(v.numel()), dtype=torch.float64, device=x.device)  # () float64
+    stats = reduce(torch.stack([v.sum(), v.pow(2).sum(), count]))  # (3,) float64 summed over ranks
+    mean = stats[0] / stats[2]  # () float64
+    return mean, (stats[1] / stats[2] - mean.pow(2)).clamp(min=0.0)
+
+
+class StopSignals:
+    """SIGINT and SIGTERM only record that they came (no KeyboardInterrupt inside a collective); the
+    training loop polls `requested` once per update and the ranks agree on it (max)."""
+
+    def __init__(self) -> None:
+        self.received = 0
+
+    def install(self) -> StopSignals:
+        """Take over SIGINT and SIGTERM for the rest of the process (main thread only; else a no-op)."""
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, self._on_signal)
+        return self
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        self.received = signum
+
+    def requested(self) -> bool:
+        return self.received != 0
+
+
+def replica_digest(module: nn.Module, optimizer: torch.optim.Optimizer) -> dict[str, str]:
+    """sha256 of every parameter and buffer (in name order), and of the optimizer state."""
+
+    def digest(items: Iterable[tuple[str, torch.Tensor]]) -> str:
+        h = hashlib.sha256()
+        for name, t in items:
+            h.update(name.encode())
+            h.update(t.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+        return h.hexdigest()
+
+    state = optimizer.state_dict()["state"]
+    opt_items = [
+        (f"{i}.{k}", v) for i in sorted(state) for k, v in sorted(state[i].items()) if torch.is_tensor(v)
+    ]
+    return {"model": digest(sorted(module.state_dict().items())), "optimizer": digest(opt_items)}
+
+
+def write_debug(d: Dist, module: nn.Module, optimizer: torch.optim.Optimizer, step_id: int) -> Path | None:
+    """With NAVI_DIST_DEBUG_DIR set: rank<r>.json there with this replica's hashes; else nothing."""
+    folder = os.environ.get(DEBUG_DIR_ENV, "")
+    if not folder:
+        return None
+    path = Path(folder) / f"rank{d.rank}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    body = {"rank": d.rank, "world": d.world, "step_id": step_id, **replica_digest(module, optimizer)}
+    path.write_text(json.dumps(body))
+    return path
+
+
+def strip_option(argv: list[str], name: str) -> list[str]:
+    """argv without `name VALUE` / `name=VALUE`."""
+    out: list[str] = []
+    skip = False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == name:
+            skip = True
+        elif not arg.startswith(f"{name}="):
+            out.append(arg)
+    return out
+
+
+def entry_argv() -> list[str]:
+    """How torchrun starts this program again: `-m navi`, or the script that is running (e.g.
+    tests/navi_device.py on a GPU host without the service packages)."""
+    script = Path(sys.argv[0])
+    if script.suffix == ".py" and script.name != "__main__.py":
+        return [str(script)]
+    return ["-m", "navi"]
+
+
+def torchrun_argv(nproc: int, args: list[str]) -> list[str]:
+    """`python -m torch.distributed.run --standalone --nproc-per-node N <entry> args`."""
+    return [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        f"--nproc-per-node={nproc}",
+        *entry_argv(),
+        *args,
+    ]
+
+
+def relaunch(nproc: int, args: list[str], env: dict[str, str] | None = None) -> int:
+    """Run `args` (this program's arguments without --nproc) on nproc ranks through torchrun; returns
+    its exit code. Ctrl+C reaches torchrun and the ranks from the terminal, so this process ignores
+    SIGINT while it waits; SIGTERM is passed on to torchrun, which passes it on to the ranks."""
+    proc = subprocess.Popen(torchrun_argv(nproc, args), env=env)
+    main = threading.current_thread() is threading.main_thread()
+    previous = {}
+    if main:
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, lambda s, f: proc.send_signal(s))
+    try:
+        return proc.wait()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -1,0 +1,315 @@
+"""Synchronous data-parallel PPO (DD-PPO) on the CPU with gloo: replicas stay bit-identical and rank 0
+alone writes; one update on 2 ranks is one single-process update on the union of their batches; a
+2-rank checkpoint resumes on 1 rank and a 1-rank checkpoint on 2; a SIGKILLed rank ends the run with
+an error naming the timeout, a SIGTERMed rank stops both with one final checkpoint; `navi bench train
+--nproc 2` reports per-rank, total SPS and the scaling efficiency."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+import torch.distributed as tdist
+import typer
+
+from navi_learner.checkpoint import load_checkpoint
+from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.dist import Dist, setup, strip_option
+from navi_learner.ppo import normalize
+from navi_learner.toy_env import ToyEnv
+from navi_learner.train import train, update
+
+ROOT = Path(__file__).resolve().parents[2]
+ACTORS, ROLLOUT = 4, 32  # per rank, in the CLI runs
+PER_RANK_UPDATE = ACTORS * ROLLOUT
+TRAIN_ARGS = ["--env", "toy", "--device", "cpu", "--actors", str(ACTORS), "--rollout-length", str(ROLLOUT),
+              "--temporal-core", "gru"]  # fmt: skip
+
+
+def navi_env(**extra: str) -> dict[str, str]:
+    """This checkout's packages first on the path (the ranks are fresh interpreters)."""
+    paths = [ROOT, *(ROOT / p for p in ("services/compiler", "services/env", "services/learner"))]
+    paths += [ROOT / "services/auditor", ROOT / "shared/contracts", ROOT / "shared/mesh"]
+    path = os.pathsep.join([*map(str, paths), os.environ.get("PYTHONPATH", "")])
+    return {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": "1", **extra}
+
+
+TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
+
+
+def torchrun(*args: str) -> list[str]:
+    return [*TORCHRUN, "-m", "navi", *args]
+
+
+def run_folder(cwd: Path) -> Path:
+    (run,) = (cwd / "artifacts" / "runs").iterdir()
+    return run
+
+
+def rank_pids(root: int) -> dict[int, int]:
+    """RANK -> pid of the torchrun workers below process `root`."""
+    found: dict[int, int] = {}
+    todo = [root]
+    while todo:
+        pid = todo.pop()
+        try:
+            children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+            env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        todo += [int(c) for c in children]
+        for item in env:
+            if item.startswith(b"RANK=") and pid != root:
+                found[int(item[5:])] = pid
+    return found
+
+
+def start_long_run(
+    cwd: Path, *extra: str, timeout_s: str = "20", wrapper: bool = False
+) -> subprocess.Popen[str]:
+    """A 2-rank run with a budget it never reaches, once both ranks train (rank 0 logged a row)."""
+    args = ["train", *TRAIN_ARGS, "--total-steps", "100000000", "--checkpoint-every", "1000000000", *extra]
+    cmd = [sys.executable, "-m", "navi", *args, "--nproc", "2"] if wrapper else torchrun(*args)
+    env = navi_env(NAVI_DIST_TIMEOUT_S=timeout_s)
+    proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not list(cwd.glob("artifacts/runs/*/metrics/metrics.jsonl")):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    return proc
+
+
+@pytest.fixture(scope="module")
+def two_rank_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """4 updates of 2 ranks x 4 actors x 32 steps, a periodic checkpoint at 512, debug hashes."""
+    cwd = tmp_path_factory.mktemp("two")
+    args = torchrun("train", *TRAIN_ARGS, "--total-steps", "1024", "--checkpoint-every", "512", "--fresh")
+    env = navi_env(NAVI_DIST_DEBUG_DIR=str(cwd / "debug"))
+    out = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr[-3000:]
+    (cwd / "stdout.txt").write_text(out.stdout)
+    return cwd
+
+
+def test_two_ranks_hold_bit_identical_replicas_and_rank_0_alone_writes(two_rank_run: Path) -> None:
+    cwd = two_rank_run
+    ranks = [json.loads((cwd / "debug" / f"rank{r}.json").read_text()) for r in (0, 1)]
+    assert ranks[0]["step_id"] == ranks[1]["step_id"] == 1024 == 4 * 2 * PER_RANK_UPDATE
+    assert ranks[0]["model"] == ranks[1]["model"] and ranks[0]["optimizer"] == ranks[1]["optimizer"]
+    (line,) = [x for x in (cwd / "stdout.txt").read_text().splitlines() if x.startswith("{")]
+    summary = json.loads(line)  # rank 0 alone prints
+    assert summary["steps"] == 1024 and summary["promoted"] == "v001" and not summary["interrupted"]
+    run = run_folder(cwd)  # one run folder: rank 1 wrote nothing
+    ckpts = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert ckpts == ["ckpt_step_0000000512.pt", "ckpt_step_0000001024.pt"]
+    final = load_checkpoint(run / "checkpoints" / ckpts[-1])
+    assert final.meta.step_id == 1024 and final.meta.run_id == run.name
+    digest = hashlib.sha256()
+    for name, t in sorted(final.model.items()):
+        digest.update(name.encode())
+        digest.update(t.contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    assert digest.hexdigest() == ranks[0]["model"]  # the checkpoint is the replicas' common state
+    assert final.optimizer is not None
+    assert {float(s["step"]) for s in final.optimizer["state"].values()} == {
+        16.0
+    }  # 4 updates x 4 minibatches
+    manifest = json.loads((run / "manifests" / "run.json").read_text())
+    assert manifest["world_size"] == 2 and manifest["actors_per_rank"] == ACTORS
+    assert [(r["rank"], r["seed"]) for r in manifest["ranks"]] == [(0, 0), (1, 1)]
+    rows = [json.loads(line) for line in (run / "metrics" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [256.0, 512.0, 768.0, 1024.0]  # both ranks' steps per update
+    assert rows[-1]["episode_count"] == final.meta.episode_count > 0
+    registry = json.loads((cwd / "artifacts" / "models" / "registry.json").read_text())
+    assert [v["version"] for v in registry["versions"]] == ["v001"]  # promoted once, by rank 0
+    written = {p.relative_to(cwd).parts[:2] for p in cwd.rglob("*") if p.is_file()}
+    assert written == {("artifacts", "runs"), ("artifacts", "models"), ("debug", "rank0.json"),
+                       ("debug", "rank1.json"), ("stdout.txt",)}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def one_rank_resume(two_rank_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The 2-rank checkpoint resumed by one process for 2 more updates; returns its final checkpoint."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        parent = run_folder(two_rank_run) / "checkpoints" / "ckpt_step_0000001024.pt"
+        cfg = TrainConfig(
+            n_actors=ACTORS,
+            rollout_length=ROLLOUT,
+            total_steps=1024 + 2 * PER_RANK_UPDATE,
+            checkpoint_every=10**9,
+            engine=EngineConfig(temporal_core="gru"),
+            ppo=PPOConfig(lr=5e-4, ppo_epochs=1),
+        )
+        run_dir = tmp_path_factory.mktemp("one") / "run"
+        result = train(ToyEnv(ACTORS, seed=3), cfg, run_dir=run_dir, resume_from=parent, progress=False)
+    finally:
+        torch.set_num_threads(before)
+    return result.final_checkpoint
+
+
+def test_a_two_rank_checkpoint_resumes_on_one_rank(one_rank_resume: Path, two_rank_run: Path) -> None:
+    ckpt = load_checkpoint(one_rank_resume)
+    parent = run_folder(two_rank_run) / "checkpoints" / "ckpt_step_0000001024.pt"
+    assert ckpt.meta.step_id == 1024 + 2 * PER_RANK_UPDATE and ckpt.meta.parent_checkpoint == str(parent)
+    assert ckpt.meta.episode_count > load_checkpoint(parent).meta.episode_count
+    assert ckpt.optimizer is not None
+    assert {float(s["step"]) for s in ckpt.optimizer["state"].values()} == {16.0 + 2 * 4.0}  # Adam carried on
+
+
+def test_sigterm_to_one_rank_stops_both_with_one_checkpoint_and_resumes_on_two(
+    one_rank_resume: Path, tmp_path: Path
+) -> None:
+    """`navi train --nproc 2` (torchrun underneath) resuming a 1-rank checkpoint; SIGTERM to rank 1."""
+    proc = start_long_run(tmp_path, "--checkpoint", str(one_rank_resume), wrapper=True)
+    pids = rank_pids(proc.pid)
+    assert sorted(pids) == [0, 1]
+    os.kill(pids[1], signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode != 0  # torchrun reports rank 0's exit code 130 (interrupted) as a failure
+    assert "exitcode  : 130" in err, err[-3000:]
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["interrupted"] and summary["promoted"] is None
+    (ckpt_path,) = (run_folder(tmp_path) / "checkpoints").iterdir()  # exactly one, the final one
+    ckpt = load_checkpoint(ckpt_path)
+    resumed_from = 1024 + 2 * PER_RANK_UPDATE
+    assert ckpt.meta.step_id == summary["steps"] > resumed_from
+    assert (ckpt.meta.step_id - resumed_from) % (2 * PER_RANK_UPDATE) == 0  # whole 2-rank updates
+    assert ckpt.meta.parent_checkpoint == str(one_rank_resume)
+    assert ckpt.optimizer is not None
+    updates = (ckpt.meta.step_id - resumed_from) // (2 * PER_RANK_UPDATE)
+    assert {float(s["step"]) for s in ckpt.optimizer["state"].values()} == {24.0 + 4.0 * updates}
+
+
+def test_a_killed_rank_ends_the_run_with_an_error_naming_the_timeout(tmp_path: Path) -> None:
+    proc = start_long_run(tmp_path, "--fresh", timeout_s="20")
+    pids = rank_pids(proc.pid)
+    t0 = time.monotonic()
+    os.kill(pids[1], signal.SIGKILL)
+    _, err = proc.communicate(timeout=90)
+    assert time.monotonic() - t0 < 20 + 15  # no hang: within the collective timeout (+ teardown)
+    assert proc.returncode != 0
+    assert "error: rank 0 of 2:" in err and "NAVI_DIST_TIMEOUT_S=20 s" in err, err[-3000:]
+
+
+def test_one_update_on_two_ranks_equals_one_update_on_the_union(tmp_path: Path) -> None:
+    script = Path(__file__).with_name("dist_parity.py")
+    cmd = [*TORCHRUN, str(script), str(tmp_path)]
+    out = subprocess.run(cmd, env=navi_env(), capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-3000:]
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1)]
+    spec = importlib.util.spec_from_file_location("dist_parity", script)
+    assert spec is not None and spec.loader is not None
+    parity = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(parity)
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        policy, optimizer, buf, cfg = parity.parity_setup()
+        initial = {k: v.clone() for k, v in policy.state_dict().items()}
+        policy.rnd.intrinsic(parity.embeddings())
+        _, skipped = update(policy, optimizer, buf, cfg, torch.Generator().manual_seed(0))
+    finally:
+        torch.set_num_threads(before)
+    pooled = torch.cat([r["adv"] for r in ranks], dim=1)  # (T, N) each rank's half, normalised globally
+    torch.testing.assert_close(pooled, normalize(buf.advantages), atol=1e-6, rtol=1e-5)
+    for k, v in policy.state_dict().items():
+        assert torch.equal(ranks[0]["state"][k], ranks[1]["state"][k]), k  # replicas bit-identical
+        torch.testing.assert_close(ranks[0]["state"][k], v, atol=2e-6, rtol=1e-5, msg=k)  # RND stats too
+    moved = [k for k, v in policy.state_dict().items() if not torch.equal(v, initial[k])]
+    assert "heads.log_std" in moved and "rnd.predictor.0.weight" in moved and "rnd.err_mean" in moved
+    assert skipped == 0 and [r["skipped"] for r in ranks] == [[0, 1], [0, 1]]  # rank 1's NaN: both skip
+    assert ranks[0]["unchanged"] and ranks[1]["unchanged"]
+
+
+def test_bench_train_nproc_reports_ranks_totals_and_scaling(tmp_path: Path) -> None:
+    args = ["bench", "train", *TRAIN_ARGS, "--updates", "1", "--nproc", "2", "--json"]
+    out = subprocess.run(
+        [sys.executable, "-m", "navi", *args],
+        cwd=tmp_path,
+        env=navi_env(),
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    report: dict[str, Any] = json.loads(out.stdout)
+    assert report["nproc"] == 2 and [r["rank"] for r in report["ranks"]] == [0, 1]
+    columns = ("env_only_sps", "env_inference_sps", "env_train_sps")
+    for col in columns:
+        assert report["single"][col] > 0 and all(r[col] > 0 for r in report["ranks"])
+        assert report["total"][col] == sum(r[col] for r in report["ranks"])
+        expected = report["total"][col] / (2 * report["single"][col])
+        assert report["scaling_efficiency"][col.removesuffix("_sps")] == pytest.approx(expected, abs=1e-3)
+    assert report["single"]["actors"] == ACTORS and all(r["actors"] == ACTORS for r in report["ranks"])
+
+
+def test_one_gpu_per_rank_is_checked_before_joining(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("LOCAL_RANK", str(torch.cuda.device_count()))  # one past the last GPU
+    with pytest.raises(ValueError, match="one rank per GPU"):
+        setup("cuda")
+    monkeypatch.setenv("NAVI_DIST_TIMEOUT_S", "soon")
+    with pytest.raises(ValueError, match="NAVI_DIST_TIMEOUT_S"):
+        setup("cpu")
+    assert not tdist.is_initialized()
+
+
+def test_the_launchers_pass_the_command_on_without_nproc() -> None:
+    from navi_mesh.stack import StackConfig, service_specs
+
+    argv = ["train", "--nproc", "2", "--env", "toy", "--nproc=3", "--actors", "4"]
+    assert strip_option(argv, "--nproc") == ["train", "--env", "toy", "--actors", "4"]
+    learner = service_specs(StackConfig(navi=("navi",), nproc=2), with_auditor=False)[3].argv
+    assert learner[learner.index("--nproc") + 1] == "2"
+    from navi import cli as root
+
+    group: Any = typer.main.get_command(root.build_app())
+    serve = group.commands["serve"].commands["learner"]
+    assert serve.make_context("navi serve learner", list(learner[3:])).params["nproc"] == 2
+    assert "--nproc" not in service_specs(StackConfig(navi=("navi",)), with_auditor=False)[3].argv
+
+
+def test_a_single_process_run_makes_no_collective_call(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, single_thread: None
+) -> None:
+    """World size 1 keeps today's loop: no process group, and any collective would raise here."""
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a single-process run called torch.distributed")
+
+    for name in (
+        "init_process_group",
+        "all_reduce",
+        "broadcast",
+        "broadcast_object_list",
+        "all_gather_object",
+    ):
+        monkeypatch.setattr(tdist, name, refuse)
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    cfg = TrainConfig(
+        n_actors=ACTORS,
+        rollout_length=ROLLOUT,
+        total_steps=2 * PER_RANK_UPDATE,
+        checkpoint_every=10**9,
+        engine=EngineConfig(
+            temporal_core="gru", embed_dim=32, patch_size=4, encoder_layers=1, head_hidden=32
+        ),
+    )
+    d, device = setup("cpu")
+    result = train(ToyEnv(ACTORS, seed=0), cfg, run_dir=tmp_path / "run", progress=False, dist=d)
+    assert d == Dist(timeout_s=d.timeout_s) and device == "cpu" and not d.active
+    assert result.step_id == 2 * PER_RANK_UPDATE and "world_size" not in json.loads(
+        (tmp_path / "run" / "manifests" / "run.json").read_text()
+    )
