@@ -15,17 +15,7 @@ from navi_learner.policy import CognitiveMambaPolicy
 from navi_learner.rollout import RolloutStorage
 from navi_learner.train import update
 
-ENGINE = EngineConfig(
-    embed_dim=32,
-    patch_size=4,
-    encoder_layers=1,
-    encoder_heads=2,
-    ssm_head_dim=16,
-    ssm_chunk=16,
-    memory_slots=8,
-    head_hidden=32,
-    rnd_dim=16,
-)
+ENGINE = EngineConfig.tiny()
 OBS = (3, 16, 8)
 ACTORS, ROLLOUT, CHUNK = 8, 16, 8
 CPU = torch.device("cpu")

@@ -19,17 +19,7 @@ from navi_learner.registry import ModelRegistry
 from navi_learner.toy_env import ToyEnv
 from navi_learner.train import train
 
-ENGINE = EngineConfig(
-    embed_dim=32,
-    patch_size=4,
-    encoder_layers=1,
-    encoder_heads=2,
-    ssm_head_dim=16,
-    ssm_chunk=16,
-    memory_slots=8,
-    head_hidden=32,
-    rnd_dim=16,
-)
+ENGINE = EngineConfig.tiny()
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 

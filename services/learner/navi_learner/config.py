@@ -54,6 +54,22 @@ class EngineConfig:
     memory_threshold: float = 0.9
     """Cosine similarity above which a revisit is penalised (penalty ramps linearly from it to 1)."""
 
+    @classmethod
+    def tiny(cls, **overrides: Any) -> EngineConfig:
+        """A small engine (embed 32, one encoder layer) for tests and CPU smoke runs on 16 x 8 views."""
+        small: dict[str, Any] = dict(
+            embed_dim=32,
+            patch_size=4,
+            encoder_layers=1,
+            encoder_heads=2,
+            ssm_head_dim=16,
+            ssm_chunk=16,
+            memory_slots=8,
+            head_hidden=32,
+            rnd_dim=16,
+        )
+        return cls(**(small | overrides))
+
 
 @dataclass
 class PPOConfig:
