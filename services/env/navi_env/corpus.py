@@ -19,7 +19,8 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -253,6 +254,20 @@ def replace_directory(new: Path, out: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+@contextmanager
+def _transaction(out: str | os.PathLike[str], kind: str) -> Iterator[Path]:
+    """A work folder beside `out`; when the block succeeds it replaces `out`, otherwise `out` is left
+    untouched. The work folder is always removed."""
+    target = Path(out)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{target.name}.{kind}-", dir=target.parent))
+    try:
+        yield work
+        replace_directory(work, target)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def build_corpus(
     sources: Sequence[str | os.PathLike[str]],
     out: str | os.PathLike[str],
@@ -264,10 +279,7 @@ def build_corpus(
     """Compile, check and qualify every source into the corpus folder `out`, transactionally."""
     if not sources:
         raise CorpusError("no scene sources given")
-    target = Path(out)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{target.name}.build-", dir=target.parent))
-    try:
+    with _transaction(out, "build") as work:
         manifest = _build_into(
             work,
             [str(s) for s in sources],
@@ -277,9 +289,6 @@ def build_corpus(
             progress or (lambda line: None),
         )
         _write_manifest(work, manifest)
-        replace_directory(work, target)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
     return manifest
 
 
@@ -289,10 +298,7 @@ def merge_corpora(parts: Sequence[str | os.PathLike[str]], out: str | os.PathLik
     first part's; scenes keep their own."""
     if not parts:
         raise CorpusError("no corpus to merge")
-    target = Path(out)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{target.name}.merge-", dir=target.parent))
-    try:
+    with _transaction(out, "merge") as work:
         scenes: list[SceneEntry] = []
         rejected: list[dict[str, str]] = []
         taken: set[str] = set()
@@ -312,9 +318,6 @@ def merge_corpora(parts: Sequence[str | os.PathLike[str]], out: str | os.PathLik
             rejected=tuple(rejected),
         )
         _write_manifest(work, merged)
-        replace_directory(work, target)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
     return merged
 
 
