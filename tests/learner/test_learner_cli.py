@@ -103,6 +103,10 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     assert code == 2 and "does not exist" in err
     code, _, err = invoke("models", "rollback")
     assert code == 2 and "no previous version" in err
+    code, _, err = invoke("bench", "learn", "--reward", "no_such_weight=1", "--device", "cpu")
+    assert code == 2 and "unknown reward weight" in err and "exploration_weight" in err
+    code, _, err = invoke("bench", "learn", "--reward", "exploration_weight", "--device", "cpu")
+    assert code == 2 and "KEY=NUMBER" in err
     (tmp_path / "junk.pt").write_bytes(b"junk")
     code, _, err = invoke("export", "junk.pt", "--onnx", "out.onnx")
     assert code == 2 and err.startswith("error:")

@@ -23,6 +23,7 @@ from navi_learner.baselines import RandomPolicy
 from navi_learner.bench_learn import LearnConfig, bench_learn, run_devices, split_openarena
 from navi_learner.competence import CompetenceMonitor, EvalProtocol
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.envs import make_env, parse_reward_overrides
 from navi_learner.evaluate import EvalMetrics, competent, evaluate
 from navi_learner.toy_env import ToyEnv
 from navi_learner.train import train
@@ -155,10 +156,12 @@ def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
         rollout_length=16,
         compile=False,
         protocol=EvalProtocol(actors=4, steps=24, episode_steps=12, seed=5),
+        reward=(("exploration_weight", 0.25),),
     )
     out = tmp_path / "out"
     result = bench_learn(cfg, out, "cpu", 64, root, None, say=lambda _: None)
     saved = json.loads((out / "result.json").read_text())
+    assert saved["reward"]["exploration_weight"] == 0.25 and saved["reward"]["proximity_weight"] == 0.2
     assert saved["splits"]["scenes"] == {
         "train/procedural": ["rooms_0000", "corridors_0001"],
         "unseen/procedural": ["rooms_0000"],
@@ -176,6 +179,23 @@ def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     assert summary["competent_seeds"] == sum(r["competence"] is not None for r in saved["runs"])
     assert (out / "learning_curves.png").stat().st_size > 10_000
     assert "| gru | 2 |" in (out / "report.md").read_text()
+
+
+def test_reward_overrides_change_exactly_the_named_term(tmp_path: Path) -> None:
+    corpus = tmp_path / "c"
+    build_default_corpus(corpus, resolution=64, count=1, seed=0)
+    plain = make_env(corpus, 4, "cpu", 3)
+    taxed = make_env(corpus, 4, "cpu", 3, reward=parse_reward_overrides(["existential_tax=-0.5"]))
+    assert taxed.config.reward.existential_tax == -0.5  # type: ignore[attr-defined]
+    plain.reset(seed=3)
+    taxed.reset(seed=3)
+    action = torch.tensor([[0.5, 0.0, 0.1, 0.2]]).repeat(4, 1)  # (N, 4)
+    for _ in range(5):  # same seed, same actions: only the constant term differs
+        a, b = plain.step(action), taxed.step(action)
+        torch.testing.assert_close(b.reward - a.reward, torch.full((4,), -0.48), rtol=0, atol=1e-5)
+    for bad in (["existential_tax"], ["no_such_weight=1"], ["exploration_table_bits=3"]):
+        with pytest.raises(ValueError):
+            parse_reward_overrides(bad)
 
 
 def test_runs_spread_over_gpus_round_robin() -> None:

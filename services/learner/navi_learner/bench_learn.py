@@ -30,7 +30,7 @@ import torch
 
 from navi_learner.competence import CompetenceMonitor, EvalProtocol, evaluate_baselines, plot_curves
 from navi_learner.config import TEMPORAL_CORES, EngineConfig, PPOConfig, TrainConfig
-from navi_learner.envs import corpus_summary, make_env
+from navi_learner.envs import corpus_summary, make_env, reward_config
 from navi_learner.evaluate import EvalMetrics, comparison_table, jsonable
 
 Say = Callable[[str], None]
@@ -78,6 +78,8 @@ class LearnConfig:
     """> 0: spread the runs round-robin over cuda:0 .. cuda:gpus-1, one process per run and at most
     `parallel` at once (so gpus = parallel = number of runs gives every run a GPU of its own)."""
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
+    reward: tuple[tuple[str, float], ...] = ()
+    """RewardConfig fields replaced in every env of the job (training, evaluation, baselines)."""
 
 
 def openarena_maps(pk3: Path) -> list[str]:
@@ -190,13 +192,15 @@ def run_one(
 
     dev = torch.device(device)
     tcfg = train_config(cfg, core, seed, dev)
-    env = make_env(splits.train, tcfg.n_actors, device, seed)
+    reward = dict(cfg.reward)
+    env = make_env(splits.train, tcfg.n_actors, device, seed, reward=reward)
     unseen = make_env(
         splits.unseen,
         cfg.protocol.actors,
         device,
         cfg.protocol.seed,
         episode_steps=cfg.protocol.episode_steps,
+        reward=reward,
     )
     monitor = CompetenceMonitor(
         unseen,
@@ -223,7 +227,12 @@ def run_one(
     final = {}
     for name, path in splits.unseen_parts.items():
         part = make_env(
-            path, cfg.protocol.actors, device, cfg.protocol.seed, episode_steps=cfg.protocol.episode_steps
+            path,
+            cfg.protocol.actors,
+            device,
+            cfg.protocol.seed,
+            episode_steps=cfg.protocol.episode_steps,
+            reward=reward,
         )
         final[name] = asdict(evaluate(part, trained, cfg.protocol.steps, cfg.protocol.seed))
         final[name]["policy"] = f"trained ({core}, seed {seed})"
@@ -244,19 +253,23 @@ def run_one(
 
 
 def baselines_by_split(
-    splits: Splits, protocol: EvalProtocol, device: str
+    splits: Splits, protocol: EvalProtocol, device: str, reward: dict[str, float] | None = None
 ) -> dict[str, dict[str, EvalMetrics]]:
     """random and reactive on the whole unseen split ("all") and on each of its parts."""
-    out = {
-        "all": evaluate_baselines(
-            make_env(
-                splits.unseen, protocol.actors, device, protocol.seed, episode_steps=protocol.episode_steps
-            ),
-            protocol,
+
+    def env_of(corpus: Path) -> Any:
+        return make_env(
+            corpus,
+            protocol.actors,
+            device,
+            protocol.seed,
+            episode_steps=protocol.episode_steps,
+            reward=reward,
         )
-    }
+
+    out = {"all": evaluate_baselines(env_of(splits.unseen), protocol)}
     for name, path in splits.unseen_parts.items():
-        env = make_env(path, protocol.actors, device, protocol.seed, episode_steps=protocol.episode_steps)
+        env = env_of(path)
         out[name] = evaluate_baselines(env, protocol)
     return out
 
@@ -353,7 +366,7 @@ def bench_learn(
     out.mkdir(parents=True, exist_ok=True)
     splits = prepare_splits(corpus_root, resolution, device, pk3, say=say)
     say(f"[bench learn] train {splits.train}, unseen {splits.unseen}")
-    baselines = baselines_by_split(splits, cfg.protocol, device)
+    baselines = baselines_by_split(splits, cfg.protocol, device, dict(cfg.reward))
     for part, b in baselines.items():
         say(f"[bench learn] baselines on unseen {part}:\n" + comparison_table(list(b.values())))
     runs_wanted = [(core, seed) for core in cfg.temporal_cores for seed in cfg.seeds]
@@ -374,6 +387,7 @@ def bench_learn(
         + (f" x {cfg.gpus} (one run per GPU at a time)" if cfg.gpus > 0 else ""),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "config": asdict(replace(cfg, seeds=list(cfg.seeds), temporal_cores=list(cfg.temporal_cores))),  # type: ignore[arg-type]
+        "reward": asdict(reward_config(dict(cfg.reward))),
         "resolution": resolution,
         "splits": {
             "scenes": splits.scenes,

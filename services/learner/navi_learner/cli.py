@@ -566,6 +566,14 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         compile_encoder: Annotated[
             bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
         ] = True,
+        reward: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--reward",
+                help="KEY=NUMBER: replace a RewardConfig weight in every env of the job (repeatable), "
+                "e.g. --reward exploration_weight=0.2.",
+            ),
+        ] = None,
         device: DeviceOpt = "auto",
         as_json: Annotated[
             bool, typer.Option("--json", help="Print the summary as one JSON object.")
@@ -580,7 +588,13 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
 
         from navi_learner.bench_learn import LearnConfig, bench_learn
         from navi_learner.competence import EvalProtocol
+        from navi_learner.envs import parse_reward_overrides
         from navi_learner.evaluate import jsonable
+
+        try:
+            overrides = parse_reward_overrides(reward or [])
+        except ValueError as err:
+            raise fail(str(err)) from err
 
         dev = pick_device(device)
         cores = tuple(c.strip() for c in temporal_core.split(",") if c.strip())
@@ -606,6 +620,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             parallel=parallel,
             gpus=gpus,
             protocol=protocol,
+            reward=tuple(overrides.items()),
         )
         folder = out or Path("artifacts/bench/learn") / time.strftime("%Y%m%d-%H%M%S")
         try:

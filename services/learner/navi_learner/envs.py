@@ -3,13 +3,18 @@ or the toy env."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+from dataclasses import fields, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 
 from navi_learner.protocol import BatchedEnv
 from navi_learner.toy_env import ToyEnv
+
+if TYPE_CHECKING:
+    from navi_env.config import RewardConfig
 
 EnvKind = Literal["sdfdag", "toy"]
 
@@ -33,6 +38,34 @@ def corpus_summary(corpus: Path | None, kind: EnvKind) -> dict[str, Any]:
     return {"kind": kind, "path": str(corpus), **manifest.summary()}
 
 
+def reward_config(overrides: Mapping[str, float]) -> RewardConfig:
+    """The default RewardConfig with the named float fields replaced; ValueError names an unknown
+    field or one that is not a float weight (exploration_table_bits is a size, not a weight)."""
+    from navi_env.config import RewardConfig
+
+    floats = {f.name for f in fields(RewardConfig) if f.type in ("float", float)}
+    unknown = sorted(set(overrides) - floats)
+    if unknown:
+        raise ValueError(f"unknown reward weight(s) {', '.join(unknown)}; known: {', '.join(sorted(floats))}")
+    values: dict[str, Any] = {k: float(v) for k, v in overrides.items()}
+    return replace(RewardConfig(), **values)
+
+
+def parse_reward_overrides(items: Sequence[str]) -> dict[str, float]:
+    """KEY=VALUE strings (a CLI's --reward) as a dict, checked against RewardConfig."""
+    out: dict[str, float] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            out[key.strip()] = float(value)
+        except ValueError:
+            raise ValueError(f"--reward expects KEY=NUMBER, got {item!r}") from None
+    reward_config(out)
+    return out
+
+
 def make_env(
     corpus: Path | None,
     n_actors: int,
@@ -42,10 +75,12 @@ def make_env(
     episode_steps: int = 0,
     rank: int = 0,
     world: int = 1,
+    reward: Mapping[str, float] | None = None,
 ) -> BatchedEnv:
     """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
     qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation). With
-    world > 1 the drone env flies only this rank's scenes, scenes[rank::world] (data-parallel training)."""
+    world > 1 the drone env flies only this rank's scenes, scenes[rank::world] (data-parallel training).
+    `reward` replaces RewardConfig fields by name (see `reward_config`)."""
     if kind == "toy":
         return ToyEnv(n_actors, device, seed=seed)
     if corpus is None:
@@ -63,6 +98,8 @@ def make_env(
     except CorpusError as err:
         raise EnvUnavailable(str(err)) from err
     config = EnvConfig(max_steps_per_episode=episode_steps) if episode_steps > 0 else EnvConfig()
+    if reward:
+        config = replace(config, reward=reward_config(reward))
     env: BatchedEnv = SdfDagEnv(
         scenes, n_actors, torch.device(device), config, manifest.spawn_tensors(), seed
     )
