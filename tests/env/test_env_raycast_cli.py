@@ -119,3 +119,20 @@ def test_spherical_pattern_layout() -> None:
     assert d[0, :, 1].abs().max() < 1e-6 and (d[0, :, 0] > 0).all()  # azimuth bin 0 looks along +X
     assert (d[2, :, 1] > 0.1).all()  # a quarter turn counter-clockwise looks along +Y
     assert (d[:, 0, 2] < -0.9).all() and (d[:, -1, 2] > 0.9).all()  # elevation bins run from down to up
+
+
+def test_bench_trace_with_moving_obstacles(scene_file: Path) -> None:
+    def run(k: int) -> dict[str, float]:
+        res = CliRunner().invoke(
+            build_app(),
+            ["bench", "trace", "--gmdag", str(scene_file), "--agents", "8", "--device", "cpu", "--steps", "2",
+             "--azimuth", "32", "--elevation", "8", "--obstacles", str(k), "--json"],
+        )  # fmt: skip
+        assert res.exit_code == 0, res.output
+        return dict(json.loads(res.stdout.strip().splitlines()[-1]))
+
+    plain, crowded = run(0), run(16)
+    assert plain["obstacles_per_agent"] == 0 and plain["obstacle_hit_fraction"] == 0.0
+    assert crowded["obstacles_per_agent"] == 16 and crowded["obstacle_hit_fraction"] > 0.05
+    # Primitives end rays early: the walk takes fewer steps on average.
+    assert crowded["mean_steps"] < plain["mean_steps"]

@@ -28,6 +28,8 @@ class TraceArgs(ctypes.Structure):
         ("out_semantic", ctypes.c_void_p),
         ("out_steps", ctypes.c_void_p),
         ("stream", ctypes.c_void_p),
+        ("prims", ctypes.c_void_p),
+        ("prim_world", ctypes.c_void_p),
         ("num_actors", ctypes.c_int64),
         ("num_rays", ctypes.c_int64),
         ("num_scenes", ctypes.c_int32),
@@ -39,6 +41,8 @@ class TraceArgs(ctypes.Structure):
         ("device", ctypes.c_int32),
         ("horizon", ctypes.c_float),
         ("hit_epsilon", ctypes.c_float),
+        ("prims_per_world", ctypes.c_int32),
+        ("num_worlds", ctypes.c_int32),
         ("reserved", ctypes.c_int32),
     ]
 
@@ -55,11 +59,16 @@ class SampleArgs(ctypes.Structure):
         ("points", ctypes.c_void_p),
         ("out_distance", ctypes.c_void_p),
         ("stream", ctypes.c_void_p),
+        ("prims", ctypes.c_void_p),
+        ("prim_world", ctypes.c_void_p),
+        ("prim_owner", ctypes.c_void_p),
         ("num_points", ctypes.c_int64),
         ("num_scenes", ctypes.c_int32),
         ("scene_id_bytes", ctypes.c_int32),
         ("cpu_threads", ctypes.c_int32),
         ("device", ctypes.c_int32),
+        ("prims_per_world", ctypes.c_int32),
+        ("num_worlds", ctypes.c_int32),
     ]
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from navi_env import obstacles
 from navi_env.rays import spherical_directions, tiled_ray_order
 from navi_env.scene import SceneCorpus, load_scene
 from navi_env.trace import DEFAULT_HORIZON, DEFAULT_MAX_STEPS, sample_distance, trace
@@ -38,6 +39,7 @@ class TraceBenchConfig:
     clearance_voxels: float = 2.0  # minimum clearance of random agent positions
     seed: int = 0
     tiled_order: bool = True  # trace in 16x2 direction tiles (rays.tiled_ray_order), the fast schedule
+    obstacles: int = 0  # K dynamic primitives per agent (navi_env.obstacles.scatter), moved every launch
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,8 @@ class TraceBenchResult:
     bytes_per_scene: int
     max_steps: int
     horizon_m: float
+    obstacles_per_agent: int = 0  # K
+    obstacle_hit_fraction: float = 0.0  # rays whose hit is a primitive
 
 
 @dataclass(frozen=True)
@@ -135,14 +139,23 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
     depth = torch.empty(b, r, device=dev)  # (B, R) float32
     semantic = torch.empty(b, r, dtype=torch.uint8, device=dev)  # (B, R) uint8
     steps = torch.empty(b, r, dtype=torch.int32, device=dev)  # (B, R) int32
+    prims = obstacles.scatter(agents.origins, cfg.obstacles, torch.Generator().manual_seed(cfg.seed + 1))
+    centers = prims[:, :, obstacles.CENTER : obstacles.CENTER + 3]  # (B, K, 3) view, moved in place
+    drift = torch.full_like(centers, 0.01)  # (B, K, 3) meters per launch, back and forth
+    moving = cfg.obstacles > 0
+    prims_or_none = prims if moving else None
 
     def launch() -> None:
+        if moving:
+            centers.add_(drift)
+            drift.neg_()
         trace(corpus, agents.scene_ids, agents.origins, dirs, yaw=agents.yaw, out_depth=depth,
               out_semantic=semantic, ray_order=order, max_steps=cfg.max_steps, horizon=cfg.horizon,
-              skip_direction_validation=True)  # fmt: skip
+              skip_direction_validation=True, prims=prims_or_none)  # fmt: skip
 
     trace(corpus, agents.scene_ids, agents.origins, dirs, yaw=agents.yaw, out_depth=depth, out_semantic=semantic,
-          out_steps=steps, max_steps=cfg.max_steps, horizon=cfg.horizon)  # fmt: skip
+          out_steps=steps, max_steps=cfg.max_steps, horizon=cfg.horizon, prims=prims_or_none)  # fmt: skip
+    obstacle_hits = float((semantic == obstacles.OBSTACLE_CLASS + 1).float().mean()) if moving else 0.0
     step_counts = steps.flatten().float()  # (B*R,)
     for _ in range(cfg.warmup):
         launch()
@@ -170,6 +183,8 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
         bytes_per_scene=info.nbytes,
         max_steps=cfg.max_steps,
         horizon_m=cfg.horizon,
+        obstacles_per_agent=cfg.obstacles,
+        obstacle_hit_fraction=obstacle_hits,
     )
 
 

@@ -104,6 +104,15 @@ def bench_trace_cmd(
         Path | None,
         typer.Option(help="Source mesh for --vs-warp: .npz with vertices (V,3), triangles (F,3)."),
     ] = None,
+    obstacles: Annotated[
+        int,
+        typer.Option(
+            "--obstacles",
+            min=0,
+            help="Dynamic primitives per agent (spheres, capsules, boxes, oriented boxes 1-8 m away), "
+            "moved before every launch and traced in the same pass.",
+        ),
+    ] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
     """G rays/s and observations/s of the tracer with the 256x48 spherical pattern."""
@@ -117,7 +126,7 @@ def bench_trace_cmd(
         raise _fail("--vs-warp needs --mesh FILE.npz (vertices, triangles) of the scene's source mesh")
     cfg = TraceBenchConfig(
         agents=agents, device=device, launches=steps, azimuth_bins=azimuth, elevation_bins=elevation,
-        max_steps=max_steps, tiled_order=tiled,
+        max_steps=max_steps, tiled_order=tiled, obstacles=obstacles,
     )  # fmt: skip
     try:
         corpus = load_scene(gmdag, device)

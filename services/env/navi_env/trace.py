@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from navi_env.abi import SampleArgs, TraceArgs, check_layout
+from navi_env.obstacles import check_prims
 from navi_env.scene import SceneCorpus
 
 DEFAULT_MAX_STEPS = 256  # main-loop samples per ray
@@ -236,6 +237,8 @@ def trace(
     horizon: float = DEFAULT_HORIZON,
     hit_epsilon: float | None = None,
     skip_direction_validation: bool = False,
+    prims: torch.Tensor | None = None,
+    prim_world: torch.Tensor | None = None,
 ) -> None:
     """Sphere-trace B actors x R rays; write depth (meters), semantic and step counts in place.
 
@@ -250,11 +253,15 @@ def trace(
     max_steps: bound per ray; a ray out of steps reports the distance reached and semantic 0.
     hit_epsilon: meters; None uses 0.1 voxel of each scene. skip_direction_validation: skip the
     norm and scene-id checks (and their device sync); an out-of-range id then yields NaN depth.
+    prims: (W, K, 16) float32 dynamic primitive records (navi_env.obstacles); prim_world: (B,) int32
+    world of each actor (default: actor b sees world b). A ray reports the first primitive it enters
+    when that comes before the static surface; actor b never sees the primitive it owns.
     """
     p = validate_trace(
         scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps, ray_order,
         max_steps, horizon, hit_epsilon, skip_direction_validation,
     )  # fmt: skip
+    worlds, per_world = check_prims(prims, prim_world, p.batch, scenes.device, "one per actor")
     args = TraceArgs(
         nodes=scenes.nodes.data_ptr(),
         grid=scenes.grid.data_ptr(),
@@ -278,6 +285,10 @@ def trace(
         max_steps=p.max_steps,
         horizon=p.horizon,
         hit_epsilon=p.hit_epsilon,
+        prims=_ptr(prims),
+        prim_world=_ptr(prim_world),
+        prims_per_world=per_world,
+        num_worlds=worlds,
     )
     if p.batch * p.rays > 0:
         launch_trace(args, scenes.device)
@@ -299,14 +310,28 @@ def validate_sample(
 
 
 def sample_distance(
-    scenes: SceneCorpus, scene_ids: torch.Tensor, points: torch.Tensor, out: torch.Tensor | None = None
+    scenes: SceneCorpus,
+    scene_ids: torch.Tensor,
+    points: torch.Tensor,
+    out: torch.Tensor | None = None,
+    *,
+    prims: torch.Tensor | None = None,
+    prim_world: torch.Tensor | None = None,
+    prim_owner: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Signed distance in meters at N points: (N,) float32 (written into `out` when given).
 
     Trilinear inside bricks, the signed lower bound inside far cubes, the (positive) distance to the
-    cube outside it; NaN for an out-of-range scene id (not checked here: no device sync).
+    cube outside it; NaN for an out-of-range scene id (not checked here: no device sync). With
+    prims (W, K, 16) and prim_world (N,) int32: the min with every primitive of the point's world,
+    leaving out the primitive owned by prim_owner (N,) int32 (a drone's own sphere) when given.
     """
     n = validate_sample(scenes, scene_ids, points, out)
+    worlds, per_world = check_prims(prims, prim_world, n, scenes.device, "one per point")
+    if prims is not None and prim_world is None:
+        raise ValueError("sample_distance with prims needs prim_world (N,) int32")
+    if prim_owner is not None:
+        check_prims(prims, prim_owner, n, scenes.device, "prim_owner: one per point")
     result = torch.empty(n, dtype=torch.float32, device=scenes.device) if out is None else out  # (N,) float32
     if n == 0:
         return result
@@ -318,9 +343,14 @@ def sample_distance(
         scene_ids=scene_ids.data_ptr(),
         points=points.data_ptr(),
         out_distance=result.data_ptr(),
+        prims=_ptr(prims),
+        prim_world=_ptr(prim_world),
+        prim_owner=_ptr(prim_owner),
         num_points=n,
         num_scenes=len(scenes),
         scene_id_bytes=scene_ids.element_size(),
+        prims_per_world=per_world,
+        num_worlds=worlds,
     )
     dev = scenes.device
     if dev.type == "cpu":

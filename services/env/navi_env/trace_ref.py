@@ -11,10 +11,12 @@ Shapes: B actors, R rays, M = B * R rays in flight, K rays being worked on, N qu
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
+from navi_env.obstacles import check_prims, prim_distance_ref, prim_hit_ref
 from navi_env.scene import (
     W_BRICK_OFFSET,
     W_INV_VOXEL,
@@ -218,13 +220,17 @@ def trace_ref(
     horizon: float = DEFAULT_HORIZON,
     hit_epsilon: float | None = None,
     skip_direction_validation: bool = False,
+    prims: torch.Tensor | None = None,
+    prim_world: torch.Tensor | None = None,
 ) -> None:
     """Reference twin of `navi_env.trace.trace` (same arguments, same results; ray_order only
-    schedules the compiled launchers, so it is validated and otherwise unused here)."""
+    schedules the compiled launchers, so it is validated and otherwise unused here). Primitive hits
+    come from `obstacles.prim_hit_ref` in float64 (the kernel's are float32: equal to a tolerance)."""
     p = validate_trace(
         scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps, ray_order,
         max_steps, horizon, hit_epsilon, skip_direction_validation,
     )  # fmt: skip
+    check_prims(prims, prim_world, p.batch, scenes.device, "one per actor")
     b, r = p.batch, p.rays
     m = b * r
     dev = scenes.device
@@ -241,13 +247,21 @@ def trace_ref(
     o = (origins[actor] - s.origin) * s.inv_voxel[:, None]  # (M, 3) voxel space
     res = s.resolution.to(F32)  # (M,)
     horizon32 = torch.tensor(p.horizon, dtype=F32, device=dev)
+    reach = torch.full((m,), p.horizon, dtype=F32, device=dev)  # (M,) meters: the walk's end
+    prim_t = torch.full((m,), math.inf, dtype=torch.float64, device=dev)  # (M,) first primitive hit
+    prim_sem = torch.zeros(m, dtype=torch.int64, device=dev)  # (M,)
+    if prims is not None and prims.shape[1] > 0:
+        world = prim_world if prim_world is not None else torch.arange(b, dtype=torch.int32, device=dev)
+        hit_t, hit_sem = prim_hit_ref(prims, world, origins, d.view(b, r, 3))  # (B, R) each
+        prim_t, prim_sem = hit_t.reshape(m).to(dev), hit_sem.reshape(m).to(dev)
+        reach = torch.minimum(reach, prim_t.clamp(max=3.0e38).float())
     if p.hit_epsilon > 0:
         eps = torch.tensor(p.hit_epsilon, dtype=F32, device=dev) * s.inv_voxel  # (M,)
     else:
         eps = torch.full((m,), DEFAULT_HIT_EPSILON_VOXELS, dtype=F32, device=dev)  # (M,)
     inv = torch.where(d != 0, 1.0 / d, torch.full_like(d, BIG))  # (M, 3)
     t0 = torch.zeros(m, dtype=F32, device=dev)  # (M,)
-    t1 = horizon32 * s.inv_voxel  # (M,)
+    t1 = reach * s.inv_voxel  # (M,)
     for k in range(3):
         t0, t1 = clip_slab(o[:, k], d[:, k], inv[:, k], res, t0, t1)
     finite = torch.isfinite(o).all(dim=1) & torch.isfinite(d).all(dim=1)  # (M,)
@@ -345,6 +359,10 @@ def trace_ref(
 
     out_of_steps = active  # (M,) rays still running after max_steps
     depth[out_of_steps] = torch.minimum(t[out_of_steps] * s.voxel[out_of_steps], horizon32)
+    # A ray the walk ended without a hit reports the first primitive within the horizon.
+    to_prim = (semantic == 0) & ~out_of_steps & (prim_t <= p.horizon) & torch.isfinite(depth)  # (M,)
+    depth = torch.where(to_prim, prim_t.float(), depth)
+    semantic = torch.where(to_prim, prim_sem, semantic)
     out_depth.copy_(depth.view(b, r))
     if out_semantic is not None:
         out_semantic.copy_(
@@ -355,9 +373,16 @@ def trace_ref(
 
 
 def sample_distance_ref(
-    scenes: SceneCorpus, scene_ids: torch.Tensor, points: torch.Tensor, out: torch.Tensor | None = None
+    scenes: SceneCorpus,
+    scene_ids: torch.Tensor,
+    points: torch.Tensor,
+    out: torch.Tensor | None = None,
+    *,
+    prims: torch.Tensor | None = None,
+    prim_world: torch.Tensor | None = None,
+    prim_owner: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Reference twin of `navi_env.trace.sample_distance`."""
+    """Reference twin of `navi_env.trace.sample_distance` (primitive distances in float64)."""
     n = validate_sample(scenes, scene_ids, points, out)
     sid = scene_ids.long()  # (N,)
     ok = (sid >= 0) & (sid < len(scenes))  # (N,)
@@ -372,6 +397,9 @@ def sample_distance_ref(
     field = field_at(s, p, cells_at(s, p)).dist * s.voxel  # (N,)
     outside = (e > 0).any(dim=1)  # (N,)
     result = torch.where(outside, outside_dist, field)  # (N,)
+    if prims is not None and prim_world is not None and prims.shape[1] > 0:
+        near = prim_distance_ref(prims, prim_world, points, prim_owner)  # (N,) float64
+        result = torch.minimum(result, near.clamp(max=3.0e38).float().to(result.device))
     result = torch.where(ok & torch.isfinite(p).all(dim=1), result, torch.full_like(result, float("nan")))
     if out is None or n == 0:
         return result if out is None else out

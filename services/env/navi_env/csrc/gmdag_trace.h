@@ -80,6 +80,8 @@ struct TraceArgs {
   void* out_semantic;           // (B, R) int32 or uint8, or null
   int32_t* out_steps;           // (B, R) steps taken, or null
   void* stream;                 // cudaStream_t for the CUDA launcher; ignored on the CPU
+  const float* prims;           // (W, K, 16) dynamic primitive records (see PrimWord), or null
+  const int32_t* prim_world;    // (B,) world of each actor's primitives, or null: actor b uses world b
   int64_t num_actors;           // B
   int64_t num_rays;             // R
   int32_t num_scenes;           // S
@@ -91,6 +93,8 @@ struct TraceArgs {
   int32_t device;               // CUDA device index; ignored on the CPU
   float horizon;                // meters; a miss reports this depth
   float hit_epsilon;            // meters; <= 0 selects kDefaultHitEpsilonVoxels in each scene
+  int32_t prims_per_world;      // K (0: no primitives)
+  int32_t num_worlds;           // W; an actor whose world is outside [0, W) sees no primitive
   int32_t reserved;             // zero
 };
 
@@ -104,11 +108,16 @@ struct SampleArgs {
   const float* points;          // (N, 3) world meters
   float* out_distance;          // (N,) meters
   void* stream;
+  const float* prims;           // (W, K, 16) primitive records, or null
+  const int32_t* prim_world;    // (N,) world of each point (required with prims)
+  const int32_t* prim_owner;    // (N,) primitive owner to leave out at each point (a drone itself), or null
   int64_t num_points;
   int32_t num_scenes;
   int32_t scene_id_bytes;
   int32_t cpu_threads;
   int32_t device;
+  int32_t prims_per_world;      // K
+  int32_t num_worlds;           // W
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -386,6 +395,163 @@ NAVI_HD FieldSample walk_sample(const uint32_t* grid, const uint32_t* nodes, con
 }
 
 // ---------------------------------------------------------------------------------------------
+// Dynamic primitives: per-world spheres, capsules and boxes composed with the static field by min.
+// A record is 16 float32 words (64 bytes), mirrored in navi_env/obstacles.py; small integers (kind,
+// class, owner) are stored as floats (exact below 2^24). Positions are world meters.
+enum PrimWord : int {
+  kPrimKind = 0,    // 0 none, 1 sphere, 2 capsule, 3 axis-aligned box, 4 oriented box
+  kPrimClass = 1,   // class id: a hit reports semantic 1 + class
+  kPrimOwner = 2,   // actor index that does not see or collide with it (its own drone), or -1
+  kPrimRadius = 3,  // sphere / capsule radius
+  kPrimCx = 4,      // centre x, y, z (4, 5, 6)
+  kPrimAx = 7,      // capsule: half segment vector; boxes: half extents in the box frame (7, 8, 9)
+  kPrimQw = 10,     // oriented box: unit quaternion w, x, y, z (10..13), box frame -> world
+};
+constexpr int kPrimWords = 16;
+constexpr int kPrimNone = 0, kPrimSphere = 1, kPrimCapsule = 2, kPrimBox = 3, kPrimObb = 4;
+
+struct Vec3 {
+  float x, y, z;
+};
+
+NAVI_HD Vec3 v3(float x, float y, float z) {
+  Vec3 v;
+  v.x = x;
+  v.y = y;
+  v.z = z;
+  return v;
+}
+NAVI_HD Vec3 sub(Vec3 a, Vec3 b) { return v3(a.x - b.x, a.y - b.y, a.z - b.z); }
+NAVI_HD float dot(Vec3 a, Vec3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+
+// Rotates v by the conjugate of unit quaternion (w, x, y, z): world -> box frame.
+NAVI_HD Vec3 rotate_inverse(const float* q, Vec3 v) {
+  const float w = load_ro(q), qx = -load_ro(q + 1), qy = -load_ro(q + 2), qz = -load_ro(q + 3);
+  // v' = v + 2 w (u x v) + 2 u x (u x v), u = (qx, qy, qz)
+  const float cx = qy * v.z - qz * v.y, cy = qz * v.x - qx * v.z, cz = qx * v.y - qy * v.x;
+  const float ex = qy * cz - qz * cy, ey = qz * cx - qx * cz, ez = qx * cy - qy * cx;
+  return v3(v.x + 2.0f * (w * cx + ex), v.y + 2.0f * (w * cy + ey), v.z + 2.0f * (w * cz + ez));
+}
+
+// Exact Euclidean signed distance (meters) from world point p to primitive record r.
+NAVI_HD float prim_distance(const float* r, Vec3 p) {
+  const int kind = static_cast<int>(load_ro(r + kPrimKind));
+  const Vec3 c = v3(load_ro(r + kPrimCx), load_ro(r + kPrimCx + 1), load_ro(r + kPrimCx + 2));
+  const float rad = load_ro(r + kPrimRadius);
+  Vec3 q = sub(p, c);
+  if (kind == kPrimSphere) return sqrtf(dot(q, q)) - rad;
+  const Vec3 a = v3(load_ro(r + kPrimAx), load_ro(r + kPrimAx + 1), load_ro(r + kPrimAx + 2));
+  if (kind == kPrimCapsule) {
+    // Segment c - a .. c + a: the closest point at parameter s in [-1, 1].
+    const float aa = dot(a, a);
+    const float s = aa > 0.0f ? fminf(fmaxf(dot(q, a) / aa, -1.0f), 1.0f) : 0.0f;
+    const Vec3 e = v3(q.x - s * a.x, q.y - s * a.y, q.z - s * a.z);
+    return sqrtf(dot(e, e)) - rad;
+  }
+  if (kind == kPrimBox || kind == kPrimObb) {
+    if (kind == kPrimObb) q = rotate_inverse(r + kPrimQw, q);
+    const float dx = fabsf(q.x) - a.x, dy = fabsf(q.y) - a.y, dz = fabsf(q.z) - a.z;
+    const float ox = fmaxf(dx, 0.0f), oy = fmaxf(dy, 0.0f), oz = fmaxf(dz, 0.0f);
+    return sqrtf(ox * ox + oy * oy + oz * oz) + fminf(fmaxf(dx, fmaxf(dy, dz)), 0.0f);
+  }
+  return kBig;
+}
+
+// Entry time (meters) of the ray o + t d, t >= 0, |d| = 1, into a sphere; 0 from inside; kBig if none.
+NAVI_HD float sphere_hit(Vec3 o, Vec3 d, Vec3 c, float rad) {
+  const Vec3 oc = sub(o, c);
+  const float b = dot(oc, d);
+  const float cc = dot(oc, oc) - rad * rad;
+  if (cc <= 0.0f) return 0.0f;
+  const float disc = b * b - cc;
+  if (disc < 0.0f || b > 0.0f) return kBig;  // no root, or both roots behind the origin
+  return -b - sqrtf(disc);
+}
+
+// Entry time (meters) of a ray into a box |q| <= h of its own frame (o, d in that frame).
+NAVI_HD float box_hit(Vec3 o, Vec3 d, Vec3 h) {
+  float t0 = 0.0f, t1 = kBig;
+  const float os[3] = {o.x, o.y, o.z}, ds[3] = {d.x, d.y, d.z}, hs[3] = {h.x, h.y, h.z};
+  for (int k = 0; k < 3; ++k) {
+    if (ds[k] != 0.0f) {
+      const float inv = 1.0f / ds[k];
+      const float ta = (-hs[k] - os[k]) * inv, tb = (hs[k] - os[k]) * inv;
+      t0 = fmaxf(t0, fminf(ta, tb));
+      t1 = fminf(t1, fmaxf(ta, tb));
+    } else if (os[k] < -hs[k] || os[k] > hs[k]) {
+      return kBig;
+    }
+  }
+  return t0 <= t1 ? t0 : kBig;
+}
+
+// Entry time (meters) of a ray into primitive record r; kBig if the ray misses it.
+NAVI_HD float prim_hit(const float* r, Vec3 o, Vec3 d) {
+  const int kind = static_cast<int>(load_ro(r + kPrimKind));
+  const Vec3 c = v3(load_ro(r + kPrimCx), load_ro(r + kPrimCx + 1), load_ro(r + kPrimCx + 2));
+  const float rad = load_ro(r + kPrimRadius);
+  if (kind == kPrimSphere) return sphere_hit(o, d, c, rad);
+  const Vec3 a = v3(load_ro(r + kPrimAx), load_ro(r + kPrimAx + 1), load_ro(r + kPrimAx + 2));
+  if (kind == kPrimCapsule) {
+    // The union of the two end spheres and the cylinder between them: the earliest entry of the three
+    // (a cylinder entry counts only between the end planes).
+    float t = fminf(sphere_hit(o, d, v3(c.x - a.x, c.y - a.y, c.z - a.z), rad),
+                    sphere_hit(o, d, v3(c.x + a.x, c.y + a.y, c.z + a.z), rad));
+    const Vec3 ba = v3(2.0f * a.x, 2.0f * a.y, 2.0f * a.z);
+    const Vec3 oa = v3(o.x - (c.x - a.x), o.y - (c.y - a.y), o.z - (c.z - a.z));
+    const float baba = dot(ba, ba), bard = dot(ba, d), baoa = dot(ba, oa);
+    const float qa = baba - bard * bard;  // baba * |d_perp|^2
+    const float qb = baba * dot(oa, d) - baoa * bard;
+    const float qc = baba * dot(oa, oa) - baoa * baoa - rad * rad * baba;
+    if (baba > 0.0f && qc <= 0.0f && baoa >= 0.0f && baoa <= baba) return 0.0f;  // inside the cylinder
+    if (baba > 0.0f && qa > 0.0f) {
+      const float h = qb * qb - qa * qc;
+      if (h >= 0.0f) {
+        const float tc = (-qb - sqrtf(h)) / qa;
+        const float y = baoa + tc * bard;
+        if (tc >= 0.0f && y >= 0.0f && y <= baba) t = fminf(t, tc);
+      }
+    }
+    return t;
+  }
+  if (kind == kPrimBox) return box_hit(sub(o, c), d, a);
+  if (kind == kPrimObb) {
+    const float* q = r + kPrimQw;
+    return box_hit(rotate_inverse(q, sub(o, c)), rotate_inverse(q, d), a);
+  }
+  return kBig;
+}
+
+// The first primitive hit of actor b's world along a ray (meters, kBig if none) and its semantic.
+NAVI_HD float first_prim_hit(const float* prims, int64_t world, int32_t k_count, int64_t owner, Vec3 o, Vec3 d,
+                             int32_t& semantic) {
+  float best = kBig;
+  const float* rec = prims + world * k_count * kPrimWords;
+  for (int k = 0; k < k_count; ++k, rec += kPrimWords) {
+    const float kind = load_ro(rec + kPrimKind);
+    if (kind == 0.0f || load_ro(rec + kPrimOwner) == static_cast<float>(owner)) continue;
+    const float t = prim_hit(rec, o, d);
+    if (t < best) {
+      best = t;
+      semantic = 1 + static_cast<int32_t>(load_ro(rec + kPrimClass));
+    }
+  }
+  return best;
+}
+
+// The smallest primitive distance at p in a world, leaving out the owner's own (kBig if none).
+NAVI_HD float min_prim_distance(const float* prims, int64_t world, int32_t k_count, int64_t owner, Vec3 p) {
+  float best = kBig;
+  const float* rec = prims + world * k_count * kPrimWords;
+  for (int k = 0; k < k_count; ++k, rec += kPrimWords) {
+    const float kind = load_ro(rec + kPrimKind);
+    if (kind == 0.0f || load_ro(rec + kPrimOwner) == static_cast<float>(owner)) continue;
+    best = fminf(best, prim_distance(rec, p));
+  }
+  return best;
+}
+
+// ---------------------------------------------------------------------------------------------
 // One ray.
 
 // Narrows [t0, t1] to the ray's part inside the slab [0, res] along one axis (inv = 1 / d).
@@ -427,6 +593,9 @@ struct Ray {
   float t, t1;               // current time and the clip end (cube exit or horizon), voxels
   float prev_t, prev_d;      // previous sample
   uint32_t last_brick;       // last brick sampled (class of a hit), or kNoBrick
+  float prim_t;              // first primitive hit, meters (kBig if none); the walk ends there
+  int32_t prim_semantic;     // its semantic
+  bool exhausted;            // ran out of steps
   int64_t out;               // output element b * R + r
   Walker w;
   RayResult res;
@@ -457,6 +626,9 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t r) {
   ray.res.semantic = 0;
   ray.res.steps = 0;
   ray.done = true;
+  ray.prim_t = kBig;
+  ray.prim_semantic = 0;
+  ray.exhausted = false;
   const int64_t sid = load_scene_id(a.scene_ids, a.scene_id_bytes, b);
   if (sid < 0 || sid >= a.num_scenes) {
     ray.res.depth = kNaN();
@@ -468,10 +640,19 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t r) {
   float dx = load_ro(dir), dy = load_ro(dir + 1);
   const float dz = load_ro(dir + 2);
   if (a.yaw != nullptr) rotate_yaw(load_ro(a.yaw + b), dx, dy);
-  const float ox = (load_ro(a.origins + b * 3) - s.ox) * s.inv_voxel;
-  const float oy = (load_ro(a.origins + b * 3 + 1) - s.oy) * s.inv_voxel;
-  const float oz = (load_ro(a.origins + b * 3 + 2) - s.oz) * s.inv_voxel;
+  const Vec3 world = v3(load_ro(a.origins + b * 3), load_ro(a.origins + b * 3 + 1), load_ro(a.origins + b * 3 + 2));
+  const float ox = (world.x - s.ox) * s.inv_voxel;
+  const float oy = (world.y - s.oy) * s.inv_voxel;
+  const float oz = (world.z - s.oz) * s.inv_voxel;
   if (!(finite(ox) && finite(oy) && finite(oz) && finite(dx) && finite(dy) && finite(dz))) return ray;
+  float reach = a.horizon;  // meters: the horizon, or the first primitive hit before it
+  if (a.prims != nullptr && a.prims_per_world > 0) {
+    const int64_t wid = a.prim_world != nullptr ? static_cast<int64_t>(load_ro(a.prim_world + b)) : b;
+    if (wid >= 0 && wid < a.num_worlds) {
+      ray.prim_t = first_prim_hit(a.prims, wid, a.prims_per_world, b, world, v3(dx, dy, dz), ray.prim_semantic);
+      reach = fminf(reach, ray.prim_t);
+    }
+  }
   const float res = static_cast<float>(s.resolution);
   ray.eps = a.hit_epsilon > 0.0f ? a.hit_epsilon * s.inv_voxel : kDefaultHitEpsilonVoxels;
 
@@ -479,7 +660,7 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t r) {
   ray.inv_x = dx != 0.0f ? 1.0f / dx : kBig;
   ray.inv_y = dy != 0.0f ? 1.0f / dy : kBig;
   ray.inv_z = dz != 0.0f ? 1.0f / dz : kBig;
-  float t0 = 0.0f, t1 = a.horizon * s.inv_voxel;
+  float t0 = 0.0f, t1 = reach * s.inv_voxel;
   clip_slab(ox, dx, ray.inv_x, res, t0, t1);
   clip_slab(oy, dy, ray.inv_y, res, t0, t1);
   clip_slab(oz, dz, ray.inv_z, res, t0, t1);
@@ -506,6 +687,7 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   Walker& w = ray.w;
   if (ray.res.steps >= a.max_steps) {
     ray.res.depth = fminf(ray.t * s.voxel, a.horizon);  // out of steps: the distance reached, semantic 0
+    ray.exhausted = true;
     ray.done = true;
     return;
   }
@@ -579,8 +761,13 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   if (next > ray.t1) ray.done = true;  // past the cube or the horizon: a miss
 }
 
-// Writes a finished ray's outputs.
-NAVI_HD void finish_ray(const TraceArgs& a, const Ray& ray) {
+// Writes a finished ray's outputs. A ray the walk ended without a hit (a miss, or the walk clipped
+// at the first primitive) reports that primitive when it lies within the horizon.
+NAVI_HD void finish_ray(const TraceArgs& a, Ray& ray) {
+  if (ray.res.semantic == 0 && !ray.exhausted && ray.prim_t <= a.horizon && finite(ray.res.depth)) {
+    ray.res.depth = ray.prim_t;
+    ray.res.semantic = ray.prim_semantic;
+  }
   a.out_depth[ray.out] = ray.res.depth;
   if (a.semantic_bytes == 4) {
     static_cast<int32_t*>(a.out_semantic)[ray.out] = ray.res.semantic;
@@ -604,7 +791,7 @@ NAVI_HD void trace_item(const TraceArgs& a, int64_t b, int64_t j) {
 
 // ---------------------------------------------------------------------------------------------
 // One point query: the field in meters (trilinear in bricks, lower bounds in far cubes, the distance
-// to the cube outside it).
+// to the cube outside it), then the min with the point's world's primitives.
 
 NAVI_HD void sample_point(const SampleArgs& a, int64_t i) {
   const int64_t sid = load_scene_id(a.scene_ids, a.scene_id_bytes, i);
@@ -624,13 +811,23 @@ NAVI_HD void sample_point(const SampleArgs& a, int64_t i) {
     a.out_distance[i] = kNaN();
     return;
   }
+  float dist;
   if (ex > 0.0f || ey > 0.0f || ez > 0.0f) {
-    a.out_distance[i] = sqrtf(ex * ex + ey * ey + ez * ez) * s.voxel;
-    return;
+    dist = sqrtf(ex * ex + ey * ey + ez * ez) * s.voxel;
+  } else {
+    const Cell c = cell_of(px, py, pz, s.cell_max);
+    const Leaf leaf = find_leaf(a.grid, a.nodes, s, c.ix, c.iy, c.iz);
+    dist = leaf_field(a.bricks, s, leaf, px, py, pz, c).dist * s.voxel;
   }
-  const Cell c = cell_of(px, py, pz, s.cell_max);
-  const Leaf leaf = find_leaf(a.grid, a.nodes, s, c.ix, c.iy, c.iz);
-  a.out_distance[i] = leaf_field(a.bricks, s, leaf, px, py, pz, c).dist * s.voxel;
+  if (a.prims != nullptr && a.prims_per_world > 0) {
+    const int64_t wid = static_cast<int64_t>(load_ro(a.prim_world + i));
+    const int64_t owner = a.prim_owner != nullptr ? static_cast<int64_t>(load_ro(a.prim_owner + i)) : -2;
+    if (wid >= 0 && wid < a.num_worlds) {
+      const Vec3 p = v3(load_ro(a.points + i * 3), load_ro(a.points + i * 3 + 1), load_ro(a.points + i * 3 + 2));
+      dist = fminf(dist, min_prim_distance(a.prims, wid, a.prims_per_world, owner, p));
+    }
+  }
+  a.out_distance[i] = dist;
 }
 
 }  // namespace navi
