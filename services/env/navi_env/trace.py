@@ -295,9 +295,15 @@ def trace(
 
 
 def validate_sample(
-    scenes: SceneCorpus, scene_ids: torch.Tensor, points: torch.Tensor, out: torch.Tensor | None
-) -> int:
-    """Check the arguments of `sample_distance`; returns N."""
+    scenes: SceneCorpus,
+    scene_ids: torch.Tensor,
+    points: torch.Tensor,
+    out: torch.Tensor | None,
+    prims: torch.Tensor | None = None,
+    prim_world: torch.Tensor | None = None,
+    prim_owner: torch.Tensor | None = None,
+) -> tuple[int, int, int]:
+    """Check the arguments of `sample_distance`; returns (N, W, K) (W = K = 0 without prims)."""
     if not isinstance(scenes, SceneCorpus):
         raise TypeError(f"scenes must be a SceneCorpus, got {type(scenes).__name__}")
     dev = scenes.device
@@ -306,7 +312,12 @@ def validate_sample(
     _check_float("points", points, (n, 3))
     if out is not None:
         _check_float("out", _check_tensor("out", out, dev), (n,))
-    return n
+    worlds, per_world = check_prims(prims, prim_world, n, dev, "one per point")
+    if prims is not None and prim_world is None:
+        raise ValueError("sample_distance with prims needs prim_world (N,) int32")
+    if prim_owner is not None:
+        check_prims(prims, prim_owner, n, dev, "prim_owner: one per point")
+    return n, worlds, per_world
 
 
 def sample_distance(
@@ -326,12 +337,7 @@ def sample_distance(
     prims (W, K, 16) and prim_world (N,) int32: the min with every primitive of the point's world,
     leaving out the primitive owned by prim_owner (N,) int32 (a drone's own sphere) when given.
     """
-    n = validate_sample(scenes, scene_ids, points, out)
-    worlds, per_world = check_prims(prims, prim_world, n, scenes.device, "one per point")
-    if prims is not None and prim_world is None:
-        raise ValueError("sample_distance with prims needs prim_world (N,) int32")
-    if prim_owner is not None:
-        check_prims(prims, prim_owner, n, scenes.device, "prim_owner: one per point")
+    n, worlds, per_world = validate_sample(scenes, scene_ids, points, out, prims, prim_world, prim_owner)
     result = torch.empty(n, dtype=torch.float32, device=scenes.device) if out is None else out  # (N,) float32
     if n == 0:
         return result

@@ -383,7 +383,7 @@ def sample_distance_ref(
     prim_owner: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Reference twin of `navi_env.trace.sample_distance` (primitive distances in float64)."""
-    n = validate_sample(scenes, scene_ids, points, out)
+    n, _, _ = validate_sample(scenes, scene_ids, points, out, prims, prim_world, prim_owner)
     sid = scene_ids.long()  # (N,)
     ok = (sid >= 0) & (sid < len(scenes))  # (N,)
     s = ref_scene(scenes, sid.clamp(0, len(scenes) - 1))
