@@ -166,12 +166,20 @@ def test_cpu_matches_reference_with_primitives_moving_every_step(
 def test_an_actor_never_sees_its_own_primitive(setting: tuple[list[AnalyticScene], SceneCorpus]) -> None:
     scenes, corpus = setting
     ids, origins, world, prims = _step_inputs(scenes, 4, 0)
+    prims[0, :] = 0.0  # world 0 (actors 0 and 1) holds only actor 1's drone, placed below
     dirs = torch.tensor(random_directions(64, seed=6), dtype=torch.float32)  # (R, 3)
-    with_own, _ = _trace(trace, corpus, ids, origins, dirs, prims=prims, prim_world=world)
-    prims[0, 2, ob.KIND] = 0.0  # remove actor 1's drone
+    static, _ = _trace(trace, corpus, ids, origins, dirs)
+    ray = int(static[0].argmax())  # actor 0's longest free ray
+    assert float(static[0, ray]) > 2.0
+    center = origins[0] + dirs[ray]  # 1 m out along it
+    prims[0, 0] = ob.record(ob.SPHERE, center.tolist(), radius=0.3, owner=1)
+    with_drone, sem = _trace(trace, corpus, ids, origins, dirs, prims=prims, prim_world=world)
+    assert float(with_drone[0, ray]) == pytest.approx(0.7, abs=1e-4)  # actor 0 sees actor 1's drone
+    assert int(sem[0, ray]) == 1 + ob.OBSTACLE_CLASS
+    prims[0, 0, ob.KIND] = 0.0  # remove it
     without, _ = _trace(trace, corpus, ids, origins, dirs, prims=prims, prim_world=world)
-    assert torch.equal(with_own[1], without[1])  # actor 1 never saw it
-    assert not torch.equal(with_own[0], without[0]) or bool((with_own[0] == 0).all())
+    assert torch.equal(with_drone[1], without[1])  # actor 1 never saw its own drone
+    assert torch.equal(without[:2], static[:2])  # world 0, now all empty slots, changes nothing
 
 
 def test_sample_distance_is_the_min_with_every_primitive(

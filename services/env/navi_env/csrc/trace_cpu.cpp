@@ -43,9 +43,15 @@ int parallel_for(int64_t count, int32_t threads, const Body& body) {
 
 extern "C" int navi_trace_cpu(const navi::TraceArgs* args) {
   const navi::TraceArgs a = *args;
+  if (navi::has_prims(a)) {
+    return parallel_for(a.num_actors * a.num_rays, a.cpu_threads, [&a](int64_t i) {
+      const int64_t b = i / a.num_rays;
+      navi::trace_item<true>(a, b, i - b * a.num_rays);
+    });
+  }
   return parallel_for(a.num_actors * a.num_rays, a.cpu_threads, [&a](int64_t i) {
     const int64_t b = i / a.num_rays;
-    navi::trace_item(a, b, i - b * a.num_rays);
+    navi::trace_item<false>(a, b, i - b * a.num_rays);
   });
 }
 

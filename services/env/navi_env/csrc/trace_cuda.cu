@@ -22,10 +22,11 @@ constexpr int kMinBlocksPerSm = 9;
 
 constexpr int64_t kMaxGridY = 65535;
 
+template <bool kPrims>
 __global__ void __launch_bounds__(kThreads, kMinBlocksPerSm) trace_kernel(const navi::TraceArgs a) {
   const int64_t j = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
   if (j >= a.num_rays) return;
-  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item(a, b, j);
+  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item<kPrims>(a, b, j);
 }
 
 __global__ void __launch_bounds__(kThreads) sample_kernel(const navi::SampleArgs a) {
@@ -49,7 +50,12 @@ extern "C" int navi_trace_cuda(const navi::TraceArgs* args) {
   if (err != 0) return err;
   const dim3 grid(static_cast<unsigned>((args->num_rays + kThreads - 1) / kThreads),
                   static_cast<unsigned>(args->num_actors < kMaxGridY ? args->num_actors : kMaxGridY));
-  trace_kernel<<<grid, kThreads, 0, static_cast<cudaStream_t>(args->stream)>>>(*args);
+  const cudaStream_t stream = static_cast<cudaStream_t>(args->stream);
+  if (navi::has_prims(*args)) {
+    trace_kernel<true><<<grid, kThreads, 0, stream>>>(*args);
+  } else {
+    trace_kernel<false><<<grid, kThreads, 0, stream>>>(*args);
+  }
   return static_cast<int>(cudaGetLastError());
 }
 
