@@ -203,3 +203,25 @@ def test_runs_spread_over_gpus_round_robin() -> None:
     assert run_devices("cuda", 4, 6) == ["cuda:0", "cuda:1", "cuda:2", "cuda:3", "cuda:0", "cuda:1"]
     with pytest.raises(ValueError, match="CUDA"):
         run_devices("cpu", 2, 2)
+
+
+def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
+    """`--first-seed 2 --seeds 1` trains seed 2 only (one study spread over several jobs)."""
+    from typer.testing import CliRunner
+
+    from navi.cli import build_app
+
+    root = tmp_path / "corpora"
+    build_default_corpus(root / "procedural-train-64", resolution=64, count=1, seed=0)
+    build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
+    out = tmp_path / "out"
+    args = "bench learn --seeds 1 --first-seed 2 --temporal-core gru --budget-s 1 --eval-every-s 1"
+    args += " --actors 4 --rollout-length 8 --eval-actors 4 --eval-steps 16 --eval-episode-steps 8"
+    args += f" --resolution 64 --no-compile --device cpu --json --corpus-root {root} --out {out}"
+    args += f" --openarena {tmp_path / 'none.pk3'}"
+    result = CliRunner().invoke(build_app(), args.split())
+    assert result.exit_code == 0, result.output
+    saved = json.loads((out / "result.json").read_text())
+    assert saved["config"]["seeds"] == [2]
+    assert [r["seed"] for r in saved["runs"]] == [2]
+    assert saved["runs"][0]["train_config"]["seed"] == 2

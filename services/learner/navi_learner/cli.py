@@ -493,8 +493,12 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     @bench.command(name="learn")
     def bench_learn_cmd(
         seeds: Annotated[
-            int, typer.Option("--seeds", min=1, help="Training seeds per core (0, 1, ...).")
+            int, typer.Option("--seeds", min=1, help="Training seeds per core (FIRST, FIRST+1, ...).")
         ] = 3,
+        first_seed: Annotated[
+            int,
+            typer.Option("--first-seed", min=0, help="First training seed (spread one study over several jobs)."),
+        ] = 0,
         temporal_core: Annotated[
             str, typer.Option("--temporal-core", help="Comma-separated cores to compare: mamba2,gru,mambapy.")
         ] = "mamba2",
@@ -606,7 +610,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             episode_steps=episode_steps or protocol.episode_steps,
         )
         cfg = LearnConfig(
-            seeds=tuple(range(seeds)),
+            seeds=tuple(range(first_seed, first_seed + seeds)),
             temporal_cores=cores,
             time_budget_s=budget,
             eval_every_s=eval_every,
