@@ -497,7 +497,9 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         ] = 3,
         first_seed: Annotated[
             int,
-            typer.Option("--first-seed", min=0, help="First training seed (spread one study over several jobs)."),
+            typer.Option(
+                "--first-seed", min=0, help="First training seed (spread one study over several jobs)."
+            ),
         ] = 0,
         temporal_core: Annotated[
             str, typer.Option("--temporal-core", help="Comma-separated cores to compare: mamba2,gru,mambapy.")
