@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from navi_compiler.dag import build_gmdag
-from navi_env.config import EnvConfig, SensorConfig
+from navi_env.config import EnvConfig, ObstacleConfig, SensorConfig
 from navi_env.env import SdfDagEnv
 from navi_env.observation import observe, observe_ref, semantic_table
 from navi_env.scene import load_corpus
@@ -35,8 +35,11 @@ def room() -> object:
     )
 
 
-def rollout(device: str, steps: int, graph: bool = True, fused: bool = True) -> list[torch.Tensor]:
+def rollout(
+    device: str, steps: int, graph: bool = True, fused: bool = True, obstacles: int = 0
+) -> list[torch.Tensor]:
     cfg = EnvConfig(
+        obstacles=ObstacleConfig(count=obstacles, speed_max=8.0),
         cuda_graph=graph,
         fused_observation=fused,
         azimuth_bins=64,
@@ -44,38 +47,55 @@ def rollout(device: str, steps: int, graph: bool = True, fused: bool = True) -> 
         max_steps_per_episode=12,
         sensor=SensorConfig(range_noise_std=0.01, dropout=0.01),
     )
-    spawns = [torch.tensor([[4.0, 4.0, 3.0], [12.0, 12.0, 5.0], [6.0, 11.0, 2.0]])]
+    spawns = [
+        torch.tensor(
+            [[4.0, 4.0, 3.0], [12.0, 12.0, 5.0], [6.0, 11.0, 2.0], [4.0, 12.0, 4.0], [13.0, 3.0, 3.0]]
+        )
+    ]
     env = SdfDagEnv(load_corpus([room()], device), 16, device, cfg, spawns=spawns)
     g = torch.Generator().manual_seed(0)
     frames = [env.reset(seed=4).to("cpu", copy=True)]
     for _ in range(steps):
         out = env.step((torch.rand(16, 4, generator=g) * 2 - 1).to(device))
-        keep = [out.obs, out.reward, out.info["position"], out.truncated.float()]
+        keep = [
+            out.obs,
+            out.reward,
+            out.info["position"],
+            out.truncated.float(),
+            out.info["collision"].float(),
+        ]
+        if env.obstacles is not None:
+            keep.append(env.obstacles.prims)
         frames += [t.to("cpu", copy=True) for t in keep]  # the env reuses its buffers
     return frames
 
 
 @needs_cuda
-def test_cpu_and_cuda_rollouts_agree() -> None:
-    cpu, cuda = rollout("cpu", 30), rollout("cuda", 30)
+@pytest.mark.parametrize("obstacles", [0, 8])
+def test_cpu_and_cuda_rollouts_agree(obstacles: int) -> None:
+    """With moving obstacles too: the same placements, motions, sweeps and traces on both devices."""
+    cpu, cuda = rollout("cpu", 30, obstacles=obstacles), rollout("cuda", 30, obstacles=obstacles)
     for a, b in zip(cpu, cuda, strict=True):
         assert torch.allclose(a, b, atol=2e-3, rtol=1e-3), float((a - b).abs().max())
 
 
 @needs_cuda
-def test_cuda_graph_replay_matches_eager_steps() -> None:
-    graphed, eager = rollout("cuda", 20, graph=True), rollout("cuda", 20, graph=False)
+@pytest.mark.parametrize("obstacles", [0, 8])
+def test_cuda_graph_replay_matches_eager_steps(obstacles: int) -> None:
+    graphed = rollout("cuda", 20, graph=True, obstacles=obstacles)
+    eager = rollout("cuda", 20, graph=False, obstacles=obstacles)
     assert all(torch.equal(a, b) for a, b in zip(graphed, eager, strict=True))
 
 
 @needs_cuda
-def test_cuda_step_does_not_synchronise() -> None:
+@pytest.mark.parametrize("obstacles", [0, 4])
+def test_cuda_step_does_not_synchronise(obstacles: int) -> None:
     env = SdfDagEnv(
         load_corpus([room()], "cuda"),
         64,
         "cuda",
-        EnvConfig(azimuth_bins=64, elevation_bins=16),
-        spawns=[torch.tensor([[4.0, 4.0, 3.0]])],
+        EnvConfig(azimuth_bins=64, elevation_bins=16, obstacles=ObstacleConfig(count=obstacles)),
+        spawns=[torch.tensor([[4.0, 4.0, 3.0], [12.0, 12.0, 5.0]])],
     )
     env.reset(seed=0)
     actions = torch.zeros(64, 4, device="cuda")

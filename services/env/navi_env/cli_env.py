@@ -135,6 +135,15 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         threads: Annotated[
             int, typer.Option(help="CPU threads for torch and the CPU tracer (0: torch's default).", min=0)
         ] = 0,
+        obstacles: Annotated[
+            int,
+            typer.Option(
+                "--obstacles",
+                min=0,
+                max=64,
+                help="K scripted moving obstacles per actor (EnvConfig.obstacles; traced, felt by physics).",
+            ),
+        ] = 0,
         json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
     ) -> None:
         """Env-steps per second of SdfDagEnv with random actions, and milliseconds per stage."""
@@ -145,7 +154,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         if (gmdag is None) == (corpus is None):
             raise _fail("give exactly one of --gmdag FILE or --corpus DIR")
         try:
-            result = run_bench(gmdag, corpus, actors, steps, device, azimuth, elevation, seed)
+            result = run_bench(gmdag, corpus, actors, steps, device, azimuth, elevation, seed, obstacles)
         except (OSError, RuntimeError, ValueError) as exc:
             raise _fail(str(exc)) from exc
         if json_out:
@@ -164,13 +173,16 @@ def run_bench(
     azimuth: int,
     elevation: int,
     seed: int,
+    obstacles: int = 0,
 ) -> dict[str, object]:
-    """Step SdfDagEnv `steps` times with uniform random actions; returns the bench JSON object."""
+    """Step SdfDagEnv `steps` times with uniform random actions; returns the bench JSON object. With
+    `obstacles` K > 0 every actor has K scripted moving obstacles (their collisions and the share of rays
+    that hit them are reported)."""
     import time
 
     import torch
 
-    from navi_env.config import EnvConfig
+    from navi_env.config import EnvConfig, ObstacleConfig
     from navi_env.corpus import load_corpus
     from navi_env.env import SdfDagEnv, StageTimer
     from navi_env.scene import load_scene
@@ -183,9 +195,10 @@ def run_bench(
         scenes = load_scene(gmdag, device)
     else:
         raise ValueError("give a .gmdag file or a corpus folder")
-    env = SdfDagEnv(
-        scenes, actors, device, EnvConfig(azimuth_bins=azimuth, elevation_bins=elevation), spawns, seed
+    config = EnvConfig(
+        azimuth_bins=azimuth, elevation_bins=elevation, obstacles=ObstacleConfig(count=obstacles)
     )
+    env = SdfDagEnv(scenes, actors, device, config, spawns, seed)
     g = torch.Generator(device=env.device).manual_seed(seed)
     env.reset(seed=seed)
     actions = torch.empty(actors, 4, device=env.device)  # (N, 4)
@@ -199,9 +212,19 @@ def run_bench(
     sync()
     seconds = time.perf_counter() - t0
     env.timer = StageTimer(env.device)  # a second, timed pass for the per-stage split
+    hit_obstacle = torch.zeros((), device=env.device)  # () rays that hit an obstacle, summed over steps
+    struck = torch.zeros((), device=env.device)  # () collisions with obstacles
     for _ in range(steps):
-        env.step(actions.uniform_(-1.0, 1.0, generator=g))
+        out = env.step(actions.uniform_(-1.0, 1.0, generator=g))
+        hit_obstacle += (env.semantic == config.obstacles.semantic_class + 1).sum()
+        struck += out.info["obstacle_collision"].sum()
     per_stage = {k: round(v / steps, 4) for k, v in env.timer.totals_ms().items()}
+    extra: dict[str, object] = {}
+    if obstacles:
+        extra = {
+            "obstacle_hit_fraction": round(float(hit_obstacle) / (steps * actors * config.rays), 5),
+            "obstacle_collisions_per_1k": round(1000.0 * float(struck) / (steps * actors), 3),
+        }
     return {
         "device": str(env.device),
         "actors": actors,
@@ -213,4 +236,6 @@ def run_bench(
         "bytes_per_actor": env.bytes_per_actor(),
         "obs_shape": [actors, *env.obs_shape],
         "threads": torch.get_num_threads(),
+        "obstacles_per_actor": obstacles,
+        **extra,
     }

@@ -84,6 +84,72 @@ class RewardConfig:
     """Discount of the potential-based terms; set it to the learner's gamma (PPOConfig.gamma)."""
 
 
+OBSTACLE_SHAPES: tuple[str, ...] = ("sphere", "capsule", "box", "obb")
+"""Primitive shapes a scripted obstacle can take (navi_env.obstacles: sphere, capsule, axis-aligned box,
+oriented box)."""
+OBSTACLE_MOTIONS: tuple[str, ...] = ("linear", "circular", "random_walk")
+"""Scripted motions: back and forth along a segment, round a horizontal circle, a random walk on a leash."""
+
+
+@dataclass(frozen=True)
+class ObstacleConfig:
+    """Scripted moving obstacles, `count` per actor's world, traced and felt without any rebuild of the
+    scene (docs/SIMULATION.md, "Moving obstacles"). Off by default (count 0)."""
+
+    count: int = 0
+    """K: obstacles per actor (slots fixed at env creation; the tracer tests every one on every ray)."""
+    shapes: tuple[str, ...] = OBSTACLE_SHAPES
+    """Shapes given to the slots in turn (slot k gets shapes[k % len])."""
+    motions: tuple[str, ...] = OBSTACLE_MOTIONS
+    """Motions given to the slots in turn (slot k gets motions[k % len])."""
+    size_min: float = 0.3
+    """Smallest radius / half extent, meters."""
+    size_max: float = 0.8
+    """Largest radius / half extent, meters."""
+    speed_min: float = 0.5
+    """Slowest obstacle, m/s."""
+    speed_max: float = 3.0
+    """Fastest obstacle, m/s (may exceed the drone's speed: the sweep test stops it at the drone)."""
+    reach_min: float = 1.0
+    """Shortest half segment (linear), circle radius (circular) or leash (random walk), meters."""
+    reach_max: float = 4.0
+    """Longest half segment, circle radius or leash, meters."""
+    place_min: float = 2.0
+    """An obstacle starts at least this far from its actor's spawn, meters."""
+    place_max: float = 15.0
+    """and at most this far (spawn points of the scene farther away are not used)."""
+    place_tries: int = 8
+    """Spawn points tried per obstacle at placement; with none valid the slot stays empty that episode."""
+    walk_turn: float = 0.3
+    """Random walk: standard deviation of the heading change per step (unit heading + this * noise)."""
+    wall_iterations: int = 3
+    """Steps of the march that stops an obstacle at the static geometry (static samples per step)."""
+    sweep_iterations: int = 16
+    """Steps of the conservative march that stops an obstacle at a drone (never through it)."""
+    semantic_class: int = 8
+    """Class of an obstacle hit (semantic 1 + class in the observation)."""
+
+    def __post_init__(self) -> None:
+        if self.count < 0 or self.count > 64:
+            raise ValueError("obstacles.count must be in [0, 64]")
+        if not self.shapes or any(s not in OBSTACLE_SHAPES for s in self.shapes):
+            raise ValueError(f"obstacles.shapes must be a non-empty subset of {OBSTACLE_SHAPES}")
+        if not self.motions or any(m not in OBSTACLE_MOTIONS for m in self.motions):
+            raise ValueError(f"obstacles.motions must be a non-empty subset of {OBSTACLE_MOTIONS}")
+        if not 0.0 < self.size_min <= self.size_max:
+            raise ValueError("obstacles need 0 < size_min <= size_max")
+        if not 0.0 <= self.speed_min <= self.speed_max:
+            raise ValueError("obstacles need 0 <= speed_min <= speed_max")
+        if not 0.0 < self.reach_min <= self.reach_max:
+            raise ValueError("obstacles need 0 < reach_min <= reach_max")
+        if not 0.0 <= self.place_min < self.place_max:
+            raise ValueError("obstacles need 0 <= place_min < place_max")
+        if self.place_tries < 1 or self.sweep_iterations < 1 or self.wall_iterations < 1:
+            raise ValueError("obstacles need place_tries, sweep_iterations and wall_iterations >= 1")
+        if not 0 <= self.semantic_class <= 253:
+            raise ValueError("obstacles.semantic_class must be in [0, 253]")
+
+
 @dataclass(frozen=True)
 class EnvConfig:
     """The drone environment: kinematics, observation, episodes and rewards."""
@@ -143,6 +209,8 @@ class EnvConfig:
     """Optional noise, dropout and ray pattern; off by default."""
     reward: RewardConfig = field(default_factory=RewardConfig)
     """Reward weights."""
+    obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
+    """Scripted moving obstacles; none by default."""
 
     def __post_init__(self) -> None:
         if self.azimuth_bins < 4 or self.elevation_bins < 2:

@@ -1,7 +1,8 @@
 """SdfDagEnv: N drones flying in .gmdag scenes, stepped together on one device.
 
 One step, in order (docs/SIMULATION.md):
-  physics      actions -> limited body velocity -> contact-safe move, yaw, visited cells
+  physics      moving obstacles (if any) take their scripted step, stopped at the drone; actions ->
+               limited body velocity -> contact-safe move in the combined field, yaw, visited cells
   episode      step counts, truncation (time limit, starvation after the void grace), auto-reset
                (scene rotation, spawn) of the actors whose episode ended
   trace        one sphere trace of every actor's rays from its (new or spawn) pose
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
-from navi_env import episodes, physics, rewards
+from navi_env import episodes, obstacle_motion, physics, rewards
 from navi_env.config import EnvConfig
 from navi_env.observation import CHANNELS, observe, observe_ref, semantic_table
 from navi_env.rays import tiled_ray_order
@@ -44,6 +45,7 @@ INFO_KEYS: tuple[str, ...] = (
     "episode_length",
     "starved",
     "scene_id",
+    "obstacle_collision",
 )
 """Keys of StepOut.info; every value is a tensor with leading dimension N."""
 
@@ -162,6 +164,10 @@ class SdfDagEnv:
             (), dtype=torch.int64, device=dev
         )  # () step counter keying the random numbers
         self.actor = torch.arange(n, dtype=torch.int64, device=dev)  # (N,)
+        self._actor32 = self.actor.to(torch.int32)  # (N,) each actor's obstacle world
+        self.obstacles = (
+            obstacle_motion.allocate(n, cfg.obstacles, dev) if cfg.obstacles.count > 0 else None
+        )  # (N, K, 16) records and their motion state; None without obstacles
         self.actions = f32(n, 4)  # (N, 4) this step's actions (a fixed address for the CUDA graph)
         self.scene = i64(n)  # (N,) scene index per actor
         self.position = f32(n, 3)  # (N, 3) world meters
@@ -202,6 +208,7 @@ class SdfDagEnv:
             "episode_length": i64(n),  # (N,) steps so far (final where truncated)
             "starved": flag(n),  # (N,) ended by starvation
             "scene_id": i64(n),  # (N,)
+            "obstacle_collision": flag(n),  # (N,) the collision was with a moving obstacle
         }
         self.out = StepOut(
             obs=self.obs,
@@ -223,6 +230,8 @@ class SdfDagEnv:
             v for v in vars(self).values() if isinstance(v, torch.Tensor) and v.ndim and v.shape[0] == self.n
         ]
         tensors += list(self.terms.values()) + list(self.info.values())
+        if self.obstacles is not None:
+            tensors += [v for v in vars(self.obstacles).values() if v.ndim and v.shape[0] == self.n]
         return sum(t.numel() * t.element_size() for t in tensors) // self.n
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
@@ -234,7 +243,9 @@ class SdfDagEnv:
         self.episodes_on_scene.zero_()
         self.episode_return.zero_()
         self.steps.zero_()
-        self._spawn(torch.ones(self.n, dtype=torch.bool, device=self.device))
+        everyone = torch.ones(self.n, dtype=torch.bool, device=self.device)  # (N,)
+        self._spawn(everyone)
+        self._place_obstacles(everyone)
         self._trace()
         self._observe_from_trace()
         return self.obs
@@ -275,6 +286,7 @@ class SdfDagEnv:
         stage = self.timer.stage if self.timer is not None else _no_stage
         self.tick.add_(1)
         with stage("physics"):
+            struck = self._move_obstacles()  # (N,) bool: an obstacle ran into the drone
             vel, yaw_rate = physics.body_velocity(self.actions, cfg)  # (N, 3), (N,)
             vel = vel * physics.limiter_scale(self.clearance, cfg)[:, None]  # (N, 3) body m/s
             move = physics.safe_move(
@@ -292,11 +304,16 @@ class SdfDagEnv:
                 move.position, cfg.reward.exploration_cell, cfg.reward.exploration_table_bits
             )
             novel = rewards.visit_cells(self.visited, cells)  # (N,) bool
+            contact, obstacle_contact = move.contact, struck
+            if self.obstacles is not None:
+                nearest = obstacle_motion.obstacle_distance(self.obstacles, move.position)  # (N,)
+                obstacle_contact = struck | (move.contact & (nearest <= move.clearance + 1e-4))  # (N,)
+                contact = move.contact | struck  # (N,) bool
         with stage("episode"):
             self.steps.add_(1)
             time_limit, starved = episodes.truncation(self.steps, self.void, cfg)  # (N,), (N,) bool
             torch.logical_or(time_limit, starved, out=self.truncated)
-            self._record_info(move, novel, starved)
+            self._record_info(move, contact, obstacle_contact, novel, starved)
             for name, value in self.before.items():
                 value.copy_(getattr(self, name))
             self.position.copy_(move.position)
@@ -314,7 +331,7 @@ class SdfDagEnv:
                 return torch.where(ended, before, now)  # (N,)
 
             inputs = rewards.RewardInputs(
-                contact=move.contact,
+                contact=contact,
                 speed=vel.norm(dim=1),
                 novel=novel,
                 clearance_before=self.before["clearance"],
@@ -335,9 +352,17 @@ class SdfDagEnv:
             self.info["clearance"].copy_(inputs.clearance)
             self.episode_return.masked_fill_(ended, 0.0)
 
-    def _record_info(self, move: physics.Move, novel: torch.Tensor, starved: torch.Tensor) -> None:
+    def _record_info(
+        self,
+        move: physics.Move,
+        contact: torch.Tensor,
+        obstacle_contact: torch.Tensor,
+        novel: torch.Tensor,
+        starved: torch.Tensor,
+    ) -> None:
         """Info of the step that just ended (clearance and return are written by the reward stage)."""
-        self.info["collision"].copy_(move.contact)
+        self.info["collision"].copy_(contact)
+        self.info["obstacle_collision"].copy_(obstacle_contact)
         self.info["position"].copy_(move.position)
         self.info["novel_cell"].copy_(novel)
         self.info["speed"].copy_(move.displacement.norm(dim=1) / self.config.dt)
@@ -353,6 +378,7 @@ class SdfDagEnv:
         self.scene.copy_(torch.where(rotate, other, self.scene))
         self.steps.masked_fill_(ended, 0)
         self._spawn(ended)
+        self._place_obstacles(ended)
 
     def _spawn(self, mask: torch.Tensor) -> None:
         """Place actors with `mask` (N,) bool at a fresh spawn of their scene; clear their visited cells."""
@@ -365,6 +391,50 @@ class SdfDagEnv:
         cells = rewards.cell_index(self.position, cfg.exploration_cell, cfg.exploration_table_bits)  # (N,)
         rewards.visit_cells(self.visited, cells)
         self.fresh.copy_(mask)
+
+    def _place_obstacles(self, mask: torch.Tensor) -> None:
+        """New obstacles around the (just spawned) drones of the actors with `mask` (N,) bool."""
+        if self.obstacles is None:
+            return
+        cfg = self.config
+        obstacle_motion.place(
+            self.obstacles,
+            mask,
+            self.spawns,
+            self.scene,
+            self.position,
+            cfg.drone_radius,
+            cfg.obstacles,
+            self.seed,
+            self.tick,
+            self.actor,
+        )
+
+    def _move_obstacles(self) -> torch.Tensor:
+        """The obstacles' scripted step (stopped at the drone); the drone's clearance in the changed field.
+        Returns (N,) bool: an obstacle ran into the drone."""
+        if self.obstacles is None:
+            return self.done  # (N,) all False
+        cfg = self.config
+        k = self.obstacles.count
+        scene_k = self.scene.repeat_interleave(k)  # (N*K,)
+
+        def static(points: torch.Tensor) -> torch.Tensor:
+            return sample_distance(self.corpus, scene_k, points)  # (N*K,)
+
+        struck = obstacle_motion.advance(
+            self.obstacles,
+            static,
+            self.position,
+            cfg.drone_radius,
+            cfg.dt,
+            cfg.obstacles,
+            self.seed,
+            self.tick,
+            self.actor,
+        )
+        self.safe_distance.copy_(self._distance(self.position))
+        return struck
 
     def _trace(self) -> None:
         cfg = self.config
@@ -381,6 +451,7 @@ class SdfDagEnv:
             horizon=cfg.horizon,
             hit_epsilon=cfg.hit_epsilon,
             skip_direction_validation=True,
+            prims=None if self.obstacles is None else self.obstacles.prims,
         )
 
     def _observe_from_trace(self) -> None:
@@ -414,8 +485,12 @@ class SdfDagEnv:
 
     def _distance(self, points: torch.Tensor) -> torch.Tensor:
         """Clearance (M,) at points (M, 3), M a multiple of N in actor-major order."""
-        scene = self.scene.repeat_interleave(points.shape[0] // self.n)  # (M,)
-        return sample_distance(self.corpus, scene, points)
+        per = points.shape[0] // self.n
+        scene = self.scene.repeat_interleave(per)  # (M,)
+        if self.obstacles is None:
+            return sample_distance(self.corpus, scene, points)
+        world = self._actor32.repeat_interleave(per)  # (M,) int32: each point's actor's obstacles
+        return sample_distance(self.corpus, scene, points, prims=self.obstacles.prims, prim_world=world)
 
     def _clearance_at(self, scene: int, points: torch.Tensor) -> torch.Tensor:
         """Clearance (K,) at a scene's points (K, 3), on the host (construction only)."""

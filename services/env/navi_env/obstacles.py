@@ -85,6 +85,36 @@ def check_prims(
     return int(prims.shape[0]), int(prims.shape[1])
 
 
+def distance(rec: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Exact signed distance (...,) from points p (..., 3) to the primitives of records rec (..., 16)
+    (broadcast; +inf for kind none). Torch ops on any device: the env's obstacle motion and sweeps use
+    it; `distance_one` is its slow twin."""
+    kind = rec[..., KIND]  # (...,)
+    c, a = rec[..., CENTER : CENTER + 3], rec[..., AXIS : AXIS + 3]  # (..., 3), (..., 3)
+    rad = rec[..., RADIUS]  # (...,)
+    v = p - c  # (..., 3)
+    sphere = v.norm(dim=-1) - rad  # (...,)
+    aa = (a * a).sum(-1)  # (...,)
+    s = ((v * a).sum(-1) / aa.clamp_min(1e-30)).clamp(-1.0, 1.0)  # (...,)
+    capsule = (v - s[..., None] * a).norm(dim=-1) - rad  # (...,)
+    w, u = rec[..., QUAT], rec[..., QUAT + 1 : QUAT + 4]  # (...,), (..., 3)
+    uv = torch.cross(u, v, dim=-1)  # (..., 3)
+    local = v - 2.0 * w[..., None] * uv + 2.0 * torch.cross(u, uv, dim=-1)  # (..., 3) R^T v
+    local = torch.where((kind == OBB)[..., None], local, v)  # (..., 3)
+    d = local.abs() - a  # (..., 3)
+    box = d.clamp_min(0.0).norm(dim=-1) + d.amax(-1).clamp_max(0.0)  # (...,)
+    out = torch.where(kind == SPHERE, sphere, torch.where(kind == CAPSULE, capsule, box))  # (...,)
+    return torch.where(kind == NONE, torch.full_like(out, math.inf), out)
+
+
+def bounding_radius(rec: torch.Tensor) -> torch.Tensor:
+    """Radius (...,) of a sphere about the centre that holds the primitive of records rec (..., 16)."""
+    kind, rad = rec[..., KIND], rec[..., RADIUS]  # (...,)
+    a = rec[..., AXIS : AXIS + 3].norm(dim=-1)  # (...,)
+    out = torch.where(kind == SPHERE, rad, torch.where(kind == CAPSULE, a + rad, a))  # (...,)
+    return torch.where(kind == NONE, torch.zeros_like(out), out)
+
+
 # ------------------------------------------------------------------------------------------------
 # Slow twins: one primitive, Python floats.
 

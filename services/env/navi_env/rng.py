@@ -25,6 +25,12 @@ STREAM_NOISE = 4
 """Stream id of the sensor's range noise."""
 STREAM_DROPOUT = 5
 """Stream id of the sensor's ray dropout."""
+STREAM_OBSTACLE_PLACE = 6
+"""Stream id of the spawn points tried when obstacles are placed."""
+STREAM_OBSTACLE_SHAPE = 7
+"""Stream id of an obstacle's size, orientation, speed and path at placement."""
+STREAM_OBSTACLE_WALK = 8
+"""Stream id of the random walk's heading changes."""
 
 
 def mix32(x: torch.Tensor) -> torch.Tensor:
