@@ -118,3 +118,48 @@ def test_explorer_page_websocket_flies_the_drone(tmp_path: Path, make_env: Calla
     assert explorer.finished.is_set() and len(explorer.saved) == 1
     demo = load_demo(explorer.saved[0])
     assert np.any(np.all(demo.actions == [1.0, 0.0, 0.0, 1.0], axis=1))
+
+
+def test_explorer_shows_moving_obstacles(tmp_path: Path) -> None:
+    """With obstacles the message reports them and masks exactly the pixels that see one: a still ball
+    of 1.5 m put 3 m straight ahead (+-30 degrees) fills the middle of the forward view."""
+    import base64
+
+    import torch
+
+    from navi_env import obstacles as ob
+    from navi_env.config import EnvConfig, ObstacleConfig
+    from navi_env.env import SdfDagEnv
+
+    from .conftest import room_corpus
+
+    config = EnvConfig(
+        azimuth_bins=32, elevation_bins=8, obstacles=ObstacleConfig(count=1, shapes=("sphere",))
+    )
+    spawns = [torch.tensor([[8.0, 8.0, 4.0], [4.0, 4.0, 4.0], [12.0, 12.0, 4.0]])]
+    envs: list[SdfDagEnv] = []
+
+    def make() -> SdfDagEnv:
+        envs.append(SdfDagEnv(room_corpus(), 1, "cpu", config, spawns=spawns))
+        return envs[-1]
+
+    explorer = Explorer([("room", make)], ExplorerConfig(max_steps=50, out_dir=tmp_path))
+    explorer.step_once()
+    env = envs[0]
+    assert env.obstacles is not None
+    yaw = float(env.yaw[0])
+    ahead = env.position[0] + 3.0 * torch.tensor([math.cos(yaw), math.sin(yaw), 0.0])
+    env.obstacles.prims[0, 0] = ob.record(ob.SPHERE, ahead.tolist(), radius=1.5)
+    env.obstacles.anchor[0, 0] = ahead  # a linear script with speed 0: it stays there
+    env.obstacles.phase.zero_()
+    env.obstacles.speed.zero_()
+    env.obstacles.bound.fill_(1.5)
+    explorer.step_once()
+    message = json.loads(explorer.view_message())
+    seen = message["obstacles"]
+    assert seen["active"] == 1 and seen["collisions"] == 0
+    assert seen["nearest"] == pytest.approx(1.5, abs=0.01)
+    mask = np.frombuffer(base64.b64decode(seen["mask"]), dtype=np.uint8).reshape(8, 16)  # (El, Az/2)
+    assert mask[3:5, 7:9].all()  # straight ahead, at the horizon
+    assert not mask[:, :3].any() and not mask[:, -3:].any()  # nothing to the sides
+    assert mask.sum() < mask.size // 4

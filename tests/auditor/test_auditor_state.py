@@ -224,3 +224,13 @@ def test_a_stalled_client_does_not_stall_the_others() -> None:
         assert hub.clients == {live}
 
     asyncio.run(scenario())
+
+
+def test_obstacle_collisions_share_the_collisions_chart() -> None:
+    state = DashboardState(DashboardConfig(stale_after_s=5.0))
+    state.on_telemetry(event("actor.training.collisions_per_1k", 2.0, step=64), now=1.0)
+    state.on_telemetry(event("actor.training.obstacle_collisions_per_1k", 0.5, step=64), now=1.0)
+    assert state.snapshot(1.5).charts["collisions"] == {
+        "actor.training.collisions_per_1k": [(64, 2.0)],
+        "actor.training.obstacle_collisions_per_1k": [(64, 0.5)],
+    }

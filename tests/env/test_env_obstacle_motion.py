@@ -8,14 +8,19 @@ collisions with obstacles are counted; placement and re-placement at episode end
 
 from __future__ import annotations
 
+import json
 import math
 import typing
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from typer.testing import CliRunner
 
+from navi.cli import build_app
 from navi_compiler.dag import build_gmdag
+from navi_compiler.gmdag import Gmdag, write_gmdag
 from navi_env import obstacle_motion as om
 from navi_env import obstacles as ob
 from navi_env.config import EnvConfig, ObstacleConfig
@@ -27,7 +32,7 @@ RES, VOXEL = 32, 0.625  # a 20 m cube
 LO, HI = (1.0, 1.0, 1.0), (19.0, 19.0, 9.0)
 
 
-def _room() -> SceneCorpus:
+def _room_gmdag() -> Gmdag:
     i = np.arange(RES + 1, dtype=np.float64) * VOXEL
     p = np.stack(np.meshgrid(i, i, i, indexing="ij"), axis=-1)  # (R+1, R+1, R+1, 3)
     c, h = (np.array(LO) + np.array(HI)) / 2, (np.array(HI) - np.array(LO)) / 2
@@ -35,8 +40,18 @@ def _room() -> SceneCorpus:
     box = np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
     pillar = np.linalg.norm(p[..., :2] - np.array([12.0, 7.0]), axis=-1) - 1.0  # floor-to-ceiling column
     d = np.minimum(-box, pillar)
-    g = build_gmdag((d / VOXEL).astype(np.float32), origin=(0.0, 0.0, 0.0), voxel_size=VOXEL, bounds=(LO, HI))
-    return load_corpus([g], "cpu")
+    spawns = torch.cat(_spawns()).numpy()
+    return build_gmdag(
+        (d / VOXEL).astype(np.float32),
+        origin=(0.0, 0.0, 0.0),
+        voxel_size=VOXEL,
+        bounds=(LO, HI),
+        spawns=spawns,
+    )
+
+
+def _room() -> SceneCorpus:
+    return load_corpus([_room_gmdag()], "cpu")
 
 
 @pytest.fixture(scope="module")
@@ -307,3 +322,22 @@ def test_obstacle_config_rejects_bad_values() -> None:
     ):
         with pytest.raises(ValueError):
             ObstacleConfig(**bad)
+
+
+def test_bench_env_with_moving_obstacles(tmp_path: Path) -> None:
+    path = tmp_path / "room.gmdag"
+    write_gmdag(_room_gmdag(), path)
+
+    def run(k: int) -> dict[str, typing.Any]:
+        args = (
+            f"bench env --gmdag {path} --actors 4 --steps 3 --azimuth 32 --elevation 8 --obstacles {k} --json"
+        )
+        res = CliRunner().invoke(build_app(), args.split())
+        assert res.exit_code == 0, res.output
+        return dict(json.loads(res.stdout.strip().splitlines()[-1]))
+
+    plain, crowded = run(0), run(16)
+    assert plain["obstacles_per_actor"] == 0 and "obstacle_hit_fraction" not in plain
+    assert crowded["obstacles_per_actor"] == 16 and crowded["obstacle_hit_fraction"] > 0.0
+    assert crowded["obstacle_collisions_per_1k"] >= 0.0
+    assert crowded["bytes_per_actor"] > plain["bytes_per_actor"]  # the obstacle state is counted

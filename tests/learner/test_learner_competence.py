@@ -225,3 +225,44 @@ def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
     assert saved["config"]["seeds"] == [2]
     assert [r["seed"] for r in saved["runs"]] == [2]
     assert saved["runs"][0]["train_config"]["seed"] == 2
+
+
+def test_obstacle_collisions_are_measured_and_counted_among_collisions(tmp_path: Path) -> None:
+    """`make_env(obstacles=K)` gives every actor K moving obstacles; evaluation reports the contacts with
+    them as obstacle_collisions_per_1k, a part of collisions_per_1k (0 when there are no obstacles)."""
+    from navi_learner.envs import EnvUnavailable
+
+    corpus = tmp_path / "c"
+    build_default_corpus(corpus, resolution=64, count=1, seed=0)
+    crowded = make_env(corpus, 4, "cpu", 3, episode_steps=20, obstacles=12)
+    assert crowded.obstacles is not None and crowded.obstacles.count == 12  # type: ignore[attr-defined]
+    m = evaluate(crowded, RandomPolicy(seed=0), 40, seed=3)
+    assert 0.0 <= m.obstacle_collisions_per_1k <= m.collisions_per_1k
+    lo, hi = m.ci["obstacle_collisions_per_1k"]
+    assert lo <= m.obstacle_collisions_per_1k <= hi
+    plain = evaluate(make_env(corpus, 4, "cpu", 3, episode_steps=20), RandomPolicy(seed=0), 10, seed=3)
+    assert plain.obstacle_collisions_per_1k == 0.0
+    with pytest.raises(EnvUnavailable):
+        make_env(corpus, 4, "cpu", 3, obstacles=65)
+
+
+def test_training_stats_count_obstacle_collisions_among_collisions() -> None:
+    from types import SimpleNamespace
+
+    from navi_learner.stats import EpisodeStats
+
+    stats = EpisodeStats(4, torch.device("cpu"))
+    for step in range(10):
+        collision = torch.tensor([True, step % 2 == 0, False, False])  # (4,)
+        info = {
+            "collision": collision,
+            "obstacle_collision": collision & torch.tensor([False, True, False, False]),
+        }
+        out = SimpleNamespace(
+            reward=torch.zeros(4), done=torch.zeros(4, dtype=torch.bool), truncated=torch.zeros(4, dtype=torch.bool),
+            reward_terms={}, info=info,
+        )  # fmt: skip
+        stats.update(out)  # type: ignore[arg-type]
+    row = stats.read()
+    assert row["collisions_per_1k"] == pytest.approx(1000.0 * 15 / 40)
+    assert row["obstacle_collisions_per_1k"] == pytest.approx(1000.0 * 5 / 40)

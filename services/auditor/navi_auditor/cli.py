@@ -136,6 +136,12 @@ def explore_command(
     host: Annotated[str, typer.Option("--host", help="Address the explorer page listens on.")] = "127.0.0.1",
     port: Annotated[int, typer.Option("--port", help="Port of the explorer page.")] = 8080,
     device: Annotated[str, typer.Option("--device", help="Torch device of the environment.")] = "cpu",
+    obstacles: Annotated[
+        int,
+        typer.Option(
+            "--obstacles", min=0, max=64, help="Scripted moving obstacles around the drone (tinted)."
+        ),
+    ] = 0,
 ) -> None:
     """Fly a drone through scenes with the keyboard in the browser; every flight is saved as a demonstration."""
     if (gmdag is None) == (corpus is None):
@@ -152,7 +158,7 @@ def explore_command(
 
     from navi_auditor.explorer import run_explorer
 
-    saved = run_explorer(paths, max_steps, out_dir, host, port, device)
+    saved = run_explorer(paths, max_steps, out_dir, host, port, device, obstacles)
     typer.echo(f"saved {len(saved)} demonstration(s) under {out_dir}")
 
 

@@ -6,6 +6,10 @@ back, and appends every step to a demonstration buffer. After `max_steps` steps 
 written to `<out_dir>/<time>_<scene>.npz` (layout in demos.py) and the next scene opens.
 
 Keys: W/S forward/back, A/D left/right, Space/Shift up/down, Q/E yaw left/right, ESC next scene.
+
+With moving obstacles (`navi explore --obstacles K`) every message also carries `obstacles`: how many
+are active, the distance to the nearest, the collisions with them so far, and a mask of the view's
+pixels that see one (the page tints them).
 """
 
 from __future__ import annotations
@@ -91,6 +95,7 @@ class Flight:
     steps: int = 0
     episode_return: float = 0.0
     last_reward: float = 0.0
+    obstacle_collisions: int = 0
 
 
 @dataclass
@@ -159,6 +164,8 @@ class Explorer:
         flight.obs = out.obs[0].detach().cpu().numpy().copy()  # (3, Az, El)
         flight.steps += 1
         flight.last_reward = reward
+        if "obstacle_collision" in out.info:
+            flight.obstacle_collisions += int(out.info["obstacle_collision"][0])
         flight.episode_return = 0.0 if done else flight.episode_return + reward
         if flight.steps >= self.config.max_steps:
             self._close(flight)
@@ -198,6 +205,9 @@ class Explorer:
                     },
                 }
             )
+            seen = obstacle_view(flight)
+            if seen is not None:
+                body["obstacles"] = seen
         return json.dumps(body, allow_nan=False, separators=(",", ":"))
 
     def handle(self, text: str) -> None:
@@ -254,20 +264,52 @@ def explorer_hub() -> Hub:
     return Hub(HubConfig(queue_size=2))
 
 
-def scene_env(path: Path, device: str) -> Callable[[], ExplorerEnv]:
-    """A factory of a one-actor SdfDagEnv over one .gmdag (spawns from the env's qualification)."""
+def obstacle_view(flight: Flight) -> dict[str, Any] | None:
+    """The flight's moving obstacles for the page (None without any): active count, nearest distance
+    (m), collisions so far, and a base64 (El, Az/2) uint8 mask (1 = this pixel sees an obstacle)."""
+    env: Any = flight.env
+    state = getattr(env, "obstacles", None)
+    if state is None:
+        return None
+    from navi_env import obstacles as ob
+    from navi_env.obstacle_motion import obstacle_distance
+
+    code = env.config.obstacles.semantic_class + 1
+    az, el = flight.obs.shape[1], flight.obs.shape[2]
+    seen = (env.semantic[0] == code).view(az, el).cpu().numpy().astype(np.uint8)  # (Az, El) in obs order
+    mask = forward_hemisphere(seen)  # (El, Az/2)
+    nearest = float(obstacle_distance(state, env.position)[0])
+    return {
+        "active": int((state.prims[0, :, ob.KIND] != ob.NONE).sum()),
+        "nearest": round(nearest, 2) if nearest != float("inf") else None,
+        "collisions": flight.obstacle_collisions,
+        "mask": base64.b64encode(mask.tobytes()).decode("ascii"),
+    }
+
+
+def scene_env(path: Path, device: str, obstacles: int = 0) -> Callable[[], ExplorerEnv]:
+    """A factory of a one-actor SdfDagEnv over one .gmdag (spawns from the env's qualification), with
+    `obstacles` scripted moving obstacles."""
 
     def make() -> ExplorerEnv:
+        from navi_env.config import EnvConfig, ObstacleConfig
         from navi_env.env import SdfDagEnv
         from navi_env.scene import load_scene
 
-        return SdfDagEnv(load_scene(path, device), 1, device)
+        config = EnvConfig(obstacles=ObstacleConfig(count=obstacles))
+        return SdfDagEnv(load_scene(path, device), 1, device, config)
 
     return make
 
 
 def run_explorer(
-    paths: Sequence[Path], max_steps: int, out_dir: Path, host: str, port: int, device: str
+    paths: Sequence[Path],
+    max_steps: int,
+    out_dir: Path,
+    host: str,
+    port: int,
+    device: str,
+    obstacles: int = 0,
 ) -> list[Path]:
     """Serve the explorer page until every scene is flown (or Ctrl+C); returns the saved demonstrations."""
     from navi_auditor.dashboard import create_app
@@ -275,7 +317,8 @@ def run_explorer(
     from navi_auditor.state import DashboardState
 
     explorer = Explorer(
-        [(str(p), scene_env(p, device)) for p in paths], ExplorerConfig(max_steps=max_steps, out_dir=out_dir)
+        [(str(p), scene_env(p, device, obstacles)) for p in paths],
+        ExplorerConfig(max_steps=max_steps, out_dir=out_dir),
     )
     hub = explorer_hub()
     app = create_app(

@@ -396,6 +396,8 @@ class SdfDagEnv:
         """New obstacles around the (just spawned) drones of the actors with `mask` (N,) bool."""
         if self.obstacles is None:
             return
+        if self.device.type == "cpu" and not bool(mask.any()):
+            return  # nothing to place (a host read costs nothing on the CPU; CUDA always runs the fixed work)
         cfg = self.config
         obstacle_motion.place(
             self.obstacles,

@@ -80,6 +80,8 @@ class LearnConfig:
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
     reward: tuple[tuple[str, float], ...] = ()
     """RewardConfig fields replaced in every env of the job (training, evaluation, baselines)."""
+    obstacles: int = 0
+    """Scripted moving obstacles per actor in every env of the job (EnvConfig.obstacles)."""
 
 
 def openarena_maps(pk3: Path) -> list[str]:
@@ -193,7 +195,7 @@ def run_one(
     dev = torch.device(device)
     tcfg = train_config(cfg, core, seed, dev)
     reward = dict(cfg.reward)
-    env = make_env(splits.train, tcfg.n_actors, device, seed, reward=reward)
+    env = make_env(splits.train, tcfg.n_actors, device, seed, reward=reward, obstacles=cfg.obstacles)
     unseen = make_env(
         splits.unseen,
         cfg.protocol.actors,
@@ -201,6 +203,7 @@ def run_one(
         cfg.protocol.seed,
         episode_steps=cfg.protocol.episode_steps,
         reward=reward,
+        obstacles=cfg.obstacles,
     )
     monitor = CompetenceMonitor(
         unseen,
@@ -233,6 +236,7 @@ def run_one(
             cfg.protocol.seed,
             episode_steps=cfg.protocol.episode_steps,
             reward=reward,
+            obstacles=cfg.obstacles,
         )
         final[name] = asdict(evaluate(part, trained, cfg.protocol.steps, cfg.protocol.seed))
         final[name]["policy"] = f"trained ({core}, seed {seed})"
@@ -253,7 +257,11 @@ def run_one(
 
 
 def baselines_by_split(
-    splits: Splits, protocol: EvalProtocol, device: str, reward: dict[str, float] | None = None
+    splits: Splits,
+    protocol: EvalProtocol,
+    device: str,
+    reward: dict[str, float] | None = None,
+    obstacles: int = 0,
 ) -> dict[str, dict[str, EvalMetrics]]:
     """random and reactive on the whole unseen split ("all") and on each of its parts."""
 
@@ -265,6 +273,7 @@ def baselines_by_split(
             protocol.seed,
             episode_steps=protocol.episode_steps,
             reward=reward,
+            obstacles=obstacles,
         )
 
     out = {"all": evaluate_baselines(env_of(splits.unseen), protocol)}
@@ -366,7 +375,7 @@ def bench_learn(
     out.mkdir(parents=True, exist_ok=True)
     splits = prepare_splits(corpus_root, resolution, device, pk3, say=say)
     say(f"[bench learn] train {splits.train}, unseen {splits.unseen}")
-    baselines = baselines_by_split(splits, cfg.protocol, device, dict(cfg.reward))
+    baselines = baselines_by_split(splits, cfg.protocol, device, dict(cfg.reward), cfg.obstacles)
     for part, b in baselines.items():
         say(f"[bench learn] baselines on unseen {part}:\n" + comparison_table(list(b.values())))
     runs_wanted = [(core, seed) for core in cfg.temporal_cores for seed in cfg.seeds]

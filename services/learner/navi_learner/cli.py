@@ -66,8 +66,27 @@ NprocOpt = Annotated[
 ]
 
 
+ObstaclesOpt = Annotated[
+    int,
+    typer.Option(
+        "--obstacles",
+        min=0,
+        max=64,
+        help="Scripted moving obstacles per actor (drone env; traced, felt by physics, their collisions "
+        "counted).",
+    ),
+]
+
+
 def build_env(
-    env_kind: str, corpus: Path | None, n_actors: int, device: str, seed: int, rank: int = 0, world: int = 1
+    env_kind: str,
+    corpus: Path | None,
+    n_actors: int,
+    device: str,
+    seed: int,
+    rank: int = 0,
+    world: int = 1,
+    obstacles: int = 0,
 ) -> Any:
     """The environment for a command (a data-parallel rank: its share of the scenes), or exit 2."""
     from navi_learner.envs import EnvUnavailable, make_env
@@ -84,6 +103,7 @@ def build_env(
             kind,
             rank=rank,
             world=world,
+            obstacles=obstacles,
         )
     except EnvUnavailable as err:
         raise fail(str(err)) from err
@@ -218,6 +238,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
         ] = True,
         nproc: NprocOpt = 1,
+        obstacles: ObstaclesOpt = 0,
     ) -> None:
         """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first. Under torchrun
         (or with --nproc N) every rank trains its own actors on its own device with synchronous
@@ -255,7 +276,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 checkpoint, fresh, replace(cfg, compile=compile_encoder, time_limit_s=time_limit)
             )
             n = cfg.n_actors or default_actors(torch.device(dev))
-            environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world)
+            environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles)
             summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
             result = run_train(
                 environment,
@@ -339,9 +360,11 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         device: DeviceOpt = "auto",
         seed: SeedOpt = 0,
         env: EnvOpt = "sdfdag",
+        obstacles: ObstaclesOpt = 0,
         as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
     ) -> None:
-        """Evaluate a checkpoint or a baseline: return, collisions, clearance, coverage, distance, starvation."""
+        """Evaluate a checkpoint or a baseline: return, collisions (with moving obstacles among them),
+        clearance, coverage, distance, starvation."""
         from navi_learner.evaluate import evaluate
 
         if (checkpoint is None) == (policy is None):
@@ -349,7 +372,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         if policy is not None:
             check_choice(policy, ("random", "reactive"), "--policy")
         dev = pick_device(device)
-        environment = build_env(env, corpus, actors, dev, seed)
+        environment = build_env(env, corpus, actors, dev, seed, obstacles=obstacles)
         chosen = eval_policy(policy or str(checkpoint), dev, seed, True, environment)
         print_metrics([evaluate(environment, chosen, steps, seed, progress=True)], as_json)
 
@@ -580,6 +603,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 "e.g. --reward exploration_weight=0.2.",
             ),
         ] = None,
+        obstacles: ObstaclesOpt = 0,
         device: DeviceOpt = "auto",
         as_json: Annotated[
             bool, typer.Option("--json", help="Print the summary as one JSON object.")
@@ -627,6 +651,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             gpus=gpus,
             protocol=protocol,
             reward=tuple(overrides.items()),
+            obstacles=obstacles,
         )
         folder = out or Path("artifacts/bench/learn") / time.strftime("%Y%m%d-%H%M%S")
         try:

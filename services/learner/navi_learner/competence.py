@@ -20,7 +20,13 @@ from navi_learner.evaluate import EvalMetrics, ModulePolicy, competent, evaluate
 from navi_learner.policy import CognitiveMambaPolicy
 from navi_learner.protocol import BatchedEnv
 
-CURVE_KEYS = ("collisions_per_1k", "coverage_per_1k", "episode_return", "reward_per_step")
+CURVE_KEYS = (
+    "collisions_per_1k",
+    "obstacle_collisions_per_1k",
+    "coverage_per_1k",
+    "episode_return",
+    "reward_per_step",
+)
 """The metrics each learning-curve point records (with their intervals)."""
 
 

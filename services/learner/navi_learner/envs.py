@@ -76,11 +76,13 @@ def make_env(
     rank: int = 0,
     world: int = 1,
     reward: Mapping[str, float] | None = None,
+    obstacles: int = 0,
 ) -> BatchedEnv:
     """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
     qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation). With
     world > 1 the drone env flies only this rank's scenes, scenes[rank::world] (data-parallel training).
-    `reward` replaces RewardConfig fields by name (see `reward_config`)."""
+    `reward` replaces RewardConfig fields by name (see `reward_config`). `obstacles` > 0 gives every actor
+    that many scripted moving obstacles (EnvConfig.obstacles, default motions and sizes)."""
     if kind == "toy":
         return ToyEnv(n_actors, device, seed=seed)
     if corpus is None:
@@ -88,7 +90,7 @@ def make_env(
     if not corpus.is_dir():
         raise EnvUnavailable(f"corpus folder {corpus} does not exist (build one with `navi corpus build`)")
     try:
-        from navi_env.config import EnvConfig
+        from navi_env.config import EnvConfig, ObstacleConfig
         from navi_env.corpus import CorpusError, load_corpus
         from navi_env.env import SdfDagEnv
     except ImportError as err:
@@ -100,6 +102,11 @@ def make_env(
     config = EnvConfig(max_steps_per_episode=episode_steps) if episode_steps > 0 else EnvConfig()
     if reward:
         config = replace(config, reward=reward_config(reward))
+    if obstacles:
+        try:
+            config = replace(config, obstacles=ObstacleConfig(count=obstacles))
+        except ValueError as err:
+            raise EnvUnavailable(str(err)) from err
     env: BatchedEnv = SdfDagEnv(
         scenes, n_actors, torch.device(device), config, manifest.spawn_tensors(), seed
     )

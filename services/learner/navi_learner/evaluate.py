@@ -6,6 +6,7 @@ sums, so the bootstrap resamples actors and recomputes the ratio):
   episode_return     mean return of the episodes that finished during the evaluation (NaN if none did)
   reward_per_step    extrinsic reward per actor-step
   collisions_per_1k  contact steps per 1,000 actor-steps
+  obstacle_collisions_per_1k  of those, contacts with moving obstacles (0 without; NaN if the env has none)
   mean_clearance     the env's clearance (info["clearance"]) per actor-step
   coverage_per_1k    distinct 1 m cells visited per actor-episode, per 1,000 actor-steps
   distance_per_1k    meters flown per 1,000 actor-steps
@@ -35,6 +36,7 @@ METRICS: tuple[str, ...] = (
     "episode_return",
     "reward_per_step",
     "collisions_per_1k",
+    "obstacle_collisions_per_1k",
     "mean_clearance",
     "coverage_per_1k",
     "distance_per_1k",
@@ -94,6 +96,7 @@ class EvalMetrics:
     distance_per_1k: float
     starvation_rate: float
     sps: float
+    obstacle_collisions_per_1k: float = math.nan  # results saved before moving obstacles lack it
     ci: dict[str, list[float]] = field(default_factory=dict)
 
 
@@ -106,6 +109,7 @@ class ActorSums:
     finished_return: np.ndarray
     episodes: np.ndarray
     collision: np.ndarray
+    obstacle_collision: np.ndarray
     clearance: np.ndarray
     starved: np.ndarray
     distance: np.ndarray
@@ -117,6 +121,7 @@ class ActorSums:
             "episode_return": (self.finished_return, self.episodes, 1.0),
             "reward_per_step": (self.reward, self.steps, 1.0),
             "collisions_per_1k": (self.collision, self.steps, 1000.0),
+            "obstacle_collisions_per_1k": (self.obstacle_collision, self.steps, 1000.0),
             "mean_clearance": (self.clearance, self.steps, 1.0),
             "coverage_per_1k": (self.cells, self.steps, 1000.0),
             "distance_per_1k": (self.distance, self.steps, 1000.0),
@@ -148,6 +153,7 @@ def summarise(name: str, sums: ActorSums, steps: int, has: dict[str, bool], elap
     """EvalMetrics with bootstrap intervals from per-actor sums; metrics without their info key are NaN."""
     needs = {
         "collisions_per_1k": "collision",
+        "obstacle_collisions_per_1k": "obstacle_collision",
         "mean_clearance": "clearance",
         "coverage_per_1k": "position",
         "distance_per_1k": "position",
@@ -181,9 +187,18 @@ def evaluate(
     policy.reset(n, device)
     obs = env.reset(seed=seed)
     resets = torch.ones(n, dtype=torch.bool, device=device)  # (N,)
-    names = ("reward", "finished_return", "episodes", "collision", "clearance", "starved", "distance")
+    names = (
+        "reward",
+        "finished_return",
+        "episodes",
+        "collision",
+        "obstacle_collision",
+        "clearance",
+        "starved",
+        "distance",
+    )
     acc = {k: torch.zeros(n, dtype=torch.float64, device=device) for k in names}  # (N,) float64 each
-    has = {k: False for k in ("collision", "clearance", "starved", "position")}
+    has = {k: False for k in ("collision", "obstacle_collision", "clearance", "starved", "position")}
     ret = torch.zeros(n, dtype=torch.float64, device=device)  # (N,) return of the running episode
     episode = torch.zeros(n, dtype=torch.long, device=device)  # (N,) episode index per actor
     ids = torch.arange(n, device=device)  # (N,)
@@ -198,7 +213,7 @@ def evaluate(
         acc["reward"] += out.reward
         acc["finished_return"] += ret * ends
         acc["episodes"] += ends
-        for key in ("collision", "clearance", "starved"):
+        for key in ("collision", "obstacle_collision", "clearance", "starved"):
             if key in out.info:
                 has[key] = True
                 acc[key] += out.info[key].double()

@@ -26,8 +26,8 @@ class EpisodeStats:
         self.sums[name] += value
 
     def update(self, out: StepLike, intrinsic: torch.Tensor | None = None) -> None:
-        """Fold one step in: extrinsic reward, terms, episode ends, collisions, novel cells, clearance,
-        starvation."""
+        """Fold one step in: extrinsic reward, terms, episode ends, collisions (and those with moving
+        obstacles), novel cells, clearance, starvation."""
         ends = out.done | out.truncated  # (N,) bool
         endf = ends.float()  # (N,)
         self.ep_return += out.reward
@@ -40,7 +40,7 @@ class EpisodeStats:
         self._add("episodes", endf.sum())
         self._add("episode_return", (self.ep_return * endf).sum())
         self._add("episode_length", (self.ep_len * endf).sum())
-        for key in ("collision", "starved", "novel_cell"):
+        for key in ("collision", "obstacle_collision", "starved", "novel_cell"):
             if key in out.info:
                 self._add(key, out.info[key].float().sum())
         if "clearance" in out.info:
@@ -75,6 +75,8 @@ class EpisodeStats:
             out["episode_length"] = raw["episode_length"] / episodes
         if "collision" in raw:
             out["collisions_per_1k"] = 1000.0 * raw["collision"] / steps
+        if "obstacle_collision" in raw:
+            out["obstacle_collisions_per_1k"] = 1000.0 * raw["obstacle_collision"] / steps
         if "novel_cell" in raw:
             out["coverage_per_1k"] = 1000.0 * raw["novel_cell"] / steps
         if "starved" in raw and episodes > 0:

@@ -19,6 +19,25 @@ function render(msg) {
   $("reward").textContent = "Reward " + msg.reward.toFixed(3) + " (episode " + msg.episode_return.toFixed(2) + ")";
   $("pose").textContent = "Pose " + msg.position.join(", ") + " yaw " + msg.yaw;
   naviDrawFrame($("heatmap"), msg.frame);
+  const obstacles = msg.obstacles;
+  $("obstacles").textContent = obstacles === undefined ? "" :
+    "Obstacles " + obstacles.active + (obstacles.nearest === null ? "" : ", nearest " + obstacles.nearest + " m") +
+    ", hit " + obstacles.collisions;
+  if (obstacles !== undefined) tintObstacles($("heatmap"), obstacles.mask);
+}
+
+// Tint the pixels that see a moving obstacle (mask: base64 uint8, 1 = obstacle) green.
+function tintObstacles(canvas, mask) {
+  const raw = atob(mask);
+  const ctx = canvas.getContext("2d");
+  const image = ctx.getImageData(0, 0, canvas.width, canvas.height);
+  for (let i = 0; i < raw.length; i++) {
+    if (raw.charCodeAt(i) === 0) continue;
+    image.data[i * 4] = image.data[i * 4] >> 2;
+    image.data[i * 4 + 1] = 255;
+    image.data[i * 4 + 2] = image.data[i * 4 + 2] >> 1;
+  }
+  ctx.putImageData(image, 0, 0);
 }
 
 const link = naviConnect("/ws/explore", render, (up) => {
