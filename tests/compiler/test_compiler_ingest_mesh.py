@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -111,6 +112,23 @@ def test_sidecar_problems_raise_ingest_errors(tmp_path: Path) -> None:
     side.write_text(json.dumps(payload))
     with pytest.raises(IngestError, match="not a 'navi-scene' sidecar"):
         load_scene(path)
+
+
+def test_sidecar_declares_moving_obstacles(tmp_path: Path) -> None:
+    from navi_compiler.ingest.sidecar import read_sidecar, write_sidecar
+
+    path = write_scene_mesh(generate_scene("hall", 0), tmp_path / "hall.obj")
+    side = sidecar_path(path)
+    plain = read_sidecar(side)
+    assert plain.obstacles == {} and "obstacles" not in json.loads(side.read_text())
+    write_sidecar(path, dataclasses.replace(plain, obstacles={"count": 5.0, "speed_max": 2.5}))
+    assert read_sidecar(side).obstacles == {"count": 5.0, "speed_max": 2.5}
+    payload = json.loads(side.read_text())
+    for bad in ({"count": "many"}, {"warp_speed": 9.0}, {"count": True}, ["count", 3]):
+        payload["obstacles"] = bad
+        side.write_text(json.dumps(payload))
+        with pytest.raises(IngestError, match="obstacles"):
+            read_sidecar(side)
 
 
 def test_unreadable_or_empty_meshes_raise_ingest_errors(tmp_path: Path) -> None:

@@ -127,6 +127,44 @@ def test_mesh_sources_compile_into_a_corpus(tmp_path: Path) -> None:
     assert all(s.resolution == 32 for s in manifest.scenes)
 
 
+def test_scenes_declare_moving_obstacles_through_sidecar_and_manifest(tmp_path: Path) -> None:
+    """A mesh's sidecar "obstacles" reaches the manifest and the env: that scene gets its declared count
+    and speeds, a scene that declares nothing keeps the env's default (none)."""
+    import dataclasses
+
+    from navi_compiler.ingest.sidecar import read_sidecar, sidecar_path, write_sidecar
+    from navi_compiler.scenes import generate_corpus
+    from navi_env import obstacles as ob
+    from navi_learner.envs import make_env
+
+    meshes = generate_corpus(tmp_path / "meshes", 2, seed=1, families=["hall", "hall"])
+    side = sidecar_path(meshes[0])
+    declared = {"count": 4.0, "speed_min": 1.0, "speed_max": 1.5}
+    write_sidecar(meshes[0], dataclasses.replace(read_sidecar(side), obstacles=declared))
+    manifest = build_corpus(meshes, tmp_path / "corpus", resolution=64)
+    assert [s.obstacles for s in manifest.scenes] == [declared, {}]
+    assert read_manifest(tmp_path / "corpus").obstacle_settings() == [declared, {}]
+    env = make_env(tmp_path / "corpus", 8, "cpu", 0)
+    env.reset(seed=0)
+    st = env.obstacles  # type: ignore[attr-defined]
+    assert st is not None and st.count == 4
+    active = st.prims[..., ob.KIND] != ob.NONE  # (N, K)
+    first = env.scene == 0  # type: ignore[attr-defined]
+    assert bool(active[first].any()) and not bool(active[~first].any())
+    speeds = st.speed.abs()[active]
+    assert bool(((speeds >= 1.0 - 1e-6) & (speeds <= 1.5 + 1e-6)).all())
+    bad = dataclasses.replace(manifest.scenes[0], obstacles={"speed_min": 3.0, "speed_max": 1.0})
+    scenes, _ = load_corpus(tmp_path / "corpus")
+    with pytest.raises(ValueError, match="hall"):
+        SdfDagEnv(
+            scenes, 2, "cpu", EnvConfig(), manifest.spawn_tensors(), scene_obstacles=[bad.obstacles, {}]
+        )
+    with pytest.raises(ValueError, match="unknown obstacle settings"):
+        SdfDagEnv(
+            scenes, 2, "cpu", EnvConfig(), manifest.spawn_tensors(), scene_obstacles=[{"mass": 1.0}, {}]
+        )
+
+
 def app() -> typer.Typer:
     root = typer.Typer(pretty_exceptions_enable=False)
     bench = typer.Typer()

@@ -116,6 +116,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             typer.echo(
                 f"  {s.name:<28} {s.resolution:>5}^3  {s.voxel_size:8.4f} m  {s.bytes / 1e6:8.2f} MB  "
                 f"spawns {q.get('viable_spawns')}  best starvation {q.get('best_starvation')}"
+                + (f"  obstacles {s.obstacles}" if s.obstacles else "")
             )
         for r in manifest.rejected:
             typer.echo(f"  rejected {r['source']}: {r['reason']}")

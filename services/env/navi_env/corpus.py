@@ -3,7 +3,9 @@
 Layout of a corpus folder:
   manifest.json    {"format": "navi-corpus", "version": 1, "created_at", "resolution", "scenes": [...],
                     "rejected": [...]}; each scene: name, file, source, resolution, voxel_size, bytes,
-                    qualification (navi_env.qualify.Qualification as JSON, with the viable spawns)
+                    qualification (navi_env.qualify.Qualification as JSON, with the viable spawns),
+                    obstacles (moving obstacles it declares, from a mesh's sidecar or edited in; may be
+                    absent)
   <name>.gmdag     one file per scene that passed qualification
 
 `build_corpus` compiles (navi_compiler), checks (reads every written file back through the validating
@@ -56,6 +58,7 @@ class SceneEntry:
     voxel_size: float  # meters
     bytes: int  # size of the .gmdag file
     qualification: dict[str, object]  # Qualification.to_json()
+    obstacles: dict[str, float] = field(default_factory=dict)  # declared moving obstacles (SCENE_KEYS)
 
     def spawns(self) -> torch.Tensor:
         """Viable spawn positions (K, 3) float32 meters, best first."""
@@ -85,6 +88,10 @@ class CorpusManifest:
     def spawn_tensors(self) -> list[torch.Tensor]:
         """Per scene (K_s, 3) spawns, in scene order: the `spawns` argument of SdfDagEnv."""
         return [s.spawns() for s in self.scenes]
+
+    def obstacle_settings(self) -> list[dict[str, float]]:
+        """Per scene, the moving obstacles it declares (empty: none): SdfDagEnv's `scene_obstacles`."""
+        return [dict(s.obstacles) for s in self.scenes]
 
     def summary(self) -> dict[str, object]:
         """Small JSON summary (for checkpoints and logs)."""
@@ -184,6 +191,17 @@ def _compile_one(source: str, out_path: Path, resolution: int) -> None:
     read_gmdag(out_path)
 
 
+def _declared_obstacles(source: str) -> dict[str, float]:
+    """The moving obstacles a mesh source's `.scene.json` sidecar declares (empty for other sources)."""
+    path = Path(source)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        return {}
+    from navi_compiler.ingest.sidecar import read_sidecar, sidecar_path
+
+    side = sidecar_path(path)
+    return dict(read_sidecar(side).obstacles) if side.is_file() else {}
+
+
 def _build_into(
     work: Path,
     sources: Sequence[str],
@@ -220,6 +238,7 @@ def _build_into(
                 voxel_size=info.voxel_size,
                 bytes=path.stat().st_size,
                 qualification=verdict.to_json(),
+                obstacles=_declared_obstacles(source),
             )
         )
     if not scenes:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -107,8 +107,11 @@ class SdfDagEnv:
         config: EnvConfig | None = None,
         spawns: Sequence[torch.Tensor] | None = None,
         seed: int = 0,
+        scene_obstacles: Sequence[Mapping[str, float]] | None = None,
     ) -> None:
-        """`spawns`: per scene (K_s, 3) quality-gated positions (default: qualify every scene now)."""
+        """`spawns`: per scene (K_s, 3) quality-gated positions (default: qualify every scene now).
+        `scene_obstacles`: per scene, the obstacle settings it declares (obstacle_motion.SCENE_KEYS, e.g.
+        from the corpus manifest); they override config.obstacles in that scene."""
         from navi_env.qualify import scene_spawns
 
         if n_actors < 1:
@@ -165,8 +168,16 @@ class SdfDagEnv:
         )  # () step counter keying the random numbers
         self.actor = torch.arange(n, dtype=torch.int64, device=dev)  # (N,)
         self._actor32 = self.actor.to(torch.int32)  # (N,) each actor's obstacle world
+        declared = list(scene_obstacles) if scene_obstacles is not None else [{}] * n_scenes
+        if len(declared) != n_scenes:
+            raise ValueError(f"got obstacle settings for {len(declared)} scenes, the corpus has {n_scenes}")
+        names = [info.name for info in corpus.infos]
+        self.scene_obstacles = obstacle_motion.scene_obstacles(
+            cfg.obstacles, declared, names, dev
+        )  # (S,) each
+        slots = self.scene_obstacles.slots
         self.obstacles = (
-            obstacle_motion.allocate(n, cfg.obstacles, dev) if cfg.obstacles.count > 0 else None
+            obstacle_motion.allocate(n, cfg.obstacles, dev, slots) if slots > 0 else None
         )  # (N, K, 16) records and their motion state; None without obstacles
         self.actions = f32(n, 4)  # (N, 4) this step's actions (a fixed address for the CUDA graph)
         self.scene = i64(n)  # (N,) scene index per actor
@@ -407,6 +418,7 @@ class SdfDagEnv:
             self.position,
             cfg.drone_radius,
             cfg.obstacles,
+            self.scene_obstacles,
             self.seed,
             self.tick,
             self.actor,

@@ -25,8 +25,8 @@ Letters: N actors, K slots per actor, T placement tries.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -50,6 +50,17 @@ SKIN = 0.005
 drone inside)."""
 PLACE_MARGIN = 0.05
 """Extra static clearance (m) an obstacle's bounding sphere needs at its starting point."""
+
+SCENE_KEYS: tuple[str, ...] = (
+    "count",
+    "size_min",
+    "size_max",
+    "speed_min",
+    "speed_max",
+    "reach_min",
+    "reach_max",
+)
+"""ObstacleConfig fields a scene may declare for itself (sidecar / corpus manifest "obstacles")."""
 
 StaticFn = Callable[[torch.Tensor], torch.Tensor]
 """Static clearance (N*K,) at points (N*K, 3) in actor-major order (each actor's scene)."""
@@ -76,9 +87,56 @@ class ObstacleState:
         return int(self.prims.shape[1])
 
 
-def allocate(n: int, cfg: ObstacleConfig, device: torch.device) -> ObstacleState:
-    """Empty slots for N actors (kinds and motions cycle through cfg.shapes and cfg.motions)."""
-    k = cfg.count
+@dataclass(frozen=True)
+class SceneObstacles:
+    """Per-scene obstacle settings (S,) on the device: the env's ObstacleConfig where a scene declares
+    nothing, the scene's own values where it does."""
+
+    count: torch.Tensor  # (S,) int64 active slots in the scene (<= K)
+    size_min: torch.Tensor  # (S,) float32 m
+    size_max: torch.Tensor  # (S,) float32 m
+    speed_min: torch.Tensor  # (S,) float32 m/s
+    speed_max: torch.Tensor  # (S,) float32 m/s
+    reach_min: torch.Tensor  # (S,) float32 m
+    reach_max: torch.Tensor  # (S,) float32 m
+
+    @property
+    def slots(self) -> int:
+        """K: slots every actor needs (the largest count)."""
+        return int(self.count.max()) if self.count.numel() else 0
+
+
+def scene_obstacles(
+    cfg: ObstacleConfig, declared: Sequence[Mapping[str, float]], names: Sequence[str], device: torch.device
+) -> SceneObstacles:
+    """Merge each scene's declaration (a mapping of SCENE_KEYS, possibly empty) over `cfg`; every merged
+    setting is validated by ObstacleConfig. Raises ValueError naming the scene on a bad declaration."""
+    merged = []
+    for name, decl in zip(names, declared, strict=True):
+        unknown = sorted(set(decl) - set(SCENE_KEYS))
+        if unknown:
+            raise ValueError(
+                f"scene {name!r} declares unknown obstacle settings {unknown}; known: {SCENE_KEYS}"
+            )
+        try:
+            values = {k: (int(v) if k == "count" else float(v)) for k, v in decl.items()}
+            merged.append(replace(cfg, **values))  # type: ignore[arg-type]
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"scene {name!r}: bad obstacle declaration {dict(decl)}: {err}") from err
+
+    def col(key: str, dtype: torch.dtype) -> torch.Tensor:
+        return torch.tensor([getattr(m, key) for m in merged], dtype=dtype, device=device)  # (S,)
+
+    return SceneObstacles(
+        count=col("count", torch.int64),
+        **{k: col(k, torch.float32) for k in SCENE_KEYS if k != "count"},
+    )
+
+
+def allocate(n: int, cfg: ObstacleConfig, device: torch.device, slots: int | None = None) -> ObstacleState:
+    """Empty slots for N actors (kinds and motions cycle through cfg.shapes and cfg.motions); K = `slots`
+    (default cfg.count)."""
+    k = cfg.count if slots is None else slots
     shape = torch.tensor([SHAPE_KIND[cfg.shapes[i % len(cfg.shapes)]] for i in range(k)], dtype=torch.int64)
     motion = torch.tensor(
         [OBSTACLE_MOTIONS.index(cfg.motions[i % len(cfg.motions)]) for i in range(k)], dtype=torch.int64
@@ -114,14 +172,16 @@ def place(
     origin: torch.Tensor,
     drone_radius: float,
     cfg: ObstacleConfig,
+    table: SceneObstacles,
     seed: torch.Tensor,
     tick: torch.Tensor,
     actor: torch.Tensor,
 ) -> None:
     """New obstacles for the actors with `mask` (N,) bool, whose drones start at origin (N, 3) in
-    `scene` (N,): each slot tries cfg.place_tries spawn points of the scene and takes the first whose
-    static clearance holds the obstacle's bounding sphere and whose distance from the drone lies in
-    [max(place_min, bound + drone radius), place_max]; a slot with no such point stays empty."""
+    `scene` (N,): the first table.count[scene] slots each try cfg.place_tries spawn points of the scene
+    and take the first whose static clearance holds the obstacle's bounding sphere and whose distance
+    from the drone lies in [max(place_min, bound + drone radius), place_max]; a slot with no such point,
+    or past the scene's count, stays empty. Sizes, speeds and reaches come from the scene's table row."""
     n, k, t = state.prims.shape[0], state.count, cfg.place_tries
     dev = state.prims.device
     slot = torch.arange(k, dtype=torch.int64, device=dev)  # (K,)
@@ -141,9 +201,12 @@ def place(
     def g(q: int) -> torch.Tensor:
         return rng.normal(seed, rng.STREAM_OBSTACLE_SHAPE, tick, base + q)  # (N, K)
 
-    size = torch.stack(
-        [cfg.size_min + (cfg.size_max - cfg.size_min) * u(q) for q in range(3)], dim=-1
-    )  # (N, K, 3)
+    def span(lo: torch.Tensor, hi: torch.Tensor, q: int) -> torch.Tensor:
+        return lo[scene][:, None] + (hi - lo)[scene][:, None] * u(
+            q
+        )  # (N, K) uniform in [lo, hi] of the scene
+
+    size = torch.stack([span(table.size_min, table.size_max, q) for q in range(3)], dim=-1)  # (N, K, 3)
     kind = state.shape[None, :].expand(n, k).to(torch.float32)  # (N, K)
     azimuth = 2.0 * math.pi * u(3)  # (N, K)
     tilt = 0.3 * (2.0 * u(4) - 1.0)  # (N, K) mostly horizontal paths
@@ -152,9 +215,9 @@ def place(
     capsule_dir = _unit(torch.stack((g(5), g(6), g(7)), dim=-1))  # (N, K, 3)
     quat = torch.stack((g(8), g(9), g(10), g(11)), dim=-1)  # (N, K, 4)
     quat = quat / quat.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-    speed = cfg.speed_min + (cfg.speed_max - cfg.speed_min) * u(12)  # (N, K)
+    speed = span(table.speed_min, table.speed_max, 12)  # (N, K)
     speed = torch.where(u(13) < 0.5, -speed, speed)
-    reach = cfg.reach_min + (cfg.reach_max - cfg.reach_min) * u(14)  # (N, K)
+    reach = span(table.reach_min, table.reach_max, 14)  # (N, K)
 
     rec = torch.zeros(n, k, ob.WORDS, dtype=torch.float32, device=dev)  # (N, K, 16)
     rec[..., ob.KIND] = kind
@@ -170,7 +233,7 @@ def place(
     far = (cand - origin[:, None, None, :]).norm(dim=-1)  # (N, K, T)
     near_limit = torch.clamp_min(bound + drone_radius + PLACE_MARGIN, cfg.place_min)[..., None]  # (N, K, 1)
     ok = (cand_clear >= bound[..., None] + PLACE_MARGIN) & (far >= near_limit) & (far <= cfg.place_max)
-    found = ok.any(dim=-1)  # (N, K) bool
+    found = ok.any(dim=-1) & (slot[None, :] < table.count[scene][:, None])  # (N, K) bool
     first = ok.to(torch.int8).argmax(dim=-1, keepdim=True)  # (N, K, 1) first valid try
     center = cand.gather(2, first[..., None].expand(n, k, 1, 3))[:, :, 0]  # (N, K, 3)
     clear = cand_clear.gather(2, first)[..., 0]  # (N, K)

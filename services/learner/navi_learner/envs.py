@@ -108,6 +108,12 @@ def make_env(
         except ValueError as err:
             raise EnvUnavailable(str(err)) from err
     env: BatchedEnv = SdfDagEnv(
-        scenes, n_actors, torch.device(device), config, manifest.spawn_tensors(), seed
+        scenes,
+        n_actors,
+        torch.device(device),
+        config,
+        manifest.spawn_tensors(),
+        seed,
+        scene_obstacles=manifest.obstacle_settings(),
     )
     return env

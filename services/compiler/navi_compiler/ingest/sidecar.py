@@ -8,7 +8,8 @@ A mesh written by `navi scenes generate` (or any tool) may sit next to `<stem>.s
      "face_class_runs": [[id, count], ...],       # run-length face classes, counts sum to F
      "seeds": [[x, y, z], ...],                   # known-free points, mesh units
      "barrier_vertices": [[x, y, z], ...],        # undrawn fill barriers, mesh units
-     "barrier_faces": [[a, b, c], ...]}           # triangles into barrier_vertices
+     "barrier_faces": [[a, b, c], ...],           # triangles into barrier_vertices
+     "obstacles": {"count": 6, "speed_max": 2.0}} # optional: moving obstacles this scene declares
 
 `load_scene` picks it up for a mesh file and applies the same `scale` to seeds and barriers.
 
@@ -20,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,8 @@ from navi_compiler.ingest.errors import IngestError
 SIDECAR_FORMAT = "navi-scene"
 SIDECAR_VERSION = 1
 SIDECAR_SUFFIX = ".scene.json"
+OBSTACLE_KEYS = ("count", "size_min", "size_max", "speed_min", "speed_max", "reach_min", "reach_max")
+"""Moving-obstacle settings a scene may declare (the env's navi_env.obstacle_motion.SCENE_KEYS)."""
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,9 @@ class Sidecar:
     seeds: np.ndarray  # (S, 3) float64
     barrier_vertices: np.ndarray  # (Vb, 3) float64
     barrier_faces: np.ndarray  # (Fb, 3) int64 into barrier_vertices
+    obstacles: dict[str, float] = field(default_factory=dict)
+    """Moving obstacles the scene declares (navi_env.obstacle_motion.SCENE_KEYS -> number; meters,
+    m/s); the corpus manifest carries them to the env. Empty: the env's defaults."""
 
 
 def sidecar_path(mesh_path: str | os.PathLike[str]) -> Path:
@@ -71,6 +77,8 @@ def write_sidecar(mesh_path: str | os.PathLike[str], sidecar: Sidecar) -> Path:
         "barrier_vertices": np.round(sidecar.barrier_vertices, 6).tolist(),
         "barrier_faces": sidecar.barrier_faces.astype(np.int64).tolist(),
     }
+    if sidecar.obstacles:
+        payload["obstacles"] = dict(sidecar.obstacles)
     path = sidecar_path(mesh_path)
     path.write_text(json.dumps(payload, separators=(",", ":")) + "\n", encoding="utf-8")
     return path
@@ -116,7 +124,18 @@ def read_sidecar(path: Path) -> Sidecar:
         raise IngestError(f"{path}: barrier_faces index a vertex out of range")
     if not all(math.isfinite(x) for x in np.concatenate([seeds.ravel(), barrier_vertices.ravel()])):
         raise IngestError(f"{path}: seeds and barrier vertices must be finite")
+    obstacles = payload.get("obstacles", {})
+    if not (
+        isinstance(obstacles, dict)
+        and all(
+            isinstance(k, str) and isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            for k, v in obstacles.items()
+        )
+        and set(obstacles) <= set(OBSTACLE_KEYS)
+    ):
+        raise IngestError(f"{path}: obstacles must map some of {OBSTACLE_KEYS} to finite numbers")
     return Sidecar(
+        obstacles={k: float(v) for k, v in obstacles.items()},
         face_class=np.repeat(ids, counts).astype(np.uint8),
         class_names=tuple(names),
         seeds=seeds,
