@@ -36,10 +36,10 @@ def room() -> object:
 
 
 def rollout(
-    device: str, steps: int, graph: bool = True, fused: bool = True, obstacles: int = 0
+    device: str, steps: int, graph: bool = True, fused: bool = True, obstacles: int = 0, squad: int = 0
 ) -> list[torch.Tensor]:
     cfg = EnvConfig(
-        obstacles=ObstacleConfig(count=obstacles, speed_max=8.0),
+        obstacles=ObstacleConfig(count=obstacles, speed_max=8.0, squad=squad),
         cuda_graph=graph,
         fused_observation=fused,
         azimuth_bins=64,
@@ -64,37 +64,38 @@ def rollout(
             out.truncated.float(),
             out.info["collision"].float(),
         ]
-        if env.obstacles is not None:
-            keep.append(env.obstacles.prims)
+        if env.prims is not None:
+            keep.append(env.prims)
         frames += [t.to("cpu", copy=True) for t in keep]  # the env reuses its buffers
     return frames
 
 
 @needs_cuda
-@pytest.mark.parametrize("obstacles", [0, 8])
-def test_cpu_and_cuda_rollouts_agree(obstacles: int) -> None:
-    """With moving obstacles too: the same placements, motions, sweeps and traces on both devices."""
-    cpu, cuda = rollout("cpu", 30, obstacles=obstacles), rollout("cuda", 30, obstacles=obstacles)
+@pytest.mark.parametrize(("obstacles", "squad"), [(0, 0), (8, 0), (4, 4)])
+def test_cpu_and_cuda_rollouts_agree(obstacles: int, squad: int) -> None:
+    """With moving obstacles and squads too: the same placements, motions, sweeps and traces on both."""
+    cpu = rollout("cpu", 30, obstacles=obstacles, squad=squad)
+    cuda = rollout("cuda", 30, obstacles=obstacles, squad=squad)
     for a, b in zip(cpu, cuda, strict=True):
         assert torch.allclose(a, b, atol=2e-3, rtol=1e-3), float((a - b).abs().max())
 
 
 @needs_cuda
-@pytest.mark.parametrize("obstacles", [0, 8])
-def test_cuda_graph_replay_matches_eager_steps(obstacles: int) -> None:
-    graphed = rollout("cuda", 20, graph=True, obstacles=obstacles)
-    eager = rollout("cuda", 20, graph=False, obstacles=obstacles)
+@pytest.mark.parametrize(("obstacles", "squad"), [(0, 0), (8, 0), (4, 4)])
+def test_cuda_graph_replay_matches_eager_steps(obstacles: int, squad: int) -> None:
+    graphed = rollout("cuda", 20, graph=True, obstacles=obstacles, squad=squad)
+    eager = rollout("cuda", 20, graph=False, obstacles=obstacles, squad=squad)
     assert all(torch.equal(a, b) for a, b in zip(graphed, eager, strict=True))
 
 
 @needs_cuda
-@pytest.mark.parametrize("obstacles", [0, 4])
-def test_cuda_step_does_not_synchronise(obstacles: int) -> None:
+@pytest.mark.parametrize(("obstacles", "squad"), [(0, 0), (4, 2)])
+def test_cuda_step_does_not_synchronise(obstacles: int, squad: int) -> None:
     env = SdfDagEnv(
         load_corpus([room()], "cuda"),
         64,
         "cuda",
-        EnvConfig(azimuth_bins=64, elevation_bins=16, obstacles=ObstacleConfig(count=obstacles)),
+        EnvConfig(azimuth_bins=64, elevation_bins=16, obstacles=ObstacleConfig(count=obstacles, squad=squad)),
         spawns=[torch.tensor([[4.0, 4.0, 3.0], [12.0, 12.0, 5.0]])],
     )
     env.reset(seed=0)

@@ -341,3 +341,63 @@ def test_bench_env_with_moving_obstacles(tmp_path: Path) -> None:
     assert crowded["obstacles_per_actor"] == 16 and crowded["obstacle_hit_fraction"] > 0.0
     assert crowded["obstacle_collisions_per_1k"] >= 0.0
     assert crowded["bytes_per_actor"] > plain["bytes_per_actor"]  # the obstacle state is counted
+
+
+def test_squad_drones_see_and_never_pass_through_each_other(room: SceneCorpus) -> None:
+    """Two drones of a squad flying head-on at full speed: each sees the other (semantic 1 + drone class),
+    never its own sphere; they stop short of each other (>= 2 radii apart at every step end, never
+    crossing on the way) and the bump counts as a drone collision in the collision term."""
+    cfg = ObstacleConfig(squad=2)
+    env = _env(room, 2, cfg, limiter_min_fraction=1.0)
+    env.reset(seed=0)
+    radius = env.config.drone_radius
+    env.position.copy_(torch.tensor([[8.0, 11.0, 5.0], [12.0, 11.0, 5.0]]))
+    env.yaw.copy_(torch.tensor([0.0, math.pi]))
+    bumped = False
+    for _ in range(12):
+        before = env.position.clone()
+        out = env.step(torch.tensor([[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]))
+        after = env.position
+        assert float((after[0] - after[1]).norm()) >= 2 * radius - 1e-4
+        assert float(after[0, 0]) < float(after[1, 0])  # never passed each other
+        for s in torch.linspace(0.0, 1.0, 33):
+            a, b = before + s * (after - before)
+            assert float((a - b).norm()) >= 1.5 * radius - 1e-4
+        if bool(out.info["drone_collision"].any()):
+            bumped = True
+            assert bool(out.info["collision"][out.info["drone_collision"]].all())
+            assert float(out.reward_terms["collision"][out.info["drone_collision"]].max()) < 0.0
+    assert bumped
+    code = cfg.drone_class + 1
+    gap = float((env.position[0] - env.position[1]).norm())
+    for me in range(2):
+        sees = env.semantic[me] == code  # (R,)
+        assert bool(sees.any())  # the other drone, ahead
+        assert float(env.depth[me][sees].min()) >= gap - 2 * radius - 0.05  # not its own sphere
+
+
+def test_squads_share_scenes_and_change_them_together() -> None:
+    corpus = load_corpus([_room_gmdag(), _room_gmdag()], "cpu")
+    cfg = EnvConfig(
+        azimuth_bins=32,
+        elevation_bins=8,
+        max_steps_per_episode=3,
+        episodes_per_scene=2,
+        obstacles=ObstacleConfig(squad=2),
+    )
+    env = SdfDagEnv(corpus, 4, "cpu", cfg, spawns=_spawns() * 2, seed=1)
+    env.reset(seed=1)
+    assert env.scene.tolist() == [0, 0, 1, 1]
+    assert bool((env.position[0] != env.position[1]).any())  # members start apart
+    g = torch.Generator().manual_seed(0)
+    changes = 0
+    for _ in range(30):
+        scene = env.scene.clone()
+        out = env.step(torch.rand(4, 4, generator=g) * 2 - 1)
+        assert env.scene[0] == env.scene[1] and env.scene[2] == env.scene[3]
+        moved = env.scene != scene  # (N,)
+        assert bool(out.truncated[moved].all())  # nobody changes scene mid-episode
+        changes += int(moved.sum())
+    assert changes >= 4
+    with pytest.raises(ValueError, match="squad"):
+        SdfDagEnv(corpus, 3, "cpu", cfg, spawns=_spawns() * 2)

@@ -47,7 +47,7 @@ CHARTS: dict[str, tuple[str, ...]] = {
     "reward": ("reward_ema", "reward_mean", "reward"),
     "sps": ("sps",),
     "episode_return": ("episode_return",),
-    "collisions": ("collisions_per_1k", "obstacle_collisions_per_1k"),
+    "collisions": ("collisions_per_1k", "obstacle_collisions_per_1k", "drone_collisions_per_1k"),
     "coverage": ("coverage_per_1k",),
     "entropy": ("entropy",),
     "value_loss": ("value_loss",),

@@ -145,6 +145,12 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 help="K scripted moving obstacles per actor (EnvConfig.obstacles; traced, felt by physics).",
             ),
         ] = 0,
+        squad: Annotated[
+            int,
+            typer.Option(
+                "--squad", min=0, max=64, help="Squads of this many actors see and collide with each other."
+            ),
+        ] = 0,
         json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
     ) -> None:
         """Env-steps per second of SdfDagEnv with random actions, and milliseconds per stage."""
@@ -155,7 +161,9 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         if (gmdag is None) == (corpus is None):
             raise _fail("give exactly one of --gmdag FILE or --corpus DIR")
         try:
-            result = run_bench(gmdag, corpus, actors, steps, device, azimuth, elevation, seed, obstacles)
+            result = run_bench(
+                gmdag, corpus, actors, steps, device, azimuth, elevation, seed, obstacles, squad
+            )
         except (OSError, RuntimeError, ValueError) as exc:
             raise _fail(str(exc)) from exc
         if json_out:
@@ -175,6 +183,7 @@ def run_bench(
     elevation: int,
     seed: int,
     obstacles: int = 0,
+    squad: int = 0,
 ) -> dict[str, object]:
     """Step SdfDagEnv `steps` times with uniform random actions; returns the bench JSON object. With
     `obstacles` K > 0 every actor has K scripted moving obstacles (their collisions and the share of rays
@@ -197,7 +206,7 @@ def run_bench(
     else:
         raise ValueError("give a .gmdag file or a corpus folder")
     config = EnvConfig(
-        azimuth_bins=azimuth, elevation_bins=elevation, obstacles=ObstacleConfig(count=obstacles)
+        azimuth_bins=azimuth, elevation_bins=elevation, obstacles=ObstacleConfig(count=obstacles, squad=squad)
     )
     env = SdfDagEnv(scenes, actors, device, config, spawns, seed)
     g = torch.Generator(device=env.device).manual_seed(seed)
@@ -215,14 +224,19 @@ def run_bench(
     env.timer = StageTimer(env.device)  # a second, timed pass for the per-stage split
     hit_obstacle = torch.zeros((), device=env.device)  # () rays that hit an obstacle, summed over steps
     struck = torch.zeros((), device=env.device)  # () collisions with obstacles
+    bumped = torch.zeros((), device=env.device)  # () collisions between drones
     for _ in range(steps):
         out = env.step(actions.uniform_(-1.0, 1.0, generator=g))
         hit_obstacle += (env.semantic == config.obstacles.semantic_class + 1).sum()
         struck += out.info["obstacle_collision"].sum()
+        bumped += out.info["drone_collision"].sum()
     per_stage = {k: round(v / steps, 4) for k, v in env.timer.totals_ms().items()}
     extra: dict[str, object] = {}
+    if squad >= 2:
+        extra["squad"] = squad
+        extra["drone_collisions_per_1k"] = round(1000.0 * float(bumped) / (steps * actors), 3)
     if obstacles:
-        extra = {
+        extra |= {
             "obstacle_hit_fraction": round(float(hit_obstacle) / (steps * actors * config.rays), 5),
             "obstacle_collisions_per_1k": round(1000.0 * float(struck) / (steps * actors), 3),
         }

@@ -128,6 +128,11 @@ class ObstacleConfig:
     """Steps of the conservative march that stops an obstacle at a drone (never through it)."""
     semantic_class: int = 8
     """Class of an obstacle hit (semantic 1 + class in the observation)."""
+    squad: int = 0
+    """Other drones as obstacles: squads of this many consecutive actors share a scene (always) and see
+    and collide with each other, each drone a sphere of drone_radius (0 or 1: off)."""
+    drone_class: int = 9
+    """Class of a hit on another drone (semantic 1 + class)."""
 
     def __post_init__(self) -> None:
         if self.count < 0 or self.count > 64:
@@ -146,8 +151,10 @@ class ObstacleConfig:
             raise ValueError("obstacles need 0 <= place_min < place_max")
         if self.place_tries < 1 or self.sweep_iterations < 1 or self.wall_iterations < 1:
             raise ValueError("obstacles need place_tries, sweep_iterations and wall_iterations >= 1")
-        if not 0 <= self.semantic_class <= 253:
-            raise ValueError("obstacles.semantic_class must be in [0, 253]")
+        if not 0 <= self.semantic_class <= 253 or not 0 <= self.drone_class <= 253:
+            raise ValueError("obstacles.semantic_class and drone_class must be in [0, 253]")
+        if not 0 <= self.squad <= 64:
+            raise ValueError("obstacles.squad must be in [0, 64]")
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 
 from navi_env import episodes, obstacle_motion, physics, rewards
+from navi_env import obstacles as ob
 from navi_env.config import EnvConfig
 from navi_env.observation import CHANNELS, observe, observe_ref, semantic_table
 from navi_env.rays import tiled_ray_order
@@ -46,6 +47,7 @@ INFO_KEYS: tuple[str, ...] = (
     "starved",
     "scene_id",
     "obstacle_collision",
+    "drone_collision",
 )
 """Keys of StepOut.info; every value is a tensor with leading dimension N."""
 
@@ -176,9 +178,27 @@ class SdfDagEnv:
             cfg.obstacles, declared, names, dev
         )  # (S,) each
         slots = self.scene_obstacles.slots
+        self.squad = g = (
+            cfg.obstacles.squad if cfg.obstacles.squad >= 2 else 1
+        )  # G actors that see each other
+        if n % g:
+            raise ValueError(f"obstacles.squad {g} must divide the number of actors {n}")
+        drones = g if g > 1 else 0
+        # (N, K + G, 16) every record the tracer reads: K scripted obstacles, then the G drones of the squad
+        self.prims = torch.zeros(n, slots + drones, ob.WORDS, device=dev) if slots + drones else None
         self.obstacles = (
-            obstacle_motion.allocate(n, cfg.obstacles, dev, slots) if slots > 0 else None
-        )  # (N, K, 16) records and their motion state; None without obstacles
+            obstacle_motion.allocate(n, cfg.obstacles, dev, slots, records=self.prims[:, :slots])
+            if slots > 0 and self.prims is not None
+            else None
+        )  # scripted obstacles' motion state (records: a view of self.prims); None without them
+        self._mates = (self.actor - self.actor % g)[:, None] + torch.arange(g, device=dev)[None, :]  # (N, G)
+        if drones and self.prims is not None:
+            mates = self.prims[:, slots:]  # (N, G, 16) view: the squad's drones, each owned by its actor
+            mates[..., ob.KIND] = float(ob.SPHERE)
+            mates[..., ob.CLASS] = float(cfg.obstacles.drone_class)
+            mates[..., ob.OWNER] = self._mates.to(torch.float32)
+            mates[..., ob.RADIUS] = cfg.drone_radius
+            mates[..., ob.QUAT] = 1.0
         self.actions = f32(n, 4)  # (N, 4) this step's actions (a fixed address for the CUDA graph)
         self.scene = i64(n)  # (N,) scene index per actor
         self.position = f32(n, 3)  # (N, 3) world meters
@@ -220,6 +240,7 @@ class SdfDagEnv:
             "starved": flag(n),  # (N,) ended by starvation
             "scene_id": i64(n),  # (N,)
             "obstacle_collision": flag(n),  # (N,) the collision was with a moving obstacle
+            "drone_collision": flag(n),  # (N,) the collision was with another drone of the squad
         }
         self.out = StepOut(
             obs=self.obs,
@@ -241,8 +262,9 @@ class SdfDagEnv:
             v for v in vars(self).values() if isinstance(v, torch.Tensor) and v.ndim and v.shape[0] == self.n
         ]
         tensors += list(self.terms.values()) + list(self.info.values())
-        if self.obstacles is not None:
-            tensors += [v for v in vars(self.obstacles).values() if v.ndim and v.shape[0] == self.n]
+        if self.obstacles is not None:  # its records are a view of self.prims, counted above
+            state = vars(self.obstacles).items()
+            tensors += [v for k, v in state if k != "prims" and v.ndim and v.shape[0] == self.n]
         return sum(t.numel() * t.element_size() for t in tensors) // self.n
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
@@ -250,13 +272,14 @@ class SdfDagEnv:
         if seed is not None:
             self.seed.fill_(seed)
         self.tick.zero_()
-        self.scene.copy_(self.actor % self.spawns.scenes)
+        self.scene.copy_((self.actor // self.squad) % self.spawns.scenes)  # squads share a scene
         self.episodes_on_scene.zero_()
         self.episode_return.zero_()
         self.steps.zero_()
         everyone = torch.ones(self.n, dtype=torch.bool, device=self.device)  # (N,)
         self._spawn(everyone)
         self._place_obstacles(everyone)
+        self._drones_where_they_are()
         self._trace()
         self._observe_from_trace()
         return self.obs
@@ -300,10 +323,15 @@ class SdfDagEnv:
             struck = self._move_obstacles()  # (N,) bool: an obstacle ran into the drone
             vel, yaw_rate = physics.body_velocity(self.actions, cfg)  # (N, 3), (N,)
             vel = vel * physics.limiter_scale(self.clearance, cfg)[:, None]  # (N, 3) body m/s
+            step = physics.body_to_world(vel, self.yaw) * cfg.dt  # (N, 3) commanded world move, m
+            if self.squad > 1:  # a mate may move up to its commanded length: it fills that much more room
+                self._place_drones(self.position, cfg.drone_radius + step.norm(dim=1))
+            if self.prims is not None:
+                self.safe_distance.copy_(self._distance(self.position))  # the field changed under the drone
             move = physics.safe_move(
                 self.position,
                 self.safe_distance,
-                physics.body_to_world(vel, self.yaw) * cfg.dt,
+                step,
                 self._lo[self.scene],
                 self._hi[self.scene],
                 self._distance,
@@ -315,22 +343,31 @@ class SdfDagEnv:
                 move.position, cfg.reward.exploration_cell, cfg.reward.exploration_table_bits
             )
             novel = rewards.visit_cells(self.visited, cells)  # (N,) bool
-            contact, obstacle_contact = move.contact, struck
+            contact, obstacle_contact, drone_contact = move.contact, struck, self.done
             if self.obstacles is not None:
                 nearest = obstacle_motion.obstacle_distance(self.obstacles, move.position)  # (N,)
                 obstacle_contact = struck | (move.contact & (nearest <= move.clearance + 1e-4))  # (N,)
                 contact = move.contact | struck  # (N,) bool
+            if self.squad > 1:
+                drone_contact = move.contact & (self._mate_distance(move.position) <= move.clearance + 1e-4)
         with stage("episode"):
             self.steps.add_(1)
             time_limit, starved = episodes.truncation(self.steps, self.void, cfg)  # (N,), (N,) bool
             torch.logical_or(time_limit, starved, out=self.truncated)
-            self._record_info(move, contact, obstacle_contact, novel, starved)
+            if self.squad > 1:  # the squad changes scene together: every member's episode ends then
+                leader = self._mates[:, 0]  # (N,)
+                full = (
+                    self.episodes_on_scene[leader] + self.truncated[leader].long() >= cfg.episodes_per_scene
+                )
+                self.truncated.logical_or_(full)
+            self._record_info(move, contact, obstacle_contact, drone_contact, novel, starved)
             for name, value in self.before.items():
                 value.copy_(getattr(self, name))
             self.position.copy_(move.position)
             self.safe_distance.copy_(move.clearance)
             self.yaw.copy_(physics.wrap_angle(self.yaw + yaw_rate * cfg.dt))
             self._end_episodes(self.truncated)
+            self._drones_where_they_are()
         with stage("trace"):
             self._trace()
         with stage("observation"):
@@ -368,12 +405,14 @@ class SdfDagEnv:
         move: physics.Move,
         contact: torch.Tensor,
         obstacle_contact: torch.Tensor,
+        drone_contact: torch.Tensor,
         novel: torch.Tensor,
         starved: torch.Tensor,
     ) -> None:
         """Info of the step that just ended (clearance and return are written by the reward stage)."""
         self.info["collision"].copy_(contact)
         self.info["obstacle_collision"].copy_(obstacle_contact)
+        self.info["drone_collision"].copy_(drone_contact)
         self.info["position"].copy_(move.position)
         self.info["novel_cell"].copy_(novel)
         self.info["speed"].copy_(move.displacement.norm(dim=1) / self.config.dt)
@@ -384,8 +423,12 @@ class SdfDagEnv:
     def _end_episodes(self, ended: torch.Tensor) -> None:
         """Auto-reset actors with `ended` (N,) bool: count, maybe rotate scene, spawn, clear state."""
         count, rotate = episodes.rotation(self.episodes_on_scene, ended, self.config)
-        self.episodes_on_scene.copy_(count)
         other = episodes.next_scene(self.scene, self.spawns.scenes, self.seed, self.tick, self.actor)  # (N,)
+        if self.squad > 1:  # the leader's count decides and its draw is the squad's next scene
+            leader = self._mates[:, 0]  # (N,)
+            rotate, other = rotate[leader], other[leader]
+            count = torch.where(rotate, torch.zeros_like(count), count)
+        self.episodes_on_scene.copy_(count)
         self.scene.copy_(torch.where(rotate, other, self.scene))
         self.steps.masked_fill_(ended, 0)
         self._spawn(ended)
@@ -393,7 +436,9 @@ class SdfDagEnv:
 
     def _spawn(self, mask: torch.Tensor) -> None:
         """Place actors with `mask` (N,) bool at a fresh spawn of their scene; clear their visited cells."""
-        pos, clr, yaw = episodes.draw_spawns(self.spawns, self.scene, self.seed, self.tick, self.actor)
+        pos, clr, yaw = episodes.draw_spawns(
+            self.spawns, self.scene, self.seed, self.tick, self.actor, self.squad
+        )
         self.position.copy_(torch.where(mask[:, None], pos, self.position))
         self.safe_distance.copy_(torch.where(mask, clr, self.safe_distance))
         self.yaw.copy_(torch.where(mask, yaw, self.yaw))
@@ -424,9 +469,30 @@ class SdfDagEnv:
             self.actor,
         )
 
+    def _place_drones(self, position: torch.Tensor, radius: torch.Tensor) -> None:
+        """Write the squad's drone records of every actor's world: centres at the members' position (N, 3),
+        radii (N,) per member."""
+        assert self.prims is not None
+        first = self.prims.shape[1] - self.squad
+        self.prims[:, first:, ob.CENTER : ob.CENTER + 3] = position[self._mates]  # (N, G, 3)
+        self.prims[:, first:, ob.RADIUS] = radius[self._mates]  # (N, G)
+
+    def _drones_where_they_are(self) -> None:
+        """Squad drone records at the drones' current positions with the plain drone radius (for the view)."""
+        if self.squad > 1:
+            self._place_drones(self.position, torch.full_like(self.safe_distance, self.config.drone_radius))
+
+    def _mate_distance(self, points: torch.Tensor) -> torch.Tensor:
+        """Distance (N,) from each actor's point (N, 3) to the nearest other drone record of its squad."""
+        assert self.prims is not None
+        mates = self.prims[:, self.prims.shape[1] - self.squad :]  # (N, G, 16)
+        d = ob.distance(mates, points[:, None, :])  # (N, G)
+        own = self._mates == self.actor[:, None]  # (N, G) bool
+        return torch.where(own, torch.full_like(d, float("inf")), d).amin(dim=1)
+
     def _move_obstacles(self) -> torch.Tensor:
-        """The obstacles' scripted step (stopped at the drone); the drone's clearance in the changed field.
-        Returns (N,) bool: an obstacle ran into the drone."""
+        """The obstacles' scripted step (stopped at the drone). Returns (N,) bool: an obstacle ran into the
+        drone."""
         if self.obstacles is None:
             return self.done  # (N,) all False
         cfg = self.config
@@ -436,7 +502,7 @@ class SdfDagEnv:
         def static(points: torch.Tensor) -> torch.Tensor:
             return sample_distance(self.corpus, scene_k, points)  # (N*K,)
 
-        struck = obstacle_motion.advance(
+        return obstacle_motion.advance(
             self.obstacles,
             static,
             self.position,
@@ -447,8 +513,6 @@ class SdfDagEnv:
             self.tick,
             self.actor,
         )
-        self.safe_distance.copy_(self._distance(self.position))
-        return struck
 
     def _trace(self) -> None:
         cfg = self.config
@@ -465,7 +529,7 @@ class SdfDagEnv:
             horizon=cfg.horizon,
             hit_epsilon=cfg.hit_epsilon,
             skip_direction_validation=True,
-            prims=None if self.obstacles is None else self.obstacles.prims,
+            prims=self.prims,
         )
 
     def _observe_from_trace(self) -> None:
@@ -501,10 +565,14 @@ class SdfDagEnv:
         """Clearance (M,) at points (M, 3), M a multiple of N in actor-major order."""
         per = points.shape[0] // self.n
         scene = self.scene.repeat_interleave(per)  # (M,)
-        if self.obstacles is None:
+        if self.prims is None:
             return sample_distance(self.corpus, scene, points)
-        world = self._actor32.repeat_interleave(per)  # (M,) int32: each point's actor's obstacles
-        return sample_distance(self.corpus, scene, points, prims=self.obstacles.prims, prim_world=world)
+        world = self._actor32.repeat_interleave(
+            per
+        )  # (M,) int32: each point's actor's world, own drone left out
+        return sample_distance(
+            self.corpus, scene, points, prims=self.prims, prim_world=world, prim_owner=world
+        )
 
     def _clearance_at(self, scene: int, points: torch.Tensor) -> torch.Tensor:
         """Clearance (K,) at a scene's points (K, 3), on the host (construction only)."""

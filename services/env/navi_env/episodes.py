@@ -55,10 +55,23 @@ def pick_index(u: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
 
 
 def draw_spawns(
-    table: SpawnTable, scene: torch.Tensor, seed: torch.Tensor, tick: torch.Tensor, actor: torch.Tensor
+    table: SpawnTable,
+    scene: torch.Tensor,
+    seed: torch.Tensor,
+    tick: torch.Tensor,
+    actor: torch.Tensor,
+    squad: int = 1,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Spawn position (N, 3), its clearance (N,) and a heading (N,) in [-pi, pi) per actor."""
-    k = pick_index(rng.uniform(seed, rng.STREAM_SPAWN, tick, actor), table.count[scene])  # (N,)
+    """Spawn position (N, 3), its clearance (N,) and a heading (N,) in [-pi, pi) per actor. With squads
+    of `squad` consecutive actors (one scene each), member m takes the squad's draw shifted by
+    m * (count // squad) rows, so members start at different points when the scene has enough."""
+    count = table.count[scene]  # (N,)
+    if squad > 1:
+        leader = actor - actor % squad  # (N,)
+        first = pick_index(rng.uniform(seed, rng.STREAM_SPAWN, tick, leader), count)  # (N,)
+        k = (first + (actor % squad) * torch.clamp_min(count // squad, 1)) % count  # (N,)
+    else:
+        k = pick_index(rng.uniform(seed, rng.STREAM_SPAWN, tick, actor), count)  # (N,)
     yaw = (rng.uniform(seed, rng.STREAM_YAW, tick, actor) * 2.0 - 1.0) * math.pi  # (N,)
     return table.position[scene, k], table.clearance[scene, k], yaw
 

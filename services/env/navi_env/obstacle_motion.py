@@ -133,9 +133,15 @@ def scene_obstacles(
     )
 
 
-def allocate(n: int, cfg: ObstacleConfig, device: torch.device, slots: int | None = None) -> ObstacleState:
+def allocate(
+    n: int,
+    cfg: ObstacleConfig,
+    device: torch.device,
+    slots: int | None = None,
+    records: torch.Tensor | None = None,
+) -> ObstacleState:
     """Empty slots for N actors (kinds and motions cycle through cfg.shapes and cfg.motions); K = `slots`
-    (default cfg.count)."""
+    (default cfg.count). `records` (N, K, 16), a view into a larger record tensor, holds the records."""
     k = cfg.count if slots is None else slots
     shape = torch.tensor([SHAPE_KIND[cfg.shapes[i % len(cfg.shapes)]] for i in range(k)], dtype=torch.int64)
     motion = torch.tensor(
@@ -146,7 +152,7 @@ def allocate(n: int, cfg: ObstacleConfig, device: torch.device, slots: int | Non
         return torch.zeros(*shape_, dtype=torch.float32, device=device)
 
     return ObstacleState(
-        prims=f32(n, k, ob.WORDS),
+        prims=f32(n, k, ob.WORDS) if records is None else records,
         anchor=f32(n, k, 3),
         axis=f32(n, k, 3),
         phase=f32(n, k),

@@ -82,6 +82,8 @@ class LearnConfig:
     """RewardConfig fields replaced in every env of the job (training, evaluation, baselines)."""
     obstacles: int = 0
     """Scripted moving obstacles per actor in every env of the job (EnvConfig.obstacles)."""
+    squad: int = 0
+    """Squads of this many actors that see and collide with each other, in every env (0: off)."""
 
 
 def openarena_maps(pk3: Path) -> list[str]:
@@ -195,7 +197,9 @@ def run_one(
     dev = torch.device(device)
     tcfg = train_config(cfg, core, seed, dev)
     reward = dict(cfg.reward)
-    env = make_env(splits.train, tcfg.n_actors, device, seed, reward=reward, obstacles=cfg.obstacles)
+    env = make_env(
+        splits.train, tcfg.n_actors, device, seed, reward=reward, obstacles=cfg.obstacles, squad=cfg.squad
+    )
     unseen = make_env(
         splits.unseen,
         cfg.protocol.actors,
@@ -204,6 +208,7 @@ def run_one(
         episode_steps=cfg.protocol.episode_steps,
         reward=reward,
         obstacles=cfg.obstacles,
+        squad=cfg.squad,
     )
     monitor = CompetenceMonitor(
         unseen,
@@ -237,6 +242,7 @@ def run_one(
             episode_steps=cfg.protocol.episode_steps,
             reward=reward,
             obstacles=cfg.obstacles,
+            squad=cfg.squad,
         )
         final[name] = asdict(evaluate(part, trained, cfg.protocol.steps, cfg.protocol.seed))
         final[name]["policy"] = f"trained ({core}, seed {seed})"
@@ -262,6 +268,7 @@ def baselines_by_split(
     device: str,
     reward: dict[str, float] | None = None,
     obstacles: int = 0,
+    squad: int = 0,
 ) -> dict[str, dict[str, EvalMetrics]]:
     """random and reactive on the whole unseen split ("all") and on each of its parts."""
 
@@ -274,6 +281,7 @@ def baselines_by_split(
             episode_steps=protocol.episode_steps,
             reward=reward,
             obstacles=obstacles,
+            squad=squad,
         )
 
     out = {"all": evaluate_baselines(env_of(splits.unseen), protocol)}
@@ -375,7 +383,7 @@ def bench_learn(
     out.mkdir(parents=True, exist_ok=True)
     splits = prepare_splits(corpus_root, resolution, device, pk3, say=say)
     say(f"[bench learn] train {splits.train}, unseen {splits.unseen}")
-    baselines = baselines_by_split(splits, cfg.protocol, device, dict(cfg.reward), cfg.obstacles)
+    baselines = baselines_by_split(splits, cfg.protocol, device, dict(cfg.reward), cfg.obstacles, cfg.squad)
     for part, b in baselines.items():
         say(f"[bench learn] baselines on unseen {part}:\n" + comparison_table(list(b.values())))
     runs_wanted = [(core, seed) for core in cfg.temporal_cores for seed in cfg.seeds]

@@ -78,6 +78,18 @@ ObstaclesOpt = Annotated[
 ]
 
 
+SquadOpt = Annotated[
+    int,
+    typer.Option(
+        "--squad",
+        min=0,
+        max=64,
+        help="Other drones as obstacles: squads of this many actors share a scene, see and collide with "
+        "each other (0: off; must divide the actors).",
+    ),
+]
+
+
 def build_env(
     env_kind: str,
     corpus: Path | None,
@@ -87,6 +99,7 @@ def build_env(
     rank: int = 0,
     world: int = 1,
     obstacles: int = 0,
+    squad: int = 0,
 ) -> Any:
     """The environment for a command (a data-parallel rank: its share of the scenes), or exit 2."""
     from navi_learner.envs import EnvUnavailable, make_env
@@ -104,8 +117,9 @@ def build_env(
             rank=rank,
             world=world,
             obstacles=obstacles,
+            squad=squad,
         )
-    except EnvUnavailable as err:
+    except (EnvUnavailable, ValueError) as err:
         raise fail(str(err)) from err
 
 
@@ -239,6 +253,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         ] = True,
         nproc: NprocOpt = 1,
         obstacles: ObstaclesOpt = 0,
+        squad: SquadOpt = 0,
     ) -> None:
         """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first. Under torchrun
         (or with --nproc N) every rank trains its own actors on its own device with synchronous
@@ -276,7 +291,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 checkpoint, fresh, replace(cfg, compile=compile_encoder, time_limit_s=time_limit)
             )
             n = cfg.n_actors or default_actors(torch.device(dev))
-            environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles)
+            environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles, squad)
             summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
             result = run_train(
                 environment,
@@ -361,6 +376,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         seed: SeedOpt = 0,
         env: EnvOpt = "sdfdag",
         obstacles: ObstaclesOpt = 0,
+        squad: SquadOpt = 0,
         as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
     ) -> None:
         """Evaluate a checkpoint or a baseline: return, collisions (with moving obstacles among them),
@@ -372,7 +388,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         if policy is not None:
             check_choice(policy, ("random", "reactive"), "--policy")
         dev = pick_device(device)
-        environment = build_env(env, corpus, actors, dev, seed, obstacles=obstacles)
+        environment = build_env(env, corpus, actors, dev, seed, obstacles=obstacles, squad=squad)
         chosen = eval_policy(policy or str(checkpoint), dev, seed, True, environment)
         print_metrics([evaluate(environment, chosen, steps, seed, progress=True)], as_json)
 
@@ -604,6 +620,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             ),
         ] = None,
         obstacles: ObstaclesOpt = 0,
+        squad: SquadOpt = 0,
         device: DeviceOpt = "auto",
         as_json: Annotated[
             bool, typer.Option("--json", help="Print the summary as one JSON object.")
@@ -652,6 +669,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             protocol=protocol,
             reward=tuple(overrides.items()),
             obstacles=obstacles,
+            squad=squad,
         )
         folder = out or Path("artifacts/bench/learn") / time.strftime("%Y%m%d-%H%M%S")
         try:

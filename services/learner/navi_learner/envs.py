@@ -77,12 +77,14 @@ def make_env(
     world: int = 1,
     reward: Mapping[str, float] | None = None,
     obstacles: int = 0,
+    squad: int = 0,
 ) -> BatchedEnv:
     """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
     qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation). With
     world > 1 the drone env flies only this rank's scenes, scenes[rank::world] (data-parallel training).
     `reward` replaces RewardConfig fields by name (see `reward_config`). `obstacles` > 0 gives every actor
-    that many scripted moving obstacles (EnvConfig.obstacles, default motions and sizes)."""
+    that many scripted moving obstacles (EnvConfig.obstacles, default motions and sizes); `squad` >= 2
+    makes squads of that many actors share a scene and see and collide with each other."""
     if kind == "toy":
         return ToyEnv(n_actors, device, seed=seed)
     if corpus is None:
@@ -102,9 +104,9 @@ def make_env(
     config = EnvConfig(max_steps_per_episode=episode_steps) if episode_steps > 0 else EnvConfig()
     if reward:
         config = replace(config, reward=reward_config(reward))
-    if obstacles:
+    if obstacles or squad:
         try:
-            config = replace(config, obstacles=ObstacleConfig(count=obstacles))
+            config = replace(config, obstacles=ObstacleConfig(count=obstacles, squad=squad))
         except ValueError as err:
             raise EnvUnavailable(str(err)) from err
     env: BatchedEnv = SdfDagEnv(

@@ -40,7 +40,7 @@ class EpisodeStats:
         self._add("episodes", endf.sum())
         self._add("episode_return", (self.ep_return * endf).sum())
         self._add("episode_length", (self.ep_len * endf).sum())
-        for key in ("collision", "obstacle_collision", "starved", "novel_cell"):
+        for key in ("collision", "obstacle_collision", "drone_collision", "starved", "novel_cell"):
             if key in out.info:
                 self._add(key, out.info[key].float().sum())
         if "clearance" in out.info:
@@ -77,6 +77,8 @@ class EpisodeStats:
             out["collisions_per_1k"] = 1000.0 * raw["collision"] / steps
         if "obstacle_collision" in raw:
             out["obstacle_collisions_per_1k"] = 1000.0 * raw["obstacle_collision"] / steps
+        if "drone_collision" in raw:
+            out["drone_collisions_per_1k"] = 1000.0 * raw["drone_collision"] / steps
         if "novel_cell" in raw:
             out["coverage_per_1k"] = 1000.0 * raw["novel_cell"] / steps
         if "starved" in raw and episodes > 0:
