@@ -200,16 +200,7 @@ def run_one(
     env = make_env(
         splits.train, tcfg.n_actors, device, seed, reward=reward, obstacles=cfg.obstacles, squad=cfg.squad
     )
-    unseen = make_env(
-        splits.unseen,
-        cfg.protocol.actors,
-        device,
-        cfg.protocol.seed,
-        episode_steps=cfg.protocol.episode_steps,
-        reward=reward,
-        obstacles=cfg.obstacles,
-        squad=cfg.squad,
-    )
+    unseen = eval_env(splits.unseen, cfg, device)
     monitor = CompetenceMonitor(
         unseen,
         cfg.protocol,
@@ -234,16 +225,7 @@ def run_one(
         monitor.record(trained.policy, result.step_id, float(result.last_metrics.get("train_s", 0.0)))
     final = {}
     for name, path in splits.unseen_parts.items():
-        part = make_env(
-            path,
-            cfg.protocol.actors,
-            device,
-            cfg.protocol.seed,
-            episode_steps=cfg.protocol.episode_steps,
-            reward=reward,
-            obstacles=cfg.obstacles,
-            squad=cfg.squad,
-        )
+        part = eval_env(path, cfg, device)
         final[name] = asdict(evaluate(part, trained, cfg.protocol.steps, cfg.protocol.seed))
         final[name]["policy"] = f"trained ({core}, seed {seed})"
     return {
@@ -262,32 +244,27 @@ def run_one(
     }
 
 
-def baselines_by_split(
-    splits: Splits,
-    protocol: EvalProtocol,
-    device: str,
-    reward: dict[str, float] | None = None,
-    obstacles: int = 0,
-    squad: int = 0,
-) -> dict[str, dict[str, EvalMetrics]]:
+def eval_env(corpus: Path, cfg: LearnConfig, device: str) -> Any:
+    """An evaluation env of the job's protocol over `corpus` (its actors, seed, episode length, reward
+    overrides, obstacles and squads)."""
+    p = cfg.protocol
+    return make_env(
+        corpus,
+        p.actors,
+        device,
+        p.seed,
+        episode_steps=p.episode_steps,
+        reward=dict(cfg.reward),
+        obstacles=cfg.obstacles,
+        squad=cfg.squad,
+    )
+
+
+def baselines_by_split(splits: Splits, cfg: LearnConfig, device: str) -> dict[str, dict[str, EvalMetrics]]:
     """random and reactive on the whole unseen split ("all") and on each of its parts."""
-
-    def env_of(corpus: Path) -> Any:
-        return make_env(
-            corpus,
-            protocol.actors,
-            device,
-            protocol.seed,
-            episode_steps=protocol.episode_steps,
-            reward=reward,
-            obstacles=obstacles,
-            squad=squad,
-        )
-
-    out = {"all": evaluate_baselines(env_of(splits.unseen), protocol)}
+    out = {"all": evaluate_baselines(eval_env(splits.unseen, cfg, device), cfg.protocol)}
     for name, path in splits.unseen_parts.items():
-        env = env_of(path)
-        out[name] = evaluate_baselines(env, protocol)
+        out[name] = evaluate_baselines(eval_env(path, cfg, device), cfg.protocol)
     return out
 
 
@@ -383,7 +360,7 @@ def bench_learn(
     out.mkdir(parents=True, exist_ok=True)
     splits = prepare_splits(corpus_root, resolution, device, pk3, say=say)
     say(f"[bench learn] train {splits.train}, unseen {splits.unseen}")
-    baselines = baselines_by_split(splits, cfg.protocol, device, dict(cfg.reward), cfg.obstacles, cfg.squad)
+    baselines = baselines_by_split(splits, cfg, device)
     for part, b in baselines.items():
         say(f"[bench learn] baselines on unseen {part}:\n" + comparison_table(list(b.values())))
     runs_wanted = [(core, seed) for core in cfg.temporal_cores for seed in cfg.seeds]
