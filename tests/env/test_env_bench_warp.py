@@ -1,0 +1,68 @@
+"""The Warp anchor of `navi bench trace --vs-warp --obstacles K`: primitives as box meshes (no Warp
+needed), and the refit-and-cast path where warp-lang is installed."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from navi_env import obstacles as ob
+from navi_env.bench_trace import TraceBenchConfig, bench_trace
+from navi_env.bench_warp import obstacle_boxes
+
+
+def test_obstacle_boxes_wrap_every_primitive_with_outward_triangles() -> None:
+    origins = torch.zeros(3, 3)
+    prims = ob.scatter(origins, 8, torch.Generator().manual_seed(0))  # (3, 8, 16) all four kinds
+    verts, tris = obstacle_boxes(prims)
+    assert verts.shape == (3 * 8 * 8, 3) and tris.shape == (3 * 8 * 12, 3)
+    assert tris.min() == 0 and tris.max() == len(verts) - 1
+    recs = prims.reshape(-1, ob.WORDS)
+    for m, rec in enumerate(recs.tolist()):
+        corners = verts[8 * m : 8 * m + 8].astype(np.float64)
+        d = np.array([ob.distance_one(rec, c.tolist()) for c in corners])
+        if int(rec[ob.KIND]) in (ob.BOX, ob.OBB):
+            assert np.abs(d).max() < 1e-4  # the box itself: corners on its surface
+        else:
+            assert d.min() > 0.0  # spheres and capsules inside their boxes
+        # a point inside the primitive lies inside the box: the centre is behind every face
+        center = np.array(rec[ob.CENTER : ob.CENTER + 3])
+        for a, b, c in verts[tris[12 * m : 12 * m + 12]].astype(np.float64):
+            normal = np.cross(b - a, c - a)
+            assert float(normal @ (a - center)) > 0.0  # counter-clockwise seen from outside
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("warp") is None, reason="warp-lang is not installed (the anchor's only need)"
+)
+def test_warp_refit_anchor_casts_through_moving_boxes(tmp_path: Path) -> None:
+    from navi_compiler.compile import compile_scene
+    from navi_compiler.gmdag import write_gmdag
+    from navi_compiler.scenes import generate_scene
+    from navi_env.bench_warp import bench_warp
+    from navi_env.scene import load_scene
+
+    scene = generate_scene("hall", 0)
+    np.savez(
+        tmp_path / "hall.npz",
+        vertices=scene.vertices.astype(np.float32),
+        triangles=scene.faces.astype(np.int32),
+    )
+    gmdag, _ = compile_scene(scene, resolution=64)
+    write_gmdag(gmdag, tmp_path / "hall.gmdag")
+    corpus = load_scene(tmp_path / "hall.gmdag", "cpu")
+    results = {}
+    for k in (0, 4):
+        cfg = TraceBenchConfig(agents=4, device="cpu", launches=2, warmup=1, azimuth_bins=32, elevation_bins=8,
+                               obstacles=k)  # fmt: skip
+        ours = bench_trace(corpus, cfg)
+        results[k] = bench_warp(corpus, cfg, tmp_path / "hall.npz", ours.ms_per_launch)
+    assert results[0]["median_abs_depth_diff_m"] is not None and results[0]["median_abs_depth_diff_m"] < 0.1
+    moving = results[4]
+    assert moving["refit_every_launch"] and moving["obstacle_triangles"] == 4 * 4 * 12
+    assert moving["triangles"] == results[0]["triangles"] + 4 * 4 * 12
+    assert 0.0 < moving["hit_fraction"] <= 1.0 and moving["grays_per_s"] > 0.0
