@@ -266,3 +266,24 @@ def test_training_stats_count_obstacle_collisions_among_collisions() -> None:
     row = stats.read()
     assert row["collisions_per_1k"] == pytest.approx(1000.0 * 15 / 40)
     assert row["obstacle_collisions_per_1k"] == pytest.approx(1000.0 * 5 / 40)
+
+
+def test_procedural_share_repeats_the_procedural_train_scenes(tmp_path: Path) -> None:
+    from navi_env.corpus import read_manifest
+    from navi_learner.bench_learn import prepare_splits
+
+    root = tmp_path / "corpora"
+    build_default_corpus(root / "procedural-train-64", resolution=64, count=2, seed=0)
+    build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
+    build_default_corpus(root / "openarena-train-64", resolution=64, count=3, seed=50)  # stands in for maps
+    build_default_corpus(root / "openarena-unseen-64", resolution=64, count=1, seed=60)
+    plain = prepare_splits(root, 64, "cpu", None, say=lambda _: None)
+    assert len(read_manifest(plain.train).scenes) == 5 and not plain.notes
+    mixed = prepare_splits(root, 64, "cpu", None, say=lambda _: None, procedural_share=0.5)
+    scenes = read_manifest(mixed.train).scenes
+    assert len(scenes) == 2 * 2 + 3  # round(0.5 * 3 / (0.5 * 2)) = 2 copies of the 2 procedural scenes
+    procedural = {s.source for s in read_manifest(root / "procedural-train-64").scenes}
+    assert sum(s.source in procedural for s in scenes) == 4
+    assert any("2 times, 57%" in note for note in mixed.notes)
+    with pytest.raises(ValueError, match="procedural_share"):
+        prepare_splits(root, 64, "cpu", None, say=lambda _: None, procedural_share=1.0)

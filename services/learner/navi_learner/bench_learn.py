@@ -80,6 +80,8 @@ class LearnConfig:
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
     reward: tuple[tuple[str, float], ...] = ()
     """RewardConfig fields replaced in every env of the job (training, evaluation, baselines)."""
+    procedural_share: float = 0.0
+    """Share of the train corpus's scenes that are procedural (0: as built, 16 of 56); see prepare_splits."""
     obstacles: int = 0
     """Scripted moving obstacles per actor in every env of the job (EnvConfig.obstacles)."""
     squad: int = 0
@@ -106,8 +108,13 @@ def prepare_splits(
     procedural_train: int = 16,
     procedural_unseen: int = 8,
     say: Say = print,
+    procedural_share: float = 0.0,
 ) -> Splits:
-    """Build (or reuse) the corpus parts under `root` and merge them into the train and unseen corpora."""
+    """Build (or reuse) the corpus parts under `root` and merge them into the train and unseen corpora.
+    With `procedural_share` in (0, 1) and both parts present, the procedural train scenes are repeated in
+    the train corpus until about that share of its scenes (so of the actors' time) is procedural."""
+    if not 0.0 <= procedural_share < 1.0:
+        raise ValueError(f"procedural_share must be in [0, 1), got {procedural_share}")
     from navi_env.corpus import build_corpus, build_default_corpus, merge_corpora, read_manifest
 
     def part(name: str, build: Callable[[Path], object]) -> Path:
@@ -153,7 +160,17 @@ def prepare_splits(
         notes.append(f"OpenArena maps not found at {pk3}: the splits hold procedural scenes only")
     train = root / f"train-{resolution}"
     unseen = root / f"unseen-{resolution}"
-    merge_corpora(list(train_parts.values()), train)
+    repeats = 1
+    if procedural_share > 0.0 and "openarena" in train_parts:
+        n_p = len(read_manifest(train_parts["procedural"]).scenes)
+        n_o = len(read_manifest(train_parts["openarena"]).scenes)
+        repeats = max(1, round(procedural_share * n_o / ((1.0 - procedural_share) * n_p)))
+        share = repeats * n_p / (repeats * n_p + n_o)
+        notes.append(f"train corpus: the {n_p} procedural scenes {repeats} times, {share:.0%} of its scenes")
+    merge_corpora(
+        [train_parts["procedural"]] * repeats + [v for k, v in train_parts.items() if k != "procedural"],
+        train,
+    )
     merge_corpora(list(unseen_parts.values()), unseen)
     scenes = {f"train/{k}": [s.name for s in read_manifest(v).scenes] for k, v in train_parts.items()}
     scenes |= {f"unseen/{k}": [s.name for s in read_manifest(v).scenes] for k, v in unseen_parts.items()}
@@ -358,7 +375,9 @@ def bench_learn(
         if core not in TEMPORAL_CORES:
             raise ValueError(f"unknown temporal core {core!r}; choose from {', '.join(TEMPORAL_CORES)}")
     out.mkdir(parents=True, exist_ok=True)
-    splits = prepare_splits(corpus_root, resolution, device, pk3, say=say)
+    splits = prepare_splits(
+        corpus_root, resolution, device, pk3, say=say, procedural_share=cfg.procedural_share
+    )
     say(f"[bench learn] train {splits.train}, unseen {splits.unseen}")
     baselines = baselines_by_split(splits, cfg, device)
     for part, b in baselines.items():

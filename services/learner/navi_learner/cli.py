@@ -307,7 +307,8 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         finally:
             dist.shutdown(d)
         if not d.main:
-            return  # rank 0 reports (and exits 130 when interrupted)
+            dist.leave(d)  # rank 0 reports (and exits 130 when interrupted)
+            return
         typer.echo(
             json.dumps(
                 {
@@ -322,6 +323,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 }
             )
         )
+        dist.leave(d, 130 if result.interrupted else 0)
         if result.interrupted:
             raise typer.Exit(130)
 
@@ -621,6 +623,16 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         ] = None,
         obstacles: ObstaclesOpt = 0,
         squad: SquadOpt = 0,
+        procedural_share: Annotated[
+            float,
+            typer.Option(
+                "--procedural-share",
+                min=0.0,
+                max=0.95,
+                help="Repeat the procedural train scenes until about this share of the train corpus is "
+                "procedural (0: as built, 16 procedural + 40 OpenArena).",
+            ),
+        ] = 0.0,
         device: DeviceOpt = "auto",
         as_json: Annotated[
             bool, typer.Option("--json", help="Print the summary as one JSON object.")
@@ -670,6 +682,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             reward=tuple(overrides.items()),
             obstacles=obstacles,
             squad=squad,
+            procedural_share=procedural_share,
         )
         folder = out or Path("artifacts/bench/learn") / time.strftime("%Y%m%d-%H%M%S")
         try:
@@ -747,6 +760,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             if result_file is not None:
                 if d.main:
                     result_file.write_text(json.dumps(result))
+                dist.leave(d)
                 return
         typer.echo(json.dumps(result) if as_json else "\n".join(f"{k}: {v}" for k, v in result.items()))
         sys.stdout.flush()

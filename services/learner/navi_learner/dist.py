@@ -121,6 +121,17 @@ def setup(device: str) -> tuple[Dist, str]:
     return Dist(rank, world, local, limit), dev
 
 
+def leave(d: Dist, code: int = 0) -> None:
+    """End a rank process of a data-parallel run now, with exit status `code`, once its output is
+    written (flushed here). Interpreter teardown is skipped: gloo can still abort the process there
+    ("terminate called without an active exception", seen under load even after `shutdown`). No-op for
+    a single process."""
+    if d.active:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+
+
 def shutdown(d: Dist) -> None:
     """Leave the process group (no-op for a single process). The garbage is collected right away: a
     process group still reachable from a reference cycle would otherwise be freed during interpreter
