@@ -32,7 +32,7 @@ import torch
 
 from navi_env import obstacles as ob
 from navi_env import rng
-from navi_env.config import OBSTACLE_MOTIONS, OBSTACLE_SHAPES, ObstacleConfig
+from navi_env.config import OBSTACLE_MOTIONS, ObstacleConfig
 from navi_env.episodes import SpawnTable, pick_index
 
 LINEAR, CIRCULAR, RANDOM_WALK = 0, 1, 2
@@ -374,6 +374,3 @@ def advance(
 def obstacle_distance(state: ObstacleState, points: torch.Tensor) -> torch.Tensor:
     """Distance (N,) from each actor's point (N, 3) to the nearest of its obstacles (+inf with none)."""
     return ob.distance(state.prims, points[:, None, :]).amin(dim=1)
-
-
-__all__ = ["OBSTACLE_SHAPES", "ObstacleState", "advance", "allocate", "obstacle_distance", "place", "sweep"]
