@@ -111,6 +111,8 @@ def pixel(page: Any, canvas: str, x: int, y: int) -> list[int]:
 
 
 def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings, zenoh_client: Any) -> None:
+    import zenoh
+
     sync_api = browser_api()
     app, state = build_live_app(zenoh_router, AuditorConfig())
     server = BackgroundServer(app, port=free_port()).start()
@@ -146,7 +148,8 @@ def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings,
                 zenoh_client.put(OBSERVATIONS.key, encode(corridor(256, 48, step, stamped)))
                 x = 2.0 + 8.0 * step / 40  # actor 0 flies from (2, 8) to (10, 8) at 4 m
                 pose = RobotPose(env_id=0, x=x, y=8.0, z=4.0, roll=0, pitch=0, yaw=0, timestamp=stamped)
-                zenoh_client.put(POSES.key, encode(pose))
+                # every pose must arrive (the trail counts them): block rather than drop under congestion
+                zenoh_client.put(POSES.key, encode(pose), congestion_control=zenoh.CongestionControl.BLOCK)
                 if step % 10 == 0:
                     for name, (_, value, _) in CHOSEN.items():
                         zenoh_client.put(TELEMETRY.key, telemetry(f"actor.training.{name}", value, step * 4))
