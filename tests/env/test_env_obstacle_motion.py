@@ -135,6 +135,55 @@ def test_sweep_stops_fast_and_thin_obstacles_at_the_drone(kind: str, speed: floa
         assert float(ob.distance(rec, drone[:, None, :] - s * delta)) >= radius - 1e-5
 
 
+def _sweep_case(n: int, k: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """n actors x k primitives of every kind (one slot in five empty) 0.5-3 m from each actor's drone,
+    moving 0-6 m this step, a third of them straight at the drone: records, deltas, drones."""
+    g = torch.Generator().manual_seed(seed)
+    recs = _random_records(n * k, seed).reshape(n, k, ob.WORDS).clone()  # (N, K, 16)
+    recs[:, ::5, ob.KIND] = float(ob.NONE)
+    drone = torch.rand(n, 3, generator=g) * 4.0 - 2.0  # (N, 3)
+    centre = recs[..., ob.CENTER : ob.CENTER + 3] + drone[:, None, :]  # (N, K, 3) around the drone
+    away = centre - drone[:, None, :]  # (N, K, 3)
+    recs[..., ob.CENTER : ob.CENTER + 3] = drone[:, None, :] + away / away.norm(dim=-1, keepdim=True) * (
+        0.5 + 2.5 * torch.rand(n, k, 1, generator=g)
+    )
+    delta = torch.randn(n, k, 3, generator=g) * 2.0  # (N, K, 3)
+    at_drone = drone[:, None, :] - recs[..., ob.CENTER : ob.CENTER + 3]  # (N, K, 3)
+    aim = torch.rand(n, k, generator=g) < 0.33  # (N, K)
+    delta = torch.where(aim[..., None], at_drone * (1.0 + torch.rand(n, k, 1, generator=g)), delta)
+    return recs, delta, drone
+
+
+def test_the_sweep_launch_matches_its_torch_twin() -> None:
+    """sweep (one launch of the tracer library) against sweep_ref (torch ops): the same fractions and
+    distances on 4,096 primitives of every kind, empty slots included, a third aimed at the drone."""
+    recs, delta, drone = _sweep_case(512, 8, 3)
+    t, dist = om.sweep(recs, delta, drone, 0.3, iterations=16)  # (N, K), (N, K)
+    t_ref, dist_ref = om.sweep_ref(recs, delta, drone, 0.3, iterations=16)
+    empty = recs[..., ob.KIND] == ob.NONE  # (N, K)
+    assert bool((t[empty] == 1.0).all()) and bool(torch.isinf(dist[empty]).all())
+    assert bool(torch.isinf(dist_ref[empty]).all())
+    assert float((t - t_ref).abs().max()) < 1e-4
+    full = ~empty
+    assert float((dist[full] - dist_ref[full]).abs().max()) < 1e-4
+    stopped = (t < 1.0).sum()
+    assert 100 < int(stopped) < int(full.sum())  # both outcomes are exercised
+    with pytest.raises(ValueError, match="delta"):
+        om.sweep(recs, delta[:, :4], drone, 0.3, iterations=16)
+    with pytest.raises(ValueError, match="iterations"):
+        om.sweep(recs, delta, drone, 0.3, iterations=0)
+
+
+@pytest.mark.gpu
+def test_the_sweep_agrees_on_cpu_and_cuda() -> None:
+    recs, delta, drone = _sweep_case(1024, 8, 4)
+    t, dist = om.sweep(recs, delta, drone, 0.3, iterations=16)
+    t_gpu, dist_gpu = om.sweep(recs.cuda(), delta.cuda(), drone.cuda(), 0.3, iterations=16)
+    assert float((t - t_gpu.cpu()).abs().max()) < 1e-4
+    full = recs[..., ob.KIND] != ob.NONE
+    assert float((dist[full] - dist_gpu.cpu()[full]).abs().max()) < 1e-4
+
+
 def _swept_ok(before: torch.Tensor, after: torch.Tensor, drone: torch.Tensor, radius: float) -> float:
     """Smallest distance from the drone (N, 3) to each obstacle along its straight move before -> after
     (N, K, 16 records), sampled at 65 fractions."""

@@ -1,4 +1,5 @@
-"""ctypes mirrors of the launcher argument structs in csrc/gmdag_trace.h (TraceArgs, SampleArgs).
+"""ctypes mirrors of the launcher argument structs in csrc/gmdag_trace.h (TraceArgs, SampleArgs,
+SweepArgs).
 
 Both launchers (CPU extension and CUDA library) take the address of one of these structs. Each
 build reports sizeof() of its structs; `check_layout` compares them with these mirrors at load.
@@ -72,11 +73,34 @@ class SampleArgs(ctypes.Structure):
     ]
 
 
-def check_layout(trace_size: Callable[[], int], sample_size: Callable[[], int], where: str) -> None:
+class SweepArgs(ctypes.Structure):
+    """Arguments of one obstacle-sweep launch (field meanings in gmdag_trace.h)."""
+
+    _fields_ = [
+        ("prims", ctypes.c_void_p),
+        ("delta", ctypes.c_void_p),
+        ("drone", ctypes.c_void_p),
+        ("out_t", ctypes.c_void_p),
+        ("out_distance", ctypes.c_void_p),
+        ("stream", ctypes.c_void_p),
+        ("num_items", ctypes.c_int64),
+        ("prims_per_actor", ctypes.c_int32),
+        ("iterations", ctypes.c_int32),
+        ("cpu_threads", ctypes.c_int32),
+        ("device", ctypes.c_int32),
+        ("radius", ctypes.c_float),
+        ("skin", ctypes.c_float),
+    ]
+
+
+def check_layout(
+    trace_size: Callable[[], int], sample_size: Callable[[], int], sweep_size: Callable[[], int], where: str
+) -> None:
     """Raise RuntimeError when a build's struct sizes disagree with these mirrors (a stale build)."""
     for name, got, want in (
         ("TraceArgs", trace_size(), ctypes.sizeof(TraceArgs)),
         ("SampleArgs", sample_size(), ctypes.sizeof(SampleArgs)),
+        ("SweepArgs", sweep_size(), ctypes.sizeof(SweepArgs)),
     ):
         if got != want:
             raise RuntimeError(

@@ -93,14 +93,19 @@ def build_library() -> Path:
 def cuda_library() -> ctypes.CDLL:
     """The loaded CUDA launchers (built on first call), argument types declared, layout checked."""
     lib = ctypes.CDLL(str(build_library()))
-    for name, arg in (("navi_trace_cuda", ctypes.c_void_p), ("navi_sample_cuda", ctypes.c_void_p)):
+    for name in ("navi_trace_cuda", "navi_sample_cuda", "navi_sweep_cuda"):
         fn = getattr(lib, name)
-        fn.argtypes = [arg]
+        fn.argtypes = [ctypes.c_void_p]
         fn.restype = ctypes.c_int
-    for name in ("navi_trace_args_size", "navi_sample_args_size"):
+    for name in ("navi_trace_args_size", "navi_sample_args_size", "navi_sweep_args_size"):
         getattr(lib, name).argtypes = []
         getattr(lib, name).restype = ctypes.c_int
     lib.navi_cuda_error_string.argtypes = [ctypes.c_int]
     lib.navi_cuda_error_string.restype = ctypes.c_char_p
-    check_layout(lib.navi_trace_args_size, lib.navi_sample_args_size, "the CUDA tracer library")
+    check_layout(
+        lib.navi_trace_args_size,
+        lib.navi_sample_args_size,
+        lib.navi_sweep_args_size,
+        "the CUDA tracer library",
+    )
     return lib

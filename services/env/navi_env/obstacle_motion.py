@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from navi_env import obstacles as ob
-from navi_env import rng
+from navi_env import rng, trace
 from navi_env.config import OBSTACLE_MOTIONS, ObstacleConfig
 from navi_env.episodes import SpawnTable, pick_index
 
@@ -199,13 +199,18 @@ def place(
     cand = spawns.position[rows, idx]  # (N, K, T, 3)
     cand_clear = spawns.clearance[rows, idx]  # (N, K, T)
 
-    base = (actor[:, None] * k + slot[None, :]) * 16  # (N, K) 16 numbers per slot
+    # 16 numbers per slot, drawn in two batched hashes (number q of a slot has key base + q)
+    words = ((actor[:, None] * k + slot[None, :]) * 16)[..., None] + torch.arange(
+        16, device=dev
+    )  # (N, K, 16)
+    u_all = rng.uniform(seed, rng.STREAM_OBSTACLE_SHAPE, tick, words)  # (N, K, 16) in [0, 1)
+    g_all = rng.normal(seed, rng.STREAM_OBSTACLE_SHAPE, tick, words[..., 5:12])  # (N, K, 7) numbers 5..11
 
     def u(q: int) -> torch.Tensor:
-        return rng.uniform(seed, rng.STREAM_OBSTACLE_SHAPE, tick, base + q)  # (N, K) in [0, 1)
+        return u_all[..., q]  # (N, K) in [0, 1)
 
     def g(q: int) -> torch.Tensor:
-        return rng.normal(seed, rng.STREAM_OBSTACLE_SHAPE, tick, base + q)  # (N, K)
+        return g_all[..., q - 5]  # (N, K) standard normal
 
     def span(lo: torch.Tensor, hi: torch.Tensor, q: int) -> torch.Tensor:
         return lo[scene][:, None] + (hi - lo)[scene][:, None] * u(
@@ -309,7 +314,17 @@ def sweep(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """How far each obstacle (N, K, 16 records at their start) may translate by delta (N, K, 3) before it
     would come within SKIN of a drone sphere of `radius` at drone (N, 3): fraction t (N, K) in [0, 1], and the
-    obstacle's distance from the drone centre there (N, K). Conservative march (module docstring)."""
+    obstacle's distance from the drone centre there (N, K). Conservative march (module docstring), one
+    launch of the tracer library (CPU threads or CUDA); `sweep_ref` is its torch twin."""
+    return trace.sweep_prims(
+        rec.contiguous(), delta.contiguous(), drone.contiguous(), radius, SKIN, iterations
+    )
+
+
+def sweep_ref(
+    rec: torch.Tensor, delta: torch.Tensor, drone: torch.Tensor, radius: float, iterations: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """`sweep` in torch ops (about 60 kernels per march step on a GPU): the same march, for parity."""
     length = delta.norm(dim=-1).clamp_min(1e-9)  # (N, K)
     rel = drone[:, None, :]  # (N, 1, 3)
     # Every primitive is convex, so f(t) = distance(drone, obstacle moved by t delta) is convex in t: an

@@ -58,7 +58,6 @@ def uniform(seed: torch.Tensor, stream: int, tick: torch.Tensor, index: torch.Te
 
 def normal(seed: torch.Tensor, stream: int, tick: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """Standard normal float32 per element of `index` (Box-Muller on two hashed uniforms)."""
-    u1 = uniform(seed, stream, tick, 2 * index)
-    u2 = uniform(seed, stream, tick, 2 * index + 1)
+    u1, u2 = uniform(seed, stream, tick, torch.stack((2 * index, 2 * index + 1)))  # 2 x (...) in one hash
     radius = torch.sqrt(-2.0 * torch.log1p(-u1))  # log1p(-u) finite for u < 1
     return radius * torch.cos(2.0 * math.pi * u2)

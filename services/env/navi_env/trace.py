@@ -18,7 +18,7 @@ from types import ModuleType
 import numpy as np
 import torch
 
-from navi_env.abi import SampleArgs, TraceArgs, check_layout
+from navi_env.abi import SampleArgs, SweepArgs, TraceArgs, check_layout
 from navi_env.obstacles import check_prims
 from navi_env.scene import SceneCorpus
 
@@ -186,7 +186,12 @@ def _ptr(t: torch.Tensor | None) -> int | None:
 def cpu_launcher() -> ModuleType:
     """The CPU extension built at install (navi_env._trace_cpu), layout-checked once."""
     _trace_cpu = importlib.import_module("navi_env._trace_cpu")
-    check_layout(_trace_cpu.trace_args_size, _trace_cpu.sample_args_size, "navi_env._trace_cpu")
+    check_layout(
+        _trace_cpu.trace_args_size,
+        _trace_cpu.sample_args_size,
+        _trace_cpu.sweep_args_size,
+        "navi_env._trace_cpu",
+    )
     return _trace_cpu
 
 
@@ -372,3 +377,51 @@ def sample_distance(
     else:
         raise ValueError(f"sampling runs on cpu or cuda devices, not {dev}")
     return result
+
+
+def sweep_prims(
+    prims: torch.Tensor, delta: torch.Tensor, drone: torch.Tensor, radius: float, skin: float, iterations: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The obstacle sweep in one launch (gmdag_trace.h `sweep_item`; torch twin
+    navi_env.obstacle_motion.sweep_ref): for N actors' K primitives, records prims (N, K, 16) translating
+    by delta (N, K, 3) towards a drone sphere of `radius` at drone (N, 3), the fraction t (N, K) in
+    [0, 1] each may move while keeping `skin` outside the sphere (`iterations` march steps), and its
+    distance from the drone centre there (N, K) (+inf for an empty slot). No host sync."""
+    dev = prims.device
+    if prims.dim() != 3 or prims.shape[2] != 16 or prims.dtype != torch.float32:
+        raise ValueError(f"prims must be (N, K, 16) float32, got {tuple(prims.shape)} {prims.dtype}")
+    n, k = int(prims.shape[0]), int(prims.shape[1])
+    for name, t, shape in (("delta", delta, (n, k, 3)), ("drone", drone, (n, 3))):
+        _check_float(name, _check_tensor(name, t, dev), shape)
+    _check_tensor("prims", prims, dev)
+    if iterations < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    out_t = torch.empty(n, k, dtype=torch.float32, device=dev)  # (N, K)
+    out_distance = torch.empty(n, k, dtype=torch.float32, device=dev)  # (N, K) m
+    if n * k == 0:
+        return out_t, out_distance
+    args = SweepArgs(
+        prims=prims.data_ptr(),
+        delta=delta.data_ptr(),
+        drone=drone.data_ptr(),
+        out_t=out_t.data_ptr(),
+        out_distance=out_distance.data_ptr(),
+        num_items=n * k,
+        prims_per_actor=k,
+        iterations=iterations,
+        radius=radius,
+        skin=skin,
+    )
+    if dev.type == "cpu":
+        args.cpu_threads = torch.get_num_threads()
+        if cpu_launcher().sweep(ctypes.addressof(args)) != 0:
+            raise RuntimeError("CPU sweep failed to start its worker threads")
+    elif dev.type == "cuda":
+        from navi_env.cuda_build import cuda_library
+
+        args.stream = _stream(dev)
+        args.device = _device_index(dev)
+        _cuda_check(cuda_library().navi_sweep_cuda(ctypes.addressof(args)))
+    else:
+        raise ValueError(f"the obstacle sweep runs on cpu or cuda devices, not {dev}")
+    return out_t, out_distance

@@ -120,6 +120,23 @@ struct SampleArgs {
   int32_t num_worlds;           // W
 };
 
+// Arguments of one obstacle sweep launch (navi_env.obstacle_motion.sweep).
+struct SweepArgs {
+  const float* prims;           // (N, K, 16) primitive records at the start of the step
+  const float* delta;           // (N, K, 3) each primitive's translation this step, meters
+  const float* drone;           // (N, 3) drone centres, meters
+  float* out_t;                 // (N, K) fraction of delta the primitive may move, in [0, 1]
+  float* out_distance;          // (N, K) its distance from the drone centre there (+inf: empty slot)
+  void* stream;                 // cudaStream_t for the CUDA launcher; ignored on the CPU
+  int64_t num_items;            // N * K
+  int32_t prims_per_actor;      // K
+  int32_t iterations;           // march steps
+  int32_t cpu_threads;          // CPU worker threads (<= 0: hardware concurrency); ignored by CUDA
+  int32_t device;               // CUDA device index; ignored on the CPU
+  float radius;                 // drone radius, meters
+  float skin;                   // meters the march keeps between a primitive and the drone sphere
+};
+
 // ---------------------------------------------------------------------------------------------
 // Loads (read-only cache on the device) and exact float helpers.
 
@@ -836,6 +853,40 @@ NAVI_HD void sample_point(const SampleArgs& a, int64_t i) {
     }
   }
   a.out_distance[i] = dist;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Obstacle sweep: how far primitive i may translate by delta before it would come within `skin` of
+// the drone sphere (the torch twin is navi_env.obstacle_motion.sweep_ref). The drone centre relative
+// to the primitive moves along p - t delta; the primitive's distance f is 1-Lipschitz in the point, so
+// advancing t by (f - radius - skin) / |delta| never passes the drone however fast or thin the
+// primitive, and f is convex in t (every primitive is convex): a primitive not approaching at t = 0
+// moves the whole way.
+
+NAVI_HD Vec3 moved_back(Vec3 p, Vec3 d, float t) { return v3(p.x - t * d.x, p.y - t * d.y, p.z - t * d.z); }
+
+NAVI_HD void sweep_item(const SweepArgs& a, int64_t i) {
+  const float* rec = a.prims + i * kPrimWords;
+  if (load_ro(rec + kPrimKind) == 0.0f) {  // an empty slot moves freely and is infinitely far
+    a.out_t[i] = 1.0f;
+    a.out_distance[i] = bits_float(0x7F800000);
+    return;
+  }
+  const int64_t b = i / a.prims_per_actor;
+  const Vec3 d = v3(load_ro(a.delta + i * 3), load_ro(a.delta + i * 3 + 1), load_ro(a.delta + i * 3 + 2));
+  const Vec3 p = v3(load_ro(a.drone + b * 3), load_ro(a.drone + b * 3 + 1), load_ro(a.drone + b * 3 + 2));
+  const float length = fmaxf(sqrtf(dot(d, d)), 1e-9f);
+  const float probe = fminf(1e-3f / length, 1.0f);  // a millimetre along the path
+  float t = 1.0f;
+  if (prim_distance(rec, moved_back(p, d, probe)) < prim_distance(rec, p)) {  // approaching
+    t = 0.0f;
+    for (int it = 0; it < a.iterations; ++it) {
+      const float gap = prim_distance(rec, moved_back(p, d, t)) - a.radius - a.skin;
+      t = fminf(t + fmaxf(gap, 0.0f) / length, 1.0f);
+    }
+  }
+  a.out_t[i] = t;
+  a.out_distance[i] = prim_distance(rec, moved_back(p, d, t));
 }
 
 }  // namespace navi

@@ -60,6 +60,13 @@ extern "C" int navi_sample_cpu(const navi::SampleArgs* args) {
   return parallel_for(a.num_points, a.cpu_threads, [&a](int64_t i) { navi::sample_point(a, i); });
 }
 
+extern "C" int navi_sweep_cpu(const navi::SweepArgs* args) {
+  const navi::SweepArgs a = *args;
+  return parallel_for(a.num_items, a.cpu_threads, [&a](int64_t i) { navi::sweep_item(a, i); });
+}
+
 extern "C" int navi_trace_args_size() { return static_cast<int>(sizeof(navi::TraceArgs)); }
 
 extern "C" int navi_sample_args_size() { return static_cast<int>(sizeof(navi::SampleArgs)); }
+
+extern "C" int navi_sweep_args_size() { return static_cast<int>(sizeof(navi::SweepArgs)); }

@@ -34,6 +34,11 @@ __global__ void __launch_bounds__(kThreads) sample_kernel(const navi::SampleArgs
   if (i < a.num_points) navi::sample_point(a, i);
 }
 
+__global__ void __launch_bounds__(kThreads) sweep_kernel(const navi::SweepArgs a) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
+  if (i < a.num_items) navi::sweep_item(a, i);
+}
+
 int select_device(int device) {
   int current = -1;
   cudaError_t err = cudaGetDevice(&current);
@@ -68,9 +73,20 @@ extern "C" int navi_sample_cuda(const navi::SampleArgs* args) {
   return static_cast<int>(cudaGetLastError());
 }
 
+extern "C" int navi_sweep_cuda(const navi::SweepArgs* args) {
+  if (args->num_items == 0) return 0;
+  const int err = select_device(args->device);
+  if (err != 0) return err;
+  const int64_t blocks = (args->num_items + kThreads - 1) / kThreads;
+  sweep_kernel<<<static_cast<unsigned>(blocks), kThreads, 0, static_cast<cudaStream_t>(args->stream)>>>(*args);
+  return static_cast<int>(cudaGetLastError());
+}
+
 extern "C" int navi_trace_args_size() { return static_cast<int>(sizeof(navi::TraceArgs)); }
 
 extern "C" int navi_sample_args_size() { return static_cast<int>(sizeof(navi::SampleArgs)); }
+
+extern "C" int navi_sweep_args_size() { return static_cast<int>(sizeof(navi::SweepArgs)); }
 
 extern "C" const char* navi_cuda_error_string(int code) {
   return cudaGetErrorString(static_cast<cudaError_t>(code));

@@ -1,4 +1,4 @@
-// The C ABI of the launchers. trace_cpu.cpp and trace_cuda.cu implement the same four functions with
+// The C ABI of the launchers. trace_cpu.cpp and trace_cuda.cu implement the same launchers with
 // the same signatures (suffix _cpu / _cuda); each returns 0 on success or an error code.
 #pragma once
 
@@ -15,7 +15,10 @@ NAVI_EXPORT int navi_trace_cpu(const navi::TraceArgs* args);
 NAVI_EXPORT int navi_sample_cpu(const navi::SampleArgs* args);
 NAVI_EXPORT int navi_trace_cuda(const navi::TraceArgs* args);
 NAVI_EXPORT int navi_sample_cuda(const navi::SampleArgs* args);
+NAVI_EXPORT int navi_sweep_cpu(const navi::SweepArgs* args);
+NAVI_EXPORT int navi_sweep_cuda(const navi::SweepArgs* args);
 NAVI_EXPORT int navi_trace_args_size();
 NAVI_EXPORT int navi_sample_args_size();
+NAVI_EXPORT int navi_sweep_args_size();
 NAVI_EXPORT const char* navi_cuda_error_string(int code);
 }
