@@ -211,20 +211,21 @@ def _cuda_check(code: int) -> None:
         raise RuntimeError(f"CUDA tracer launch failed: {message} (code {code})")
 
 
-def launch_trace(args: TraceArgs, device: torch.device) -> None:
-    """Run one filled TraceArgs on the CPU launcher or the CUDA launcher."""
+def launch(stage: str, args: TraceArgs | SampleArgs | SweepArgs, device: torch.device) -> None:
+    """Run one filled argument struct on the CPU launcher or the CUDA launcher of `stage` (trace,
+    sample or sweep)."""
     if device.type == "cpu":
         args.cpu_threads = torch.get_num_threads()
-        if cpu_launcher().trace(ctypes.addressof(args)) != 0:
-            raise RuntimeError("CPU tracer failed to start its worker threads")
+        if getattr(cpu_launcher(), stage)(ctypes.addressof(args)) != 0:
+            raise RuntimeError(f"CPU {stage} launcher failed to start its worker threads")
     elif device.type == "cuda":
         from navi_env.cuda_build import cuda_library
 
         args.stream = _stream(device)
         args.device = _device_index(device)
-        _cuda_check(cuda_library().navi_trace_cuda(ctypes.addressof(args)))
+        _cuda_check(getattr(cuda_library(), f"navi_{stage}_cuda")(ctypes.addressof(args)))
     else:
-        raise ValueError(f"tracing runs on cpu or cuda devices, not {device}")
+        raise ValueError(f"the {stage} launcher runs on cpu or cuda devices, not {device}")
 
 
 def trace(
@@ -296,7 +297,7 @@ def trace(
         num_worlds=worlds,
     )
     if p.batch * p.rays > 0:
-        launch_trace(args, scenes.device)
+        launch("trace", args, scenes.device)
 
 
 def validate_sample(
@@ -363,19 +364,7 @@ def sample_distance(
         prims_per_world=per_world,
         num_worlds=worlds,
     )
-    dev = scenes.device
-    if dev.type == "cpu":
-        args.cpu_threads = torch.get_num_threads()
-        if cpu_launcher().sample(ctypes.addressof(args)) != 0:
-            raise RuntimeError("CPU sampler failed to start its worker threads")
-    elif dev.type == "cuda":
-        from navi_env.cuda_build import cuda_library
-
-        args.stream = _stream(dev)
-        args.device = _device_index(dev)
-        _cuda_check(cuda_library().navi_sample_cuda(ctypes.addressof(args)))
-    else:
-        raise ValueError(f"sampling runs on cpu or cuda devices, not {dev}")
+    launch("sample", args, scenes.device)
     return result
 
 
@@ -412,16 +401,5 @@ def sweep_prims(
         radius=radius,
         skin=skin,
     )
-    if dev.type == "cpu":
-        args.cpu_threads = torch.get_num_threads()
-        if cpu_launcher().sweep(ctypes.addressof(args)) != 0:
-            raise RuntimeError("CPU sweep failed to start its worker threads")
-    elif dev.type == "cuda":
-        from navi_env.cuda_build import cuda_library
-
-        args.stream = _stream(dev)
-        args.device = _device_index(dev)
-        _cuda_check(cuda_library().navi_sweep_cuda(ctypes.addressof(args)))
-    else:
-        raise ValueError(f"the obstacle sweep runs on cpu or cuda devices, not {dev}")
+    launch("sweep", args, dev)
     return out_t, out_distance
