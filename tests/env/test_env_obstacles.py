@@ -126,11 +126,11 @@ def _step_inputs(
 
 
 def _trace(fn: object, corpus: SceneCorpus, ids: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
-           **kw: object) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+           horizon: float = HORIZON, **kw: object) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     b, r = len(ids), dirs.shape[0]
     depth = torch.full((b, r), -1.0, device=origins.device)  # (B, R)
     sem = torch.full((b, r), -1, dtype=torch.int32, device=origins.device)  # (B, R)
-    fn(corpus, ids, origins, dirs, out_depth=depth, out_semantic=sem, horizon=HORIZON, **kw)  # type: ignore[operator]
+    fn(corpus, ids, origins, dirs, out_depth=depth, out_semantic=sem, horizon=horizon, **kw)  # type: ignore[operator]
     return depth, sem
 
 
@@ -236,3 +236,82 @@ def test_cuda_matches_cpu_with_primitives_moving_every_step(
         d_cpu = sample_distance(cpu, ids, pts, prims=prims, prim_world=world)
         d_gpu = sample_distance(cuda, ids.cuda(), pts.cuda(), prims=prims.cuda(), prim_world=world.cuda())
         assert float((d_gpu.cpu() - d_cpu).abs().max()) < 1e-5
+
+
+def _extreme_points(rec: list[float]) -> list[np.ndarray]:
+    """Surface points of a primitive that lie on (or nearest to) its bounding sphere: box corners,
+    capsule tips, points of a sphere's surface."""
+    kind = int(rec[ob.KIND])
+    c, rad = np.array(rec[ob.CENTER : ob.CENTER + 3]), rec[ob.RADIUS]
+    a = np.array(rec[ob.AXIS : ob.AXIS + 3])
+    if kind == ob.SPHERE:
+        u = np.random.default_rng(0).normal(size=(8, 3))
+        return [c + rad * v / np.linalg.norm(v) for v in u]
+    if kind == ob.CAPSULE:
+        tip = a + rad * a / np.linalg.norm(a)
+        return [c + tip, c - tip]
+    corners = [np.array([sx, sy, sz]) * a for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
+    if kind == ob.OBB:
+        w, x, y, z = rec[ob.QUAT : ob.QUAT + 4]  # box frame -> world
+        m = np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+        corners = [m @ k for k in corners]
+    return [c + k for k in corners]
+
+
+def _grazing_case() -> tuple[SceneCorpus, torch.Tensor, list[torch.Tensor], list[np.ndarray]]:
+    """One actor at a fixed origin and, for each primitive (every kind, 2 to 150 m away), rays aimed 1 mm
+    inside and 1 cm outside its extreme points (on its bounding sphere, where a cull could go wrong)."""
+    corpus = load_corpus([demo_room(32, 8.0).gmdag()])
+    origin = np.array([-30.0, 4.0, 4.0])  # outside the scene's cube, facing away from it: no static hit
+    prims, dirs = [], []
+    for i, dist in enumerate((2.0, 20.0, 150.0)):
+        for kind in (ob.SPHERE, ob.CAPSULE, ob.BOX, ob.OBB):
+            u = np.random.default_rng(100 + i * 5 + kind).normal(size=3)
+            u[0] = -abs(u[0]) - 1.0  # away from the cube (+x)
+            c = (origin + dist * u / np.linalg.norm(u)).tolist()
+            rec = ob.record(kind, c, radius=0.4, axis=(0.9, 0.3, 0.5), quat=(0.8, 0.3, -0.4, 0.2))
+            aim = []
+            for p in _extreme_points(rec.double().tolist()):
+                out = (p - np.array(c)) / np.linalg.norm(p - np.array(c))
+                aim += [p - 1e-3 * out, p + 1e-2 * out]
+            d = np.stack(aim) - origin  # (R, 3)
+            prims.append(rec)
+            dirs.append(d / np.linalg.norm(d, axis=1, keepdims=True))
+    return corpus, torch.tensor(origin, dtype=torch.float32)[None], prims, dirs
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=gpu)])
+def test_the_bounding_sphere_cull_never_drops_a_hit(device: str) -> None:
+    """Every ray first tests the primitives' bounding spheres (seen from its origin) and intersects
+    exactly only those it may reach. Rays aimed just inside a primitive's extreme points (box corners,
+    capsule tips: on the bounding sphere) must still hit it at the float64 depth, and rays aimed just
+    outside must miss, at 2 to 150 m. On CUDA both tables run: the block's shared-memory one (K <= 64)
+    and the per-ray one (K = 70, the primitive among empty slots)."""
+    corpus, origin, prims, dirs = _grazing_case()
+    if device == "cuda":
+        corpus = load_corpus([demo_room(32, 8.0).gmdag()], "cuda")
+    misses = 0
+    for rec, d in zip(prims, dirs, strict=True):
+        want = [ob.hit_one(rec.double().tolist(), origin[0].double().tolist(), v.tolist()) for v in d]
+        assert all(math.isfinite(t) for t in want[::2])  # the rays aimed 1 mm inside do hit (float64)
+        misses += sum(math.isinf(t) for t in want[1::2])
+        for k_slots in (1, 70) if device == "cuda" else (1,):
+            table = torch.zeros(1, k_slots, ob.WORDS)  # (1, K, 16)
+            table[0, k_slots // 2] = rec
+            depth, sem = _trace(
+                trace, corpus, torch.zeros(1, dtype=torch.int64, device=device), origin.to(device),
+                torch.tensor(d, dtype=torch.float32, device=device), prims=table.to(device), horizon=300.0,
+            )  # fmt: skip
+            for r, t in enumerate(want):
+                if math.isinf(t):
+                    assert int(sem[0, r]) != 1 + ob.OBSTACLE_CLASS
+                else:
+                    assert int(sem[0, r]) == 1 + ob.OBSTACLE_CLASS, (ob.KIND_NAMES[int(rec[ob.KIND])], r)
+                    assert float(depth[0, r]) == pytest.approx(t, abs=0.01 + 1e-3 * t)  # grazing: ill-conditioned
+    assert misses > 40  # most rays aimed 1 cm outside an extreme point pass it

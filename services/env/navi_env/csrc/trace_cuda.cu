@@ -19,14 +19,35 @@ namespace {
 
 constexpr int kThreads = 128;
 constexpr int kMinBlocksPerSm = 9;
+// The primitive walk needs more registers: at 9 blocks (56 registers) ptxas spilled it, at 8 (64) not.
+constexpr int kMinBlocksPerSmPrims = 8;
+constexpr int kSharedPrims = 64;  // cull-table entries a block holds (1 KiB)
 
 constexpr int64_t kMaxGridY = 65535;
 
-template <bool kPrims>
+// Plain walk (no primitives in the launch).
 __global__ void __launch_bounds__(kThreads, kMinBlocksPerSm) trace_kernel(const navi::TraceArgs a) {
   const int64_t j = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
   if (j >= a.num_rays) return;
-  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item<kPrims>(a, b, j);
+  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item<false>(a, b, j);
+}
+
+// With primitives: every block's rays belong to one actor at a time, so the block builds that actor's
+// cull table (navi::actor_prim_cull, one entry per primitive) in shared memory once and each ray tests
+// its bounding spheres from there before any exact intersection. Worlds of more than kSharedPrims
+// primitives build the table per ray instead. Every thread reaches the barriers (no early return).
+__global__ void __launch_bounds__(kThreads, kMinBlocksPerSmPrims) trace_prims_kernel(const navi::TraceArgs a) {
+  __shared__ navi::PrimCull cull[kSharedPrims];
+  const int64_t j = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
+  const bool staged = a.prims_per_world <= kSharedPrims;
+  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) {
+    if (staged) {
+      __syncthreads();  // the previous actor's rays are done with the table
+      for (int k = threadIdx.x; k < a.prims_per_world; k += kThreads) cull[k] = navi::actor_prim_cull(a, b, k);
+      __syncthreads();
+    }
+    if (j < a.num_rays) navi::trace_item<true>(a, b, j, staged ? cull : nullptr);
+  }
 }
 
 __global__ void __launch_bounds__(kThreads) sample_kernel(const navi::SampleArgs a) {
@@ -57,9 +78,9 @@ extern "C" int navi_trace_cuda(const navi::TraceArgs* args) {
                   static_cast<unsigned>(args->num_actors < kMaxGridY ? args->num_actors : kMaxGridY));
   const cudaStream_t stream = static_cast<cudaStream_t>(args->stream);
   if (navi::has_prims(*args)) {
-    trace_kernel<true><<<grid, kThreads, 0, stream>>>(*args);
+    trace_prims_kernel<<<grid, kThreads, 0, stream>>>(*args);
   } else {
-    trace_kernel<false><<<grid, kThreads, 0, stream>>>(*args);
+    trace_kernel<<<grid, kThreads, 0, stream>>>(*args);
   }
   return static_cast<int>(cudaGetLastError());
 }
