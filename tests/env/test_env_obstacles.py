@@ -313,5 +313,6 @@ def test_the_bounding_sphere_cull_never_drops_a_hit(device: str) -> None:
                     assert int(sem[0, r]) != 1 + ob.OBSTACLE_CLASS
                 else:
                     assert int(sem[0, r]) == 1 + ob.OBSTACLE_CLASS, (ob.KIND_NAMES[int(rec[ob.KIND])], r)
-                    assert float(depth[0, r]) == pytest.approx(t, abs=0.01 + 1e-3 * t)  # grazing: ill-conditioned
+                    tol = 0.01 + 1e-3 * t  # a grazing entry depth is ill-conditioned
+                    assert float(depth[0, r]) == pytest.approx(t, abs=tol)
     assert misses > 40  # most rays aimed 1 cm outside an extreme point pass it
