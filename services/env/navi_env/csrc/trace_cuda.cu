@@ -19,8 +19,10 @@ namespace {
 
 constexpr int kThreads = 128;
 constexpr int kMinBlocksPerSm = 9;
-// The primitive walk needs more registers: at 9 blocks (56 registers) ptxas spilled it, at 8 (64) not.
-constexpr int kMinBlocksPerSmPrims = 8;
+// The primitive kernel at 9 blocks too (56 registers, no spill): on an H100 faster than the 8 blocks /
+// 62 registers ptxas picks at 8 (aggressor 512^3, 8,192 agents x 8 primitives, one job: 9.44 against
+// 10.04 ms per launch; docs/PERFORMANCE.md).
+constexpr int kMinBlocksPerSmPrims = 9;
 constexpr int kSharedPrims = 64;  // cull-table entries a block holds (1 KiB)
 
 constexpr int64_t kMaxGridY = 65535;
