@@ -19,9 +19,9 @@ namespace {
 
 constexpr int kThreads = 128;
 constexpr int kMinBlocksPerSm = 9;
-// The primitive kernel at 9 blocks too (56 registers, no spill): on an H100 faster than the 8 blocks /
-// 62 registers ptxas picks at 8 (aggressor 512^3, 8,192 agents x 8 primitives, one job: 9.44 against
-// 10.04 ms per launch; docs/PERFORMANCE.md).
+// The primitive kernel at 9 blocks too (56 registers, no spill): on an H100 faster than at 8 blocks
+// (62 registers): aggressor 512^3, 8,192 agents x 8 primitives, one job: 9.44 against 10.04 ms per
+// launch (docs/PERFORMANCE.md, 2026-11-24).
 constexpr int kMinBlocksPerSmPrims = 9;
 constexpr int kSharedPrims = 64;  // cull-table entries a block holds (1 KiB)
 
