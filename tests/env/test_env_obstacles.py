@@ -15,6 +15,7 @@ import torch
 
 from navi_env import obstacles as ob
 from navi_env.analytic_scenes import AnalyticScene, Box, demo_room, free_points, random_directions
+from navi_env.rays import spherical_directions, tiled_ray_order
 from navi_env.scene import SceneCorpus, load_corpus
 from navi_env.trace import sample_distance, trace
 from navi_env.trace_ref import sample_distance_ref, trace_ref
@@ -291,8 +292,8 @@ def test_the_bounding_sphere_cull_never_drops_a_hit(device: str) -> None:
     """Every ray first tests the primitives' bounding spheres (seen from its origin) and intersects
     exactly only those it may reach. Rays aimed just inside a primitive's extreme points (box corners,
     capsule tips: on the bounding sphere) must still hit it at the float64 depth, and rays aimed just
-    outside must agree with the float64 test (most miss), at 2 to 150 m. On CUDA both tables run: the
-    block's shared-memory one (K <= 64) and the per-ray one (K = 70, the primitive among empty slots)."""
+    outside must agree with the float64 test (most miss), at 2 to 150 m. Both paths run: K = 1 (the rays'
+    group mask from their cone) and K = 70 (the primitive among empty slots; no mask, every ray tests all)."""
     corpus, origin, prims, dirs = _grazing_case()
     if device == "cuda":
         corpus = load_corpus([demo_room(32, 8.0).gmdag()], "cuda")
@@ -301,7 +302,7 @@ def test_the_bounding_sphere_cull_never_drops_a_hit(device: str) -> None:
         want = [ob.hit_one(rec.double().tolist(), origin[0].double().tolist(), v.tolist()) for v in d]
         assert all(math.isfinite(t) for t in want[::2])  # the rays aimed 1 mm inside do hit (float64)
         misses += sum(math.isinf(t) for t in want[1::2])
-        for k_slots in (1, 70) if device == "cuda" else (1,):
+        for k_slots in (1, 70):
             table = torch.zeros(1, k_slots, ob.WORDS)  # (1, K, 16)
             table[0, k_slots // 2] = rec
             depth, sem = _trace(
@@ -316,3 +317,45 @@ def test_the_bounding_sphere_cull_never_drops_a_hit(device: str) -> None:
                     tol = 0.01 + 1e-3 * t  # a grazing entry depth is ill-conditioned
                     assert float(depth[0, r]) == pytest.approx(t, abs=tol)
     assert misses > 40  # most rays aimed 1 cm outside an extreme point pass it
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=gpu)])
+def test_ray_group_masks_keep_every_primitive_a_ray_can_hit(
+    setting: tuple[list[AnalyticScene], SceneCorpus], device: str
+) -> None:
+    """With shared directions a launch bounds each group of 128 work items by a cone and lets a ray
+    test only the primitives whose bounding sphere may meet its group's cone (rotated by the actor's
+    yaw). On the 64 x 24 sensor pattern in tiled order (12 groups), yawed actors and primitives of
+    every kind 0.5 to 6 m away, the result equals the float64 reference that tests every primitive,
+    with K = 12 (masks) and K = 70 (more than a mask holds: every ray tests every primitive), and with
+    3 steps per ray (a ray out of steps reports the distance reached, not the primitive beyond)."""
+    scenes, corpus = setting
+    dirs = spherical_directions(64, 24, torch.device("cpu"))  # (R, 3)
+    order = tiled_ray_order(64, 24)  # (R,)
+    ids, origins, _, _ = _step_inputs(scenes, 2, 0)
+    yaw = torch.tensor([0.3, -2.1, 1.7, 3.0])  # (B,)
+    rng = np.random.default_rng(7)
+    offsets = rng.normal(size=(len(ids), 12, 3))  # (B, 12, 3)
+    offsets *= (rng.uniform(0.5, 6.0, (len(ids), 12)) / np.linalg.norm(offsets, axis=2))[..., None]
+    prims = _random_prims(len(ids), 12, np.zeros(3), np.zeros(3), seed=11)  # (B, 12, 16) every kind at 0
+    prims[:, :, ob.CENTER : ob.CENTER + 3] = origins[:, None, :] + torch.tensor(offsets, dtype=torch.float32)
+    wide = torch.zeros(len(ids), 70, ob.WORDS)  # (B, 70, 16): the same primitives among empty slots
+    wide[:, 29:41] = prims
+    static, _ = _trace(trace_ref, corpus, ids, origins, dirs, yaw=yaw)
+    ref = _trace(trace_ref, corpus, ids, origins, dirs, yaw=yaw, prims=prims)
+    assert float((ref[0] < static - 1e-3).float().mean()) > 0.1  # the primitives fill much of the view
+    # 3 steps: most walks run out before the static scene; the primitive ahead of such a ray is not reported
+    short = _trace(trace_ref, corpus, ids, origins, dirs, yaw=yaw, prims=prims, max_steps=3)
+    assert 0.05 < float((short[1] == 0).float().mean()) < 0.95
+    dev = torch.device(device)
+    if device == "cuda":
+        corpus = load_corpus([s.gmdag() for s in scenes], "cuda")
+    for table, steps, want in ((prims, 256, ref), (wide, 256, ref), (prims, 3, short)):
+        kernel = _trace(
+            trace, corpus, ids.to(dev), origins.to(dev), dirs.to(dev), yaw=yaw.to(dev), ray_order=order.to(dev),
+            prims=table.contiguous().to(dev), max_steps=steps,
+        )  # fmt: skip
+        if device == "cuda":  # the device contracts multiply-adds: hits move by float32 rounding
+            assert float((kernel[0].cpu() - want[0]).abs().max()) < 1e-3
+        else:
+            _check_pair(kernel, want, static)

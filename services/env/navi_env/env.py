@@ -218,6 +218,7 @@ class SdfDagEnv:
         self.semantic = torch.zeros(n, r, dtype=torch.uint8, device=dev)  # (N, R) 0 miss, 1 + class on a hit
         self.obs = f32(n, CHANNELS, cfg.azimuth_bins, cfg.elevation_bins)  # (N, 3, Az, El)
         self._fused_observation = cfg.fused_observation and dev.type == "cuda"
+        self._fused_obstacles = cfg.fused_obstacles and dev.type == "cuda"
         self._semantic_table = semantic_table(dev)  # (256,) float32 channel 1 per semantic code
         self.void = f32(n)  # (N,) view statistics of the current observation
         self.near = f32(n)  # (N,)
@@ -345,7 +346,9 @@ class SdfDagEnv:
             novel = rewards.visit_cells(self.visited, cells)  # (N,) bool
             contact, obstacle_contact, drone_contact = move.contact, struck, self.done
             if self.obstacles is not None:
-                nearest = obstacle_motion.obstacle_distance(self.obstacles, move.position)  # (N,)
+                nearest = obstacle_motion.obstacle_distance(
+                    self.obstacles, move.position, self._fused_obstacles
+                )  # (N,)
                 obstacle_contact = struck | (move.contact & (nearest <= move.clearance + 1e-4))  # (N,)
                 contact = move.contact | struck  # (N,) bool
             if self.squad > 1:
@@ -467,6 +470,7 @@ class SdfDagEnv:
             self.seed,
             self.tick,
             self.actor,
+            self._fused_obstacles,
         )
 
     def _place_drones(self, position: torch.Tensor, radius: torch.Tensor) -> None:
@@ -512,6 +516,7 @@ class SdfDagEnv:
             self.seed,
             self.tick,
             self.actor,
+            self._fused_obstacles,
         )
 
     def _trace(self) -> None:

@@ -26,6 +26,17 @@ DEFAULT_MAX_STEPS = 256  # main-loop samples per ray
 DEFAULT_HORIZON = 100.0  # meters
 DEFAULT_HIT_EPSILON_VOXELS = 0.1  # used per scene when hit_epsilon is None (kDefaultHitEpsilonVoxels)
 NORM_TOLERANCE = 1e-3  # | |direction| - 1 | allowed
+RAY_GROUP = 128  # work items per ray group (kRayGroup in gmdag_trace.h)
+MASK_PRIMS = 64  # most primitives per world with per-group masks (kMaskPrims)
+
+
+def prim_scratch_bytes(batch: int, rays: int, per_world: int, shared: bool) -> int:
+    """Device bytes a trace launch with primitives builds its tables in (gmdag_trace.h,
+    prim_scratch_bytes): cull entries (B, K) of 16 bytes, and with shared directions and K <= 64 also
+    a cone per ray group (G,) of 16 bytes and a mask word per actor and group (B, G) of 8 bytes."""
+    groups = -(-rays // RAY_GROUP)
+    table = batch * per_world * 16
+    return groups * 16 + table + batch * groups * 8 if shared and per_world <= MASK_PRIMS else table
 
 
 @dataclass(frozen=True)
@@ -216,8 +227,10 @@ def launch(stage: str, args: TraceArgs | SampleArgs | SweepArgs, device: torch.d
     sample or sweep)."""
     if device.type == "cpu":
         args.cpu_threads = torch.get_num_threads()
-        if getattr(cpu_launcher(), stage)(ctypes.addressof(args)) != 0:
-            raise RuntimeError(f"CPU {stage} launcher failed to start its worker threads")
+        code = getattr(cpu_launcher(), stage)(ctypes.addressof(args))
+        if code != 0:
+            why = {1: "a worker thread did not start", 2: "the primitive scratch is missing or too small"}
+            raise RuntimeError(f"CPU {stage} launcher failed: {why.get(code, 'unknown error')} (code {code})")
     elif device.type == "cuda":
         from navi_env.cuda_build import cuda_library
 
@@ -268,6 +281,12 @@ def trace(
         max_steps, horizon, hit_epsilon, skip_direction_validation,
     )  # fmt: skip
     worlds, per_world = check_prims(prims, prim_world, p.batch, scenes.device, "one per actor")
+    scratch = None
+    if prims is not None and per_world > 0:
+        # the launch's primitive tables, rebuilt by every launch (the caching allocator makes this free,
+        # and a buffer per call stays correct when calls overlap on several streams)
+        nbytes = prim_scratch_bytes(p.batch, p.rays, per_world, p.shared)
+        scratch = torch.empty(nbytes, dtype=torch.uint8, device=scenes.device)  # (bytes,)
     args = TraceArgs(
         nodes=scenes.nodes.data_ptr(),
         grid=scenes.grid.data_ptr(),
@@ -295,6 +314,8 @@ def trace(
         prim_world=_ptr(prim_world),
         prims_per_world=per_world,
         num_worlds=worlds,
+        prim_scratch=_ptr(scratch),
+        prim_scratch_bytes=0 if scratch is None else scratch.numel(),
     )
     if p.batch * p.rays > 0:
         launch("trace", args, scenes.device)

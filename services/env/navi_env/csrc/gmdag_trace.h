@@ -82,8 +82,10 @@ struct TraceArgs {
   void* stream;                 // cudaStream_t for the CUDA launcher; ignored on the CPU
   const float* prims;           // (W, K, 16) dynamic primitive records (see PrimWord), or null
   const int32_t* prim_world;    // (B,) world of each actor's primitives, or null: actor b uses world b
+  void* prim_scratch;           // prim_scratch_bytes() of device memory the launch may overwrite (with prims)
   int64_t num_actors;           // B
   int64_t num_rays;             // R
+  int64_t prim_scratch_bytes;   // size of prim_scratch
   int32_t num_scenes;           // S
   int32_t scene_id_bytes;       // 4 or 8
   int32_t semantic_bytes;       // 0 (no output), 1 or 4
@@ -548,9 +550,9 @@ NAVI_HD float prim_hit(const float* r, Vec3 o, Vec3 d) {
 // |oc| (well above float32 rounding of the test below at any distance), so the cull only rejects rays
 // the exact test would also miss and the traced result is unchanged. An empty slot, one the tracing
 // actor owns (its own drone), and a bound holding the origin take oc = 0 with r2 = -1 (never hit) or
-// r2 = kBig (always tested). The rays of one actor share the origin, so the CUDA kernel builds an
-// actor's table once per block in shared memory; the CPU builds it per ray (first_prim_hit).
-struct PrimCull {
+// r2 = kBig (always tested). The rays of one actor share the origin, so a launch builds every actor's
+// table once before its rays (PrimTables below).
+struct alignas(16) PrimCull {
   float ocx, ocy, ocz, r2;
 };
 
@@ -600,30 +602,205 @@ NAVI_HD bool cull_may_hit(const PrimCull& c, Vec3 d) {
   return b >= 0.0f && ex * ex + ey * ey + ez * ez <= c.r2;
 }
 
-// The first primitive hit of actor `owner`'s world along a ray (meters, kBig if none) and its
-// semantic. `cull`: the world's table seen from o (prim_cull per record), or null to build it here.
-NAVI_HD float first_prim_hit(const float* prims, int64_t world, int32_t k_count, int64_t owner, Vec3 o, Vec3 d,
-                             const PrimCull* cull, int32_t& semantic) {
-  float best = kBig;
-  const float* rec = prims + world * k_count * kPrimWords;
-  for (int k = 0; k < k_count; ++k, rec += kPrimWords) {
-    const PrimCull c = cull != nullptr ? cull[k] : prim_cull(rec, owner, o);
-    if (!cull_may_hit(c, d)) continue;
-    const float t = prim_hit(rec, o, d);
-    if (t < best) {
-      best = t;
-      semantic = 1 + static_cast<int32_t>(load_ro(rec + kPrimClass));
-    }
-  }
-  return best;
-}
-
-// The cull table entry k of actor b (the CUDA kernel stages an actor's table in shared memory).
+// The cull table entry k of actor b (an empty entry for an actor whose world is outside [0, W)).
 NAVI_HD PrimCull actor_prim_cull(const TraceArgs& a, int64_t b, int32_t k) {
   const int64_t wid = a.prim_world != nullptr ? static_cast<int64_t>(load_ro(a.prim_world + b)) : b;
   const Vec3 o = v3(load_ro(a.origins + b * 3), load_ro(a.origins + b * 3 + 1), load_ro(a.origins + b * 3 + 2));
   if (wid < 0 || wid >= a.num_worlds) return empty_cull();  // such an actor sees no primitive
   return prim_cull(a.prims + (wid * a.prims_per_world + k) * kPrimWords, b, o);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Per-launch primitive tables. Before its rays, a launch with primitives builds (in prim_scratch):
+//   cones  (G,)     every group of kRayGroup work items (items [g * kRayGroup, (g + 1) * kRayGroup) of
+//                   an actor: one CUDA block) bounds its body-frame directions by a cone: unit axis and
+//                   half angle (plus kConeMargin); shared directions only
+//   table  (B, K)   each actor's cull entries (actor_prim_cull)
+//   masks  (B, G)   bit k set when primitive k's bounding sphere may meet group g's cone (rotated by the
+//                   actor's yaw); K <= kMaskPrims with shared directions, else every ray tests all K
+// A ray then runs the bounding-sphere test and the exact intersection only for the set bits of its
+// group's mask: most groups see no primitive at all and pay one load. Conservative throughout (the
+// cone holds every direction of its group with margin, the cone test errs towards "may meet"), so the
+// traced result is that of testing every primitive.
+constexpr int kRayGroup = 128;      // work items per group; the CUDA kernel's block size
+constexpr int kMaskPrims = 64;      // bits of a group mask
+constexpr float kConeMargin = 2e-3f;  // radians added to every cone's half angle
+constexpr float kWideCone = 1.5f;   // radians: a wider cone (or a degenerate one) bounds nothing
+
+struct alignas(16) RayCone {
+  float ax, ay, az;  // unit axis, body frame
+  float half;        // half angle in radians with margin; >= kWideCone: every direction
+};
+
+struct PrimTables {
+  RayCone* cones;   // (G,) or null (no masks)
+  PrimCull* table;  // (B, K)
+  uint64_t* masks;  // (B, G) or null (no masks)
+};
+
+NAVI_HD int64_t ray_groups(int64_t rays) { return (rays + kRayGroup - 1) / kRayGroup; }
+
+NAVI_HD bool uses_masks(const TraceArgs& a) { return a.directions_shared != 0 && a.prims_per_world <= kMaskPrims; }
+
+// Bytes of prim_scratch a launch with primitives needs: cones (16 B each), table (16 B), masks (8 B).
+NAVI_HD int64_t prim_scratch_bytes(const TraceArgs& a) {
+  const int64_t g = ray_groups(a.num_rays);
+  const int64_t table = a.num_actors * a.prims_per_world * static_cast<int64_t>(sizeof(PrimCull));
+  if (!uses_masks(a)) return table;
+  return g * static_cast<int64_t>(sizeof(RayCone)) + table + a.num_actors * g * 8;
+}
+
+NAVI_HD PrimTables prim_tables(const TraceArgs& a) {
+  PrimTables t;
+  char* base = static_cast<char*>(a.prim_scratch);
+  const int64_t g = ray_groups(a.num_rays);
+  if (uses_masks(a)) {
+    t.cones = reinterpret_cast<RayCone*>(base);
+    t.table = reinterpret_cast<PrimCull*>(base + g * static_cast<int64_t>(sizeof(RayCone)));
+    t.masks = reinterpret_cast<uint64_t*>(reinterpret_cast<char*>(t.table) +
+                                          a.num_actors * a.prims_per_world * static_cast<int64_t>(sizeof(PrimCull)));
+  } else {
+    t.cones = nullptr;
+    t.table = reinterpret_cast<PrimCull*>(base);
+    t.masks = nullptr;
+  }
+  return t;
+}
+
+// Work item j's body-frame direction (shared directions); false for an item ray_order skips.
+NAVI_HD bool item_direction(const TraceArgs& a, int64_t j, Vec3& d) {
+  const int64_t r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
+  if (j >= a.num_rays || r < 0 || r >= a.num_rays) return false;
+  d = v3(load_ro(a.directions + r * 3), load_ro(a.directions + r * 3 + 1), load_ro(a.directions + r * 3 + 2));
+  return finite(d.x) && finite(d.y) && finite(d.z);
+}
+
+// Angle in radians between u and d (any lengths; atan2 of |u x d| and u . d, well conditioned).
+NAVI_HD float angle_between(Vec3 u, Vec3 d) {
+  const float cx = u.y * d.z - u.z * d.y, cy = u.z * d.x - u.x * d.z, cz = u.x * d.y - u.y * d.x;
+  return atan2f(sqrtf(cx * cx + cy * cy + cz * cz), dot(u, d));
+}
+
+// The cone of an axis (the sum of the group's directions, any length) and the widest angle from it.
+NAVI_HD RayCone make_cone(Vec3 sum, float widest) {
+  RayCone c;
+  const float len = sqrtf(dot(sum, sum));
+  const bool ok = len > 1e-6f && widest + kConeMargin < kWideCone;
+  c.ax = ok ? sum.x / len : 1.0f;
+  c.ay = ok ? sum.y / len : 0.0f;
+  c.az = ok ? sum.z / len : 0.0f;
+  c.half = ok ? widest + kConeMargin : kWideCone;
+  return c;
+}
+
+// Group g's cone, serially (the CPU launcher; the CUDA launcher reduces over a block instead).
+NAVI_HD RayCone group_cone(const TraceArgs& a, int64_t g) {
+  Vec3 sum = v3(0.0f, 0.0f, 0.0f), d;
+  for (int64_t j = g * kRayGroup; j < (g + 1) * kRayGroup; ++j) {
+    if (item_direction(a, j, d)) {
+      const float n = sqrtf(dot(d, d));
+      sum = v3(sum.x + d.x / n, sum.y + d.y / n, sum.z + d.z / n);
+    }
+  }
+  float widest = 0.0f;
+  for (int64_t j = g * kRayGroup; j < (g + 1) * kRayGroup; ++j) {
+    if (item_direction(a, j, d)) widest = fmaxf(widest, angle_between(sum, d));
+  }
+  return make_cone(sum, widest);
+}
+
+// Whether a ray whose direction lies within `half` of unit axis u may enter the bound of entry c
+// (origin outside the bound): the angle between u and oc is at most half + asin(r / |oc|), compared as
+// u . oc >= cos(half) sqrt(|oc|^2 - r^2) - sin(half) r (both angles below pi / 2), with slack.
+NAVI_HD bool cone_may_hit(const PrimCull& c, Vec3 u, float cos_half, float sin_half) {
+  if (c.r2 < 0.0f) return false;
+  if (c.r2 >= kBig) return true;
+  const float l2 = c.ocx * c.ocx + c.ocy * c.ocy + c.ocz * c.ocz;
+  const float lhs = u.x * c.ocx + u.y * c.ocy + u.z * c.ocz;
+  const float rhs = cos_half * sqrtf(fmaxf(l2 - c.r2, 0.0f)) - sin_half * sqrtf(c.r2);
+  return lhs >= rhs - 1e-5f * sqrtf(l2);
+}
+
+// The body-frame direction rotated by yaw about +Z (cos/sin as the platform's libm computes them).
+NAVI_HD void rotate_yaw(float yaw, float& dx, float& dy) {
+  float c, sn;
+#ifdef __CUDA_ARCH__
+  sincosf(yaw, &sn, &c);
+#else
+  c = cosf(yaw);
+  sn = sinf(yaw);
+#endif
+  const float rx = c * dx - sn * dy;
+  const float ry = sn * dx + c * dy;
+  dx = rx;
+  dy = ry;
+}
+
+// Group g's mask for actor b: bit k when primitive k may be hit by one of the group's rays.
+NAVI_HD uint64_t group_mask(const TraceArgs& a, const PrimTables& t, int64_t b, int64_t g) {
+  const RayCone cone = t.cones[g];
+  const PrimCull* row = t.table + b * a.prims_per_world;
+  const bool wide = cone.half >= kWideCone;
+  float ux = cone.ax, uy = cone.ay;
+  if (a.yaw != nullptr) rotate_yaw(load_ro(a.yaw + b), ux, uy);
+  const Vec3 u = v3(ux, uy, cone.az);
+  const float cos_half = cosf(cone.half), sin_half = sinf(cone.half);
+  uint64_t mask = 0;
+  for (int k = 0; k < a.prims_per_world; ++k) {
+    const PrimCull c = row[k];
+    const bool hit = wide ? c.r2 >= 0.0f : cone_may_hit(c, u, cos_half, sin_half);
+    if (hit) mask |= uint64_t{1} << k;
+  }
+  return mask;
+}
+
+NAVI_HD int lowest_bit(uint64_t m) {
+#ifdef __CUDA_ARCH__
+  return __ffsll(static_cast<long long>(m)) - 1;
+#else
+  return __builtin_ctzll(m);
+#endif
+}
+
+// Entry k of a cull table (one 16-byte load on the device).
+NAVI_HD PrimCull load_cull(const PrimCull* p) {
+#ifdef __CUDA_ARCH__
+  const float4 v = __ldg(reinterpret_cast<const float4*>(p));
+  PrimCull c;
+  c.ocx = v.x;
+  c.ocy = v.y;
+  c.ocz = v.z;
+  c.r2 = v.w;
+  return c;
+#else
+  return *p;
+#endif
+}
+
+// Primitive k as a candidate first hit: the bounding-sphere test, then the exact entry time.
+NAVI_HD void prim_candidate(const float* rec, const PrimCull* row, int k, Vec3 o, Vec3 d, float& best,
+                            int32_t& semantic) {
+  if (!cull_may_hit(load_cull(row + k), d)) return;
+  const float* r = rec + k * kPrimWords;
+  const float t = prim_hit(r, o, d);
+  if (t < best) {
+    best = t;
+    semantic = 1 + static_cast<int32_t>(load_ro(r + kPrimClass));
+  }
+}
+
+// The first primitive hit of a world along a ray (meters, kBig if none) and its semantic, testing the
+// primitives of `mask` (bits k < K) in increasing k when `masked`, else all K. rec: the world's K
+// records; row: the tracing actor's cull entries (PrimTables).
+NAVI_HD float first_prim_hit(const float* rec, const PrimCull* row, int32_t k_count, bool masked, uint64_t mask,
+                             Vec3 o, Vec3 d, int32_t& semantic) {
+  float best = kBig;
+  if (masked) {
+    for (uint64_t m = mask; m != 0; m &= m - 1) prim_candidate(rec, row, lowest_bit(m), o, d, best, semantic);
+  } else {
+    for (int k = 0; k < k_count; ++k) prim_candidate(rec, row, k, o, d, best, semantic);
+  }
+  return best;
 }
 
 // The smallest primitive distance at p in a world, leaving out the owner's own (kBig if none).
@@ -680,69 +857,92 @@ struct Ray {
   float t, t1;               // current time and the clip end (cube exit or horizon), voxels
   float prev_t, prev_d;      // previous sample
   uint32_t last_brick;       // last brick sampled (class of a hit), or kNoBrick
-  float prim_t;              // first primitive hit, meters (kBig if none); the walk ends there
-  int32_t prim_semantic;     // its semantic
-  bool exhausted;            // ran out of steps
   int64_t out;               // output element b * R + r
   Walker w;
-  RayResult res;
+  RayResult res;             // semantic < 0 while walking: kOutOfSteps or kPrimStashed
   bool done;
 };
 
-// The body-frame direction rotated by yaw about +Z (cos/sin as the platform's libm computes them).
-NAVI_HD void rotate_yaw(float yaw, float& dx, float& dy) {
-  float c, sn;
-#ifdef __CUDA_ARCH__
-  sincosf(yaw, &sn, &c);
-#else
-  c = cosf(yaw);
-  sn = sinf(yaw);
-#endif
-  const float rx = c * dx - sn * dy;
-  const float ry = sn * dx + c * dy;
-  dx = rx;
-  dy = ry;
+// res.semantic of a ray that ran out of steps or had no finite input: it reports the distance reached
+// (or the horizon), written out with semantic 0, and never a primitive.
+constexpr int32_t kOutOfSteps = -1;
+// res.semantic of a ray whose first primitive hit lies within the horizon: its depth and semantic are
+// already in the outputs (written before the walk, which ends at it), and stay there unless the walk
+// hits the static scene first. Nothing about the primitive is carried through the walk.
+constexpr int32_t kPrimStashed = -2;
+
+// Writes one element of the depth and semantic outputs.
+NAVI_HD void write_hit(const TraceArgs& a, int64_t out, float depth, int32_t semantic) {
+  a.out_depth[out] = depth;
+  if (a.semantic_bytes == 4) {
+    static_cast<int32_t*>(a.out_semantic)[out] = semantic;
+  } else if (a.semantic_bytes == 1) {
+    static_cast<uint8_t*>(a.out_semantic)[out] = static_cast<uint8_t>(semantic < 255 ? semantic : 255);
+  }
 }
 
-// Sets up ray r of actor b (writing to element b * R + r); rays that are decided before the first
-// sample (bad scene id, non-finite input, missing the cube) come back done. kPrims: the launch has
-// primitives (a separate instantiation, so a launch without them runs the plain walk: measured 6-8%
-// slower on an H100 when one kernel served both).
+// The mask word of work item j of actor b (PrimTables.masks; null masks: none, every primitive tested).
+NAVI_HD uint64_t item_mask(const TraceArgs& a, const PrimTables& t, int64_t b, int64_t j) {
+  return t.masks != nullptr ? load_ro(t.masks + b * ray_groups(a.num_rays) + j / kRayGroup) : 0;
+}
+
+// The first primitive hit (meters, kBig if none) and its semantic along a ray of actor b from world
+// point o in direction d, testing the primitives of `mask` (item_mask) when the launch has masks.
+NAVI_HD float actor_prim_hit(const TraceArgs& a, const PrimTables& t, int64_t b, uint64_t mask, Vec3 o, Vec3 d,
+                             int32_t& semantic) {
+  const int64_t wid = a.prim_world != nullptr ? static_cast<int64_t>(load_ro(a.prim_world + b)) : b;
+  if (wid < 0 || wid >= a.num_worlds) return kBig;
+  return first_prim_hit(a.prims + wid * a.prims_per_world * kPrimWords, t.table + b * a.prims_per_world,
+                        a.prims_per_world, t.masks != nullptr, mask, o, d, semantic);
+}
+
+// Sets up work item j (ray r) of actor b (writing to element b * R + r); rays that are decided before
+// the first sample (bad scene id, non-finite input, missing the cube) come back done. kPrims: the
+// launch has primitives (a separate instantiation, so a launch without them runs the plain walk:
+// measured 6-8% slower on an H100 when one kernel served both); `t`: its tables (prim_tables).
 template <bool kPrims>
-NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t r, const PrimCull* cull) {
+NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const PrimTables& t) {
   Ray ray;
   ray.out = b * a.num_rays + r;
   ray.res.depth = a.horizon;
   ray.res.semantic = 0;
   ray.res.steps = 0;
   ray.done = true;
-  ray.prim_t = kBig;
-  ray.prim_semantic = 0;
-  ray.exhausted = false;
   const int64_t sid = load_scene_id(a.scene_ids, a.scene_id_bytes, b);
   if (sid < 0 || sid >= a.num_scenes) {
     ray.res.depth = kNaN();
     return ray;
   }
-  const Scene s = load_scene(a.scenes, sid);
-  ray.s = s;
   const float* dir = a.directions + (a.directions_shared ? r : b * a.num_rays + r) * 3;
   float dx = load_ro(dir), dy = load_ro(dir + 1);
   const float dz = load_ro(dir + 2);
   if (a.yaw != nullptr) rotate_yaw(load_ro(a.yaw + b), dx, dy);
   const Vec3 world = v3(load_ro(a.origins + b * 3), load_ro(a.origins + b * 3 + 1), load_ro(a.origins + b * 3 + 2));
+  if (!(finite(world.x) && finite(world.y) && finite(world.z) && finite(dx) && finite(dy) && finite(dz))) {
+    ray.res.semantic = kOutOfSteps;
+    return ray;
+  }
+  // The primitives first, before the scene record is loaded: little is live here, so their code does
+  // not crowd the registers the walk keeps (with it after the load, ptxas spilled walk state).
+  float reach = a.horizon;  // meters: the horizon, or the first primitive hit before it
+  const uint64_t mask = kPrims ? item_mask(a, t, b, j) : 0;
+  if (kPrims && (mask != 0 || t.masks == nullptr)) {  // most groups: no primitive near their cone
+    int32_t semantic = 0;
+    const float prim_t = actor_prim_hit(a, t, b, mask, world, v3(dx, dy, dz), semantic);
+    if (prim_t <= a.horizon) {
+      reach = prim_t;
+      write_hit(a, ray.out, prim_t, semantic);
+      ray.res.semantic = kPrimStashed;
+    }
+  }
+  const Scene s = load_scene(a.scenes, sid);
+  ray.s = s;
   const float ox = (world.x - s.ox) * s.inv_voxel;
   const float oy = (world.y - s.oy) * s.inv_voxel;
   const float oz = (world.z - s.oz) * s.inv_voxel;
-  if (!(finite(ox) && finite(oy) && finite(oz) && finite(dx) && finite(dy) && finite(dz))) return ray;
-  float reach = a.horizon;  // meters: the horizon, or the first primitive hit before it
-  if (kPrims) {
-    const int64_t wid = a.prim_world != nullptr ? static_cast<int64_t>(load_ro(a.prim_world + b)) : b;
-    if (wid >= 0 && wid < a.num_worlds) {
-      ray.prim_t =
-          first_prim_hit(a.prims, wid, a.prims_per_world, b, world, v3(dx, dy, dz), cull, ray.prim_semantic);
-      reach = fminf(reach, ray.prim_t);
-    }
+  if (!(finite(ox) && finite(oy) && finite(oz))) {
+    ray.res.semantic = kOutOfSteps;
+    return ray;
   }
   const float res = static_cast<float>(s.resolution);
   ray.eps = a.hit_epsilon > 0.0f ? a.hit_epsilon * s.inv_voxel : kDefaultHitEpsilonVoxels;
@@ -778,7 +978,7 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   Walker& w = ray.w;
   if (ray.res.steps >= a.max_steps) {
     ray.res.depth = fminf(ray.t * s.voxel, a.horizon);  // out of steps: the distance reached, semantic 0
-    ray.exhausted = true;
+    ray.res.semantic = kOutOfSteps;
     ray.done = true;
     return;
   }
@@ -852,22 +1052,13 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   if (next > ray.t1) ray.done = true;  // past the cube or the horizon: a miss
 }
 
-// Writes a finished ray's outputs. A ray the walk ended without a hit (a miss, or the walk clipped
-// at the first primitive) reports that primitive when it lies within the horizon.
+// Writes a finished ray's outputs. A ray whose walk ended without a hit keeps the primitive hit
+// written before its walk (kPrimStashed), if any.
 template <bool kPrims>
 NAVI_HD void finish_ray(const TraceArgs& a, Ray& ray) {
-  if (kPrims && ray.res.semantic == 0 && !ray.exhausted && ray.prim_t <= a.horizon && finite(ray.res.depth)) {
-    ray.res.depth = ray.prim_t;
-    ray.res.semantic = ray.prim_semantic;
-  }
-  a.out_depth[ray.out] = ray.res.depth;
-  if (a.semantic_bytes == 4) {
-    static_cast<int32_t*>(a.out_semantic)[ray.out] = ray.res.semantic;
-  } else if (a.semantic_bytes == 1) {
-    static_cast<uint8_t*>(a.out_semantic)[ray.out] =
-        static_cast<uint8_t>(ray.res.semantic < 255 ? ray.res.semantic : 255);
-  }
   if (a.out_steps != nullptr) a.out_steps[ray.out] = ray.res.steps;
+  if (kPrims && ray.res.semantic == kPrimStashed) return;
+  write_hit(a, ray.out, ray.res.depth, ray.res.semantic > 0 ? ray.res.semantic : 0);
 }
 
 // Whether a launch traces primitives (picks the trace_item instantiation).
@@ -875,13 +1066,13 @@ NAVI_HD bool has_prims(const TraceArgs& a) { return a.prims != nullptr && a.prim
 
 // Traces work item j of actor b to the end: ray ray_order[j] (or j). The order only decides which
 // rays run side by side in a GPU warp (coherent neighbours take similar step counts); results do
-// not depend on it. An out-of-range ray_order entry is skipped (its output is not written). `cull`:
-// actor b's primitive cull table (actor_prim_cull for k < K), or null to build it per ray.
+// not depend on it. An out-of-range ray_order entry is skipped (its output is not written). `t`: the
+// launch's primitive tables, built before any ray (unused without primitives).
 template <bool kPrims>
-NAVI_HD void trace_item(const TraceArgs& a, int64_t b, int64_t j, const PrimCull* cull = nullptr) {
+NAVI_HD void trace_item(const TraceArgs& a, int64_t b, int64_t j, const PrimTables& t) {
   const int64_t r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
   if (r < 0 || r >= a.num_rays) return;
-  Ray ray = start_ray<kPrims>(a, b, r, cull);
+  Ray ray = start_ray<kPrims>(a, b, j, r, t);
   while (!ray.done) step_ray(a, ray);
   finish_ray<kPrims>(a, ray);
 }

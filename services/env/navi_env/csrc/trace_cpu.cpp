@@ -13,6 +13,8 @@
 namespace {
 
 constexpr int64_t kChunk = 1024;  // rays (or points) per unit of work handed to a thread
+constexpr int kErrThreads = 1;    // a worker thread could not start
+constexpr int kErrScratch = 2;    // prim_scratch missing or smaller than navi::prim_scratch_bytes
 
 // Runs body(i) for i in [0, count) on up to `threads` threads, chunk by chunk.
 template <typename Body>
@@ -34,7 +36,7 @@ int parallel_for(int64_t count, int32_t threads, const Body& body) {
     run();
     for (std::thread& th : pool) th.join();
   } catch (const std::exception&) {
-    return 1;
+    return kErrThreads;
   }
   return 0;
 }
@@ -43,15 +45,32 @@ int parallel_for(int64_t count, int32_t threads, const Body& body) {
 
 extern "C" int navi_trace_cpu(const navi::TraceArgs* args) {
   const navi::TraceArgs a = *args;
+  const int64_t items = a.num_actors * a.num_rays;
   if (navi::has_prims(a)) {
-    return parallel_for(a.num_actors * a.num_rays, a.cpu_threads, [&a](int64_t i) {
-      const int64_t b = i / a.num_rays;
-      navi::trace_item<true>(a, b, i - b * a.num_rays);
+    if (a.prim_scratch == nullptr || a.prim_scratch_bytes < navi::prim_scratch_bytes(a)) return kErrScratch;
+    const navi::PrimTables t = navi::prim_tables(a);
+    const int64_t k = a.prims_per_world, groups = navi::ray_groups(a.num_rays);
+    int err = 0;
+    if (t.cones != nullptr) {
+      err |= parallel_for(groups, a.cpu_threads, [&](int64_t g) { t.cones[g] = navi::group_cone(a, g); });
+    }
+    err |= parallel_for(a.num_actors * k, a.cpu_threads, [&](int64_t i) {
+      t.table[i] = navi::actor_prim_cull(a, i / k, static_cast<int32_t>(i % k));
     });
+    if (t.masks != nullptr) {
+      err |= parallel_for(a.num_actors * groups, a.cpu_threads,
+                          [&](int64_t i) { t.masks[i] = navi::group_mask(a, t, i / groups, i % groups); });
+    }
+    err |= parallel_for(items, a.cpu_threads, [&](int64_t i) {
+      const int64_t b = i / a.num_rays;
+      navi::trace_item<true>(a, b, i - b * a.num_rays, t);
+    });
+    return err;
   }
-  return parallel_for(a.num_actors * a.num_rays, a.cpu_threads, [&a](int64_t i) {
+  const navi::PrimTables none{};
+  return parallel_for(items, a.cpu_threads, [&](int64_t i) {
     const int64_t b = i / a.num_rays;
-    navi::trace_item<false>(a, b, i - b * a.num_rays);
+    navi::trace_item<false>(a, b, i - b * a.num_rays, none);
   });
 }
 

@@ -19,11 +19,10 @@ namespace {
 
 constexpr int kThreads = 128;
 constexpr int kMinBlocksPerSm = 9;
-// The primitive kernel at 9 blocks too (56 registers, no spill): on an H100 faster than at 8 blocks
-// (62 registers): aggressor 512^3, 8,192 agents x 8 primitives, one job: 9.44 against 10.04 ms per
-// launch (docs/PERFORMANCE.md, 2026-11-24).
+// The primitive kernel at 9 blocks too (56 registers, no spill): on an H100 as fast or faster than at
+// 8 blocks (64 registers) in every measured design (docs/PERFORMANCE.md, 2026-11-24).
 constexpr int kMinBlocksPerSmPrims = 9;
-constexpr int kSharedPrims = 64;  // cull-table entries a block holds (1 KiB)
+static_assert(kThreads == navi::kRayGroup, "a CUDA block is one ray group");
 
 constexpr int64_t kMaxGridY = 65535;
 
@@ -31,25 +30,56 @@ constexpr int64_t kMaxGridY = 65535;
 __global__ void __launch_bounds__(kThreads, kMinBlocksPerSm) trace_kernel(const navi::TraceArgs a) {
   const int64_t j = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
   if (j >= a.num_rays) return;
-  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item<false>(a, b, j);
+  const navi::PrimTables none{};
+  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item<false>(a, b, j, none);
 }
 
-// With primitives: every block's rays belong to one actor at a time, so the block builds that actor's
-// cull table (navi::actor_prim_cull, one entry per primitive) in shared memory once and each ray tests
-// its bounding spheres from there before any exact intersection. Worlds of more than kSharedPrims
-// primitives build the table per ray instead. Every thread reaches the barriers (no early return).
-__global__ void __launch_bounds__(kThreads, kMinBlocksPerSmPrims) trace_prims_kernel(const navi::TraceArgs a) {
-  __shared__ navi::PrimCull cull[kSharedPrims];
+// The launch's primitive tables (gmdag_trace.h, "Per-launch primitive tables"), then the rays.
+// Group g's cone: one block of kRayGroup threads, one item each; a block reduction of the directions'
+// sum (the axis), then of the widest angle from it.
+__global__ void __launch_bounds__(kThreads) cone_kernel(const navi::TraceArgs a, const navi::PrimTables t) {
+  __shared__ float part[4][kThreads / 32];
   const int64_t j = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
-  const bool staged = a.prims_per_world <= kSharedPrims;
-  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) {
-    if (staged) {
-      __syncthreads();  // the previous actor's rays are done with the table
-      for (int k = threadIdx.x; k < a.prims_per_world; k += kThreads) cull[k] = navi::actor_prim_cull(a, b, k);
-      __syncthreads();
-    }
-    if (j < a.num_rays) navi::trace_item<true>(a, b, j, staged ? cull : nullptr);
+  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
+  navi::Vec3 d = navi::v3(0.0f, 0.0f, 0.0f);
+  const bool ok = navi::item_direction(a, j, d);
+  const float n = ok ? sqrtf(navi::dot(d, d)) : 1.0f;
+  float v[3] = {ok ? d.x / n : 0.0f, ok ? d.y / n : 0.0f, ok ? d.z / n : 0.0f};
+  for (int c = 0; c < 3; ++c) {
+    for (int off = 16; off > 0; off /= 2) v[c] += __shfl_xor_sync(0xffffffffu, v[c], off);
+    if (lane == 0) part[c][warp] = v[c];
   }
+  __syncthreads();
+  navi::Vec3 sum = navi::v3(0.0f, 0.0f, 0.0f);
+  for (int w = 0; w < kThreads / 32; ++w) sum = navi::v3(sum.x + part[0][w], sum.y + part[1][w], sum.z + part[2][w]);
+  float widest = ok ? navi::angle_between(sum, d) : 0.0f;
+  for (int off = 16; off > 0; off /= 2) widest = fmaxf(widest, __shfl_xor_sync(0xffffffffu, widest, off));
+  if (lane == 0) part[3][warp] = widest;
+  __syncthreads();
+  if (threadIdx.x == 0) {
+    for (int w = 0; w < kThreads / 32; ++w) widest = fmaxf(widest, part[3][w]);
+    t.cones[blockIdx.x] = navi::make_cone(sum, widest);
+  }
+}
+
+__global__ void __launch_bounds__(kThreads) cull_table_kernel(const navi::TraceArgs a, const navi::PrimTables t) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
+  const int64_t k = a.prims_per_world;
+  if (i < a.num_actors * k) t.table[i] = navi::actor_prim_cull(a, i / k, static_cast<int32_t>(i % k));
+}
+
+__global__ void __launch_bounds__(kThreads) mask_kernel(const navi::TraceArgs a, const navi::PrimTables t) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
+  const int64_t groups = navi::ray_groups(a.num_rays);
+  if (i < a.num_actors * groups) t.masks[i] = navi::group_mask(a, t, i / groups, i % groups);
+}
+
+// With primitives: block x of actor b is ray group x, so its rays share one mask word.
+__global__ void __launch_bounds__(kThreads, kMinBlocksPerSmPrims)
+    trace_prims_kernel(const navi::TraceArgs a, const navi::PrimTables t) {
+  const int64_t j = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
+  if (j >= a.num_rays) return;
+  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item<true>(a, b, j, t);
 }
 
 __global__ void __launch_bounds__(kThreads) sample_kernel(const navi::SampleArgs a) {
@@ -61,6 +91,8 @@ __global__ void __launch_bounds__(kThreads) sweep_kernel(const navi::SweepArgs a
   const int64_t i = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
   if (i < a.num_items) navi::sweep_item(a, i);
 }
+
+unsigned blocks_for(int64_t items) { return static_cast<unsigned>((items + kThreads - 1) / kThreads); }
 
 int select_device(int device) {
   int current = -1;
@@ -80,7 +112,16 @@ extern "C" int navi_trace_cuda(const navi::TraceArgs* args) {
                   static_cast<unsigned>(args->num_actors < kMaxGridY ? args->num_actors : kMaxGridY));
   const cudaStream_t stream = static_cast<cudaStream_t>(args->stream);
   if (navi::has_prims(*args)) {
-    trace_prims_kernel<<<grid, kThreads, 0, stream>>>(*args);
+    const navi::TraceArgs& a = *args;
+    if (a.prim_scratch == nullptr || a.prim_scratch_bytes < navi::prim_scratch_bytes(a)) {
+      return static_cast<int>(cudaErrorInvalidValue);
+    }
+    const navi::PrimTables t = navi::prim_tables(a);
+    const int64_t groups = navi::ray_groups(a.num_rays);
+    if (t.cones != nullptr) cone_kernel<<<static_cast<unsigned>(groups), kThreads, 0, stream>>>(a, t);
+    cull_table_kernel<<<blocks_for(a.num_actors * a.prims_per_world), kThreads, 0, stream>>>(a, t);
+    if (t.masks != nullptr) mask_kernel<<<blocks_for(a.num_actors * groups), kThreads, 0, stream>>>(a, t);
+    trace_prims_kernel<<<grid, kThreads, 0, stream>>>(a, t);
   } else {
     trace_kernel<<<grid, kThreads, 0, stream>>>(*args);
   }
