@@ -187,29 +187,15 @@ def place(
     actor: torch.Tensor,
     fused: bool = False,
 ) -> None:
-    """New obstacles for the actors with `mask` (N,) bool (_place); `fused`: one compiled pass (see
-    advance)."""
-    _call(_place, fused, state, mask, spawns, scene, origin, drone_radius, cfg, table, seed, tick, actor)
-
-
-def _place(
-    state: ObstacleState,
-    mask: torch.Tensor,
-    spawns: SpawnTable,
-    scene: torch.Tensor,
-    origin: torch.Tensor,
-    drone_radius: float,
-    cfg: ObstacleConfig,
-    table: SceneObstacles,
-    seed: torch.Tensor,
-    tick: torch.Tensor,
-    actor: torch.Tensor,
-) -> None:
     """New obstacles for the actors with `mask` (N,) bool, whose drones start at origin (N, 3) in
     `scene` (N,): the first table.count[scene] slots each try cfg.place_tries spawn points of the scene
     and take the first whose static clearance holds the obstacle's bounding sphere and whose distance
     from the drone lies in [max(place_min, bound + drone radius), place_max]; a slot with no such point,
-    or past the scene's count, stays empty. Sizes, speeds and reaches come from the scene's table row."""
+    or past the scene's count, stays empty. Sizes, speeds and reaches come from the scene's table row.
+    `fused`: as one compiled pass (see advance)."""
+    if fused:  # this function's compiled twin (which runs with fused=False)
+        _call(place, True, state, mask, spawns, scene, origin, drone_radius, cfg, table, seed, tick, actor)
+        return
     n, k, t = state.prims.shape[0], state.count, cfg.place_tries
     dev = state.prims.device
     slot = torch.arange(k, dtype=torch.int64, device=dev)  # (K,)
