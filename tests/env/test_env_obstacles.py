@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from navi_env import obstacles as ob
+from navi_env import trace as navi_trace
 from navi_env.analytic_scenes import AnalyticScene, Box, demo_room, free_points, random_directions
 from navi_env.rays import spherical_directions, tiled_ray_order
 from navi_env.scene import SceneCorpus, load_corpus
@@ -128,7 +129,7 @@ def _step_inputs(
 
 def _trace(fn: object, corpus: SceneCorpus, ids: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
            horizon: float = HORIZON, **kw: object) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    b, r = len(ids), dirs.shape[0]
+    b, r = len(ids), dirs.shape[-2]  # dirs (R, 3) or (B, R, 3)
     depth = torch.full((b, r), -1.0, device=origins.device)  # (B, R)
     sem = torch.full((b, r), -1, dtype=torch.int32, device=origins.device)  # (B, R)
     fn(corpus, ids, origins, dirs, out_depth=depth, out_semantic=sem, horizon=horizon, **kw)  # type: ignore[operator]
@@ -215,6 +216,21 @@ def test_bad_primitive_arguments_are_refused(setting: tuple[list[AnalyticScene],
         _trace(trace, corpus, ids, origins, dirs, prims=prims.double())
     with pytest.raises(ValueError, match="prim_world"):
         _trace(trace, corpus, ids, origins, dirs, prims=prims, prim_world=world[:1].contiguous())
+
+
+def test_the_launcher_refuses_a_primitive_scratch_smaller_than_its_tables(
+    setting: tuple[list[AnalyticScene], SceneCorpus], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The launch builds its primitive tables in a buffer `trace` sizes with the mirror of the header's
+    prim_scratch_bytes; one word short (masks or not), the launcher refuses instead of writing past it."""
+    scenes, corpus = setting
+    ids, origins, world, prims = _step_inputs(scenes, 2, 0)
+    dirs = torch.tensor(random_directions(300, seed=1), dtype=torch.float32)  # (R, 3): 3 ray groups
+    exact = navi_trace.prim_scratch_bytes
+    monkeypatch.setattr(navi_trace, "prim_scratch_bytes", lambda *a: exact(*a) - 8)
+    for shared in (dirs, dirs.expand(len(ids), -1, -1).contiguous()):  # with masks, then without
+        with pytest.raises(RuntimeError, match="primitive scratch"):
+            _trace(trace, corpus, ids, origins, shared, prims=prims, prim_world=world)
 
 
 @gpu

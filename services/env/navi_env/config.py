@@ -215,7 +215,7 @@ class EnvConfig:
     fused_obstacles: bool = True
     """On CUDA, run the elementwise parts of the moving obstacles' step (placement, script, move, nearest
     obstacle) as torch.compile'd passes (navi_env.obstacle_motion; compiled by the first `reset` or
-    `step`, before the CUDA graph is recorded): a few kernels instead of about 400 per step. False, and
+    `step`, before the CUDA graph is recorded): a few kernels instead of about 430 per step. False, and
     always on CPU: the eager kernels."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """Optional noise, dropout and ray pattern; off by default."""
