@@ -275,18 +275,19 @@ def place(
     state.clearance.copy_(torch.where(m, clear, state.clearance))
 
 
-def targets(
+def _plan(
     state: ObstacleState,
     dt: float,
     walk_turn: float,
     seed: torch.Tensor,
     tick: torch.Tensor,
     actor: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Where each obstacle's script takes it this step: target centre (N, K, 3), its phase (N, K) and its
-    axis (N, K, 3) (the random walk's new heading)."""
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """advance, first part: where each obstacle's script takes it this step. Returns the start centres c0
+    (N, K, 3), the translation delta to the target (N, K, 3), its length (N, K), the wall march's floor
+    (N, K), and the script's new phase (N, K) and axis (N, K, 3) (the random walk's new heading)."""
     n, k = state.phase.shape
-    c0 = state.prims[..., ob.CENTER : ob.CENTER + 3]  # (N, K, 3)
+    c0 = state.prims[..., ob.CENTER : ob.CENTER + 3].clone()  # (N, K, 3): the commit moves the records
     reach, speed = state.reach, state.speed  # (N, K)
     s_lin = (state.phase + speed * dt).clamp(-reach, reach)  # (N, K)
     p_lin = state.anchor + s_lin[..., None] * state.axis  # (N, K, 3)
@@ -314,7 +315,10 @@ def targets(
         motion == LINEAR, s_lin, torch.where(motion == CIRCULAR, angle, state.phase)
     )  # (N, K)
     axis = torch.where((motion == RANDOM_WALK)[..., None], heading, state.axis)  # (N, K, 3)
-    return target, phase, axis
+    delta = target - c0  # (N, K, 3)
+    length = delta.norm(dim=-1).clamp_min(1e-9)  # (N, K)
+    floor = torch.minimum(state.bound + WALL_SKIN, state.clearance - CREEP)  # (N, K)
+    return c0, delta, length, floor, phase, axis
 
 
 def sweep(
@@ -378,24 +382,6 @@ def advance(
     t, touch = _call(_commit, fused, state, c0, delta, t_wall, t_drone, reach_d, phase, axis, radius)
     state.clearance.copy_(torch.where(t == t_wall, d, static_at(t)))
     return touch.any(dim=1)
-
-
-def _plan(
-    state: ObstacleState,
-    dt: float,
-    walk_turn: float,
-    seed: torch.Tensor,
-    tick: torch.Tensor,
-    actor: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """advance, first part: start centres c0 (N, K, 3), the scripted translation delta (N, K, 3), its length
-    (N, K), the wall march's floor (N, K), and the script's new phase (N, K) and axis (N, K, 3)."""
-    c0 = state.prims[..., ob.CENTER : ob.CENTER + 3].clone()  # (N, K, 3)
-    target, phase, axis = targets(state, dt, walk_turn, seed, tick, actor)
-    delta = target - c0  # (N, K, 3)
-    length = delta.norm(dim=-1).clamp_min(1e-9)  # (N, K)
-    floor = torch.minimum(state.bound + WALL_SKIN, state.clearance - CREEP)  # (N, K)
-    return c0, delta, length, floor, phase, axis
 
 
 def _commit(
