@@ -28,7 +28,7 @@ def parity_setup() -> tuple[CognitiveMambaPolicy, torch.optim.Optimizer, Rollout
     optimizer = torch.optim.Adam([q for q in policy.parameters() if q.requires_grad], lr=1e-3, eps=1e-5)
     ppo = PPOConfig(num_minibatches=1, ppo_epochs=1, bptt_chunk=CHUNK)
     cfg = TrainConfig(n_actors=ACTORS, rollout_length=ROLLOUT, engine=ENGINE, ppo=ppo)
-    buf = RolloutStorage(ROLLOUT, ACTORS, OBS, torch.float32, policy.initial_state(ACTORS, CPU), CHUNK, CPU)
+    buf = RolloutStorage(ROLLOUT, ACTORS, OBS, policy.initial_state(ACTORS, CPU), CHUNK, CPU)
     g = torch.Generator().manual_seed(1)
     buf.obs.copy_(torch.rand(buf.obs.shape, generator=g))  # (T, N, 3, Az, El)
     buf.actions.copy_(torch.randn(buf.actions.shape, generator=g))  # (T, N, 4)
@@ -52,7 +52,7 @@ def shard(buf: RolloutStorage, rank: int, world: int) -> RolloutStorage:
     n = buf.n // world
     lo = rank * n
     template = tuple(s[0, :n] for s in buf.states)  # each (N/W, ...)
-    part = RolloutStorage(buf.t_len, n, OBS, buf.obs.dtype, template, buf.chunk, CPU)
+    part = RolloutStorage(buf.t_len, n, OBS, template, buf.chunk, CPU)
     for name in (
         "obs",
         "actions",

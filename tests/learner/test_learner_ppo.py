@@ -84,7 +84,7 @@ def tiny_setup() -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
     )
     policy = CognitiveMambaPolicy((3, 8, 8), eng)
     buf = RolloutStorage(
-        8, 3, (3, 8, 8), torch.float32, policy.initial_state(3, torch.device("cpu")), 4, torch.device("cpu")
+        8, 3, (3, 8, 8), policy.initial_state(3, torch.device("cpu")), 4, torch.device("cpu")
     )
     g = torch.Generator().manual_seed(0)
     buf.obs.copy_(torch.rand(buf.obs.shape, generator=g))

@@ -252,6 +252,9 @@ class SdfDagEnv:
             info=self.info,
         )
 
+    compact_obs = True
+    """Observations are DistanceMatrix v2 as navi_env.observation writes them (see its pack / unpack)."""
+
     @property
     def obs_shape(self) -> tuple[int, int, int]:
         """(3, Az, El) of one actor's observation."""

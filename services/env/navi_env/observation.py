@@ -1,8 +1,14 @@
 """DistanceMatrix v2: the (N, 3, Az, El) observation and the view statistics the rewards read.
 
-Channels: 0 depth / horizon in [0, 1] (1 = miss); 1 semantic: 0 for a miss, 0.5 + 0.5 * class / 255
-for a hit (so any hit reads >= 0.5, class 0 "unknown" reads 0.5); 2 delta depth: channel 0 minus its
-value one step earlier, 0 right after a reset. Layout of (Az, El): see navi_env.sensor.
+Channels: 0 depth / horizon in [0, 1] (1 = miss), rounded to float16 (10 bits of mantissa: 0.05% of
+the depth); 1 semantic: 0 for a miss, 0.5 + 0.5 * class / 255 for a hit (so any hit reads >= 0.5, class
+0 "unknown" reads 0.5); 2 delta depth: channel 0 minus its value one step earlier (exact in float32,
+both being float16 values in [0, 1]), 0 right after a reset. Layout of (Az, El): see navi_env.sensor.
+
+So an observation is fully given by its compact form (`pack`): channel 0 as float16 and the semantic
+code as one byte per ray (3 bytes per ray instead of 12), with channel 2 recomputed from two
+consecutive frames and the reset flags (`unpack`, bit-identical to what the env wrote). Rollouts store
+that form (navi_learner.rollout).
 
 Two ways to compute a step's observation and view statistics with the same results: `observe_ref`
 (eager kernels, about ten passes over (N, R); the CPU path) and `observe` (one torch.compile'd pass
@@ -52,11 +58,21 @@ def write_observation(
     """
     n, r = depth.shape
     ch0, ch1, ch2 = obs[:, 0].view(n, r), obs[:, 1].view(n, r), obs[:, 2].view(n, r)  # (N, R) views
-    scale = (~fresh).to(depth.dtype).mul_(1.0 / horizon)[:, None]  # (N, 1) 1/horizon, 0 where fresh
-    torch.sub(depth, ch0, alpha=horizon, out=ch2)  # depth - horizon * previous
-    ch2.mul_(scale)  # depth / horizon - previous, 0 where fresh
-    torch.mul(depth, 1.0 / horizon, out=ch0)
+    now = round_to_half(torch.mul(depth, 1.0 / horizon))  # (N, R) channel 0
+    torch.sub(now, ch0, out=ch2)  # now - previous, exact (float16 values in [0, 1])
+    ch2.masked_fill_(fresh[:, None], 0.0)
+    ch0.copy_(now)
     _semantic_channel(ch1, semantic, hit)
+
+
+def round_to_half(x: torch.Tensor) -> torch.Tensor:
+    """x (any shape) float32 rounded to the nearest float16 value (ties to even), kept as float32: the
+    same values as x.half().float() for |x| <= 65504. Spelled out in integer operations because
+    inductor drops a float32 -> float16 -> float32 round trip as a no-op (torch 2.11)."""
+    bits = x.view(torch.int32)  # same shape, the float's bits
+    normal = ((bits + (0x0FFF + ((bits >> 13) & 1))) & -8192).view(torch.float32)  # 10 mantissa bits kept
+    tiny = torch.round(x * 2.0**24) * 2.0**-24  # below 2^-14 float16 is fixed point in steps of 2^-24
+    return torch.where(x.abs() < 2.0**-14, tiny, normal)
 
 
 def _semantic_channel(out: torch.Tensor, semantic: torch.Tensor, hit: torch.Tensor) -> None:
@@ -73,6 +89,29 @@ def semantic_table(device: torch.device | str) -> torch.Tensor:
     table = torch.empty(1, 256, dtype=torch.float32, device=device)  # (1, 256) float32
     _semantic_channel(table, codes, codes > 0)
     return table[0]
+
+
+def pack(obs: torch.Tensor, depth16: torch.Tensor, semantic: torch.Tensor) -> None:
+    """The compact form of observations obs (B, 3, Az, El) float32: channel 0 into depth16 (B, Az, El)
+    float16 and the semantic code of channel 1 into semantic (B, Az, El) uint8. Exact for observations
+    this module wrote (see unpack); anything else comes back different (train.collect checks once)."""
+    depth16.copy_(obs[:, 0])
+    ch1 = obs[:, 1]  # (B, Az, El) 0 or table[code] = code * 0.5/255 + (0.5 - 0.5/255), a few ulps at most
+    code = torch.where(ch1 > 0.0, (ch1 - (0.5 - 0.5 / 255.0)) * 510.0, 0.0)  # (B, Az, El) float32
+    semantic.copy_(code.round_().clamp_(0.0, 255.0))
+
+
+def unpack(
+    depth16: torch.Tensor, semantic: torch.Tensor, fresh: torch.Tensor, table: torch.Tensor
+) -> torch.Tensor:
+    """Observations (T, B, 3, Az, El) float32 from their compact form: depth16 (T + 1, B, Az, El) float16
+    holds channel 0 of the T frames and, first, of the frame before them; semantic (T, B, Az, El) uint8
+    the codes of the T frames; fresh (T, B) bool marks frames whose previous frame is from another
+    episode. Bit-identical to what write_observation / observe wrote for those frames."""
+    ch0 = depth16.to(torch.float32)  # (T + 1, B, Az, El)
+    now = ch0[1:]  # (T, B, Az, El)
+    delta = torch.where(fresh[:, :, None, None], 0.0, now - ch0[:-1])  # (T, B, Az, El)
+    return torch.stack((now, table[semantic.to(torch.int64)], delta), dim=2)  # (T, B, 3, Az, El)
 
 
 def is_front(azimuth: torch.Tensor, azimuth_bins: int) -> torch.Tensor:
@@ -140,9 +179,7 @@ def observe(
 ) -> ViewStats:
     """observe_ref in one compiled pass over (N, R) (plus a few (N,) kernels); `table` is
     semantic_table(device). Compiled on the first call for each shape (seconds to a minute): make that
-    call before recording a CUDA graph. Same results as observe_ref, except that on CPU channel 2 may
-    differ by one float32 rounding (inductor's CPU code rounds the product that ATen's CPU kernel fuses
-    into an FMA); on CUDA both use the FMA and every value is bit-identical."""
+    call before recording a CUDA graph. Same results as observe_ref, bit for bit."""
     n, r = depth.shape
     az = obs.shape[2]
     ch = obs.view(n, CHANNELS, r)  # (N, 3, R) view of obs
@@ -194,9 +231,9 @@ def _fused_pass(
     operation as in write_observation and view_stats."""
     r = depth.shape[1]
     el = r // azimuth_bins
-    scale = (~fresh).to(depth.dtype)[:, None] * (1.0 / horizon)  # (N, 1) 1/horizon, 0 where fresh
-    ch2.copy_(torch.add(depth, ch0, alpha=-horizon) * scale)  # the same add-with-alpha as torch.sub
-    ch0.copy_(depth * (1.0 / horizon))
+    now = round_to_half(depth * (1.0 / horizon))  # (N, R) channel 0
+    ch2.copy_(torch.where(fresh[:, None], 0.0, now - ch0))
+    ch0.copy_(now)
     ch1.copy_(table[semantic.to(torch.int64)])
     azimuth = torch.arange(r, device=depth.device) // el  # (R,) int64 azimuth bin of each ray
     mid = (stats_depth >= mid_min) & (stats_depth <= mid_max)  # (N, R) bool

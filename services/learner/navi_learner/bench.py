@@ -19,7 +19,7 @@ from typing import Any
 
 import torch
 
-from navi_learner.config import TrainConfig, resolve
+from navi_learner.config import TrainConfig, compact_storage, resolve
 from navi_learner.dist import Dist, Sync, entry_argv, relaunch
 from navi_learner.heads import ACTION_DIM
 from navi_learner.memory import EpisodicMemory
@@ -95,7 +95,10 @@ def bench_train(
     each column together; every rank returns {"world_size", "ranks": [each rank's columns], "total"}."""
     d = dist or Dist()
     sync = Sync(d, [], env.device) if d.active else None
-    cfg = replace(resolve(cfg, env.obs_shape), sync_timers=True, log_every=1, checkpoint_every=10**12)
+    compact = compact_storage(cfg, bool(getattr(env, "compact_obs", False)))
+    cfg = replace(
+        resolve(cfg, env.obs_shape, compact), sync_timers=True, log_every=1, checkpoint_every=10**12
+    )
     per_update = cfg.n_actors * cfg.rollout_length
     cfg = replace(cfg, total_steps=per_update * d.world * (warmup + updates))  # steps count every rank's
     device = env.device
@@ -107,6 +110,8 @@ def bench_train(
         "temporal_core": cfg.engine.temporal_core,
         "device": str(device),
         "obs_shape": list(env.obs_shape),
+        "obs_storage": "compact" if compact else "float32",
+        "max_minibatch": cfg.ppo.max_minibatch,
         "amp": cfg.amp and device.type == "cuda",
         "compile": cfg.compile and device.type == "cuda",
     }

@@ -27,6 +27,17 @@ CorpusOpt = Annotated[Path | None, typer.Option("--corpus", help="Corpus folder 
 DeviceOpt = Annotated[str, typer.Option("--device", help="Torch device: auto, cpu, cuda, cuda:N.")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed for torch and the environment.")]
 CoreOpt = Annotated[str, typer.Option("--temporal-core", help="Temporal core: mamba2, gru or mambapy.")]
+ObsStorageOpt = Annotated[
+    str,
+    typer.Option(
+        "--obs-storage",
+        help="Rollout observations: compact (3 bytes per ray, the drone env's DistanceMatrix v2), float32 "
+        "(12 bytes, any env) or auto (compact where the env allows).",
+    ),
+]
+MaxMinibatchOpt = Annotated[
+    int, typer.Option("--max-minibatch", min=1, help="Most samples per PPO minibatch (GPU memory).")
+]
 
 
 def fail(message: str) -> typer.Exit:
@@ -254,6 +265,8 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         nproc: NprocOpt = 1,
         obstacles: ObstaclesOpt = 0,
         squad: SquadOpt = 0,
+        obs_storage: ObsStorageOpt = "auto",
+        max_minibatch: MaxMinibatchOpt = 8_192,
     ) -> None:
         """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first. Under torchrun
         (or with --nproc N) every rank trains its own actors on its own device with synchronous
@@ -263,7 +276,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         import torch
 
         from navi_learner import dist
-        from navi_learner.config import default_actors
+        from navi_learner.config import OBS_STORAGE, default_actors
         from navi_learner.envs import corpus_summary
         from navi_learner.registry import ModelRegistry
         from navi_learner.train import train as run_train
@@ -287,9 +300,15 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 dev,
                 seed,
             )
-            resume, cfg = resume_choice(
-                checkpoint, fresh, replace(cfg, compile=compile_encoder, time_limit_s=time_limit)
+            check_choice(obs_storage, OBS_STORAGE, "--obs-storage")
+            cfg = replace(
+                cfg,
+                compile=compile_encoder,
+                time_limit_s=time_limit,
+                obs_dtype=obs_storage,
+                ppo=replace(cfg.ppo, max_minibatch=max_minibatch),
             )
+            resume, cfg = resume_choice(checkpoint, fresh, cfg)
             n = cfg.n_actors or default_actors(torch.device(dev))
             environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles, squad)
             summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
@@ -713,6 +732,8 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         compile_encoder: Annotated[
             bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
         ] = True,
+        obs_storage: ObsStorageOpt = "auto",
+        max_minibatch: MaxMinibatchOpt = 8_192,
         as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
         nproc: Annotated[
             int,
@@ -734,7 +755,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
 
         from navi_learner import dist
         from navi_learner.bench import bench_train, bench_train_scaling
-        from navi_learner.config import default_actors
+        from navi_learner.config import OBS_STORAGE, default_actors
 
         if nproc > 1 and not dist.launched():
             args = dist.strip_option(dist.strip_option(sys.argv[1:], "--nproc"), "--result-file")
@@ -749,7 +770,13 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 raise fail(str(err)) from err
             try:
                 cfg = train_config(actors, temporal_core, rollout_length, 1, 5e-4, 0, 10**12, dev, 0)
-                cfg = replace(cfg, compile=compile_encoder)
+                check_choice(obs_storage, OBS_STORAGE, "--obs-storage")
+                cfg = replace(
+                    cfg,
+                    compile=compile_encoder,
+                    obs_dtype=obs_storage,
+                    ppo=replace(cfg.ppo, max_minibatch=max_minibatch),
+                )
                 n = actors or default_actors(torch.device(dev))
                 environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)
                 result = bench_train(environment, replace(cfg, n_actors=n), updates=updates, dist=d)

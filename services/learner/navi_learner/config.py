@@ -85,8 +85,10 @@ class PPOConfig:
     """Passes over each rollout."""
     num_minibatches: int = 4
     """Minibatches per epoch; each holds whole BPTT sequences of a subset of (chunk, actor) pairs."""
-    max_minibatch: int = 16_384
-    """Upper bound on samples (steps) per minibatch; large rollouts get more minibatches (GPU memory)."""
+    max_minibatch: int = 8_192
+    """Upper bound on samples (steps) per minibatch; large rollouts get more minibatches. The default
+    engine's update holds about 13 GB of activations per 8,192 samples: with 64-step compact rollouts
+    at 8,192 actors (19.5 GB) a training job peaks at 34 GB on an H100."""
     bptt_chunk: int = 32
     """Truncated-BPTT sequence length; the recurrent state is stored at every chunk start."""
     clip_coef: float = 0.2
@@ -138,9 +140,12 @@ class TrainConfig:
     compile: bool = True
     """torch.compile the encoder (CUDA only; about a minute of compile time, ~1.7x the SPS)."""
     obs_dtype: str = "auto"
-    """Rollout observation storage dtype: float32, bfloat16, or auto (bfloat16 on CUDA, float32 on CPU)."""
-    rollout_memory_gb: float = 12.0
-    """Memory budget for stored observations when rollout_length is 0."""
+    """Rollout observation storage: compact (float16 depth and a semantic byte per ray, 3 bytes; needs
+    DistanceMatrix v2 observations, the drone env's), float32 (12 bytes per ray, any env), or auto
+    (compact when the env says its observations are DistanceMatrix v2, float32 otherwise). Either way
+    the update sees bit for bit the observations the policy acted on."""
+    rollout_memory_gb: float = 20.0
+    """Memory budget for stored observations when rollout_length is 0 (64 steps at 8,192 actors compact)."""
     sync_timers: bool = False
     """Synchronise CUDA at stage boundaries so the per-stage timers are exact (benchmarks)."""
     engine: EngineConfig = field(default_factory=EngineConfig)
@@ -156,6 +161,8 @@ class TrainConfig:
     def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
         """Inverse of to_dict; unknown keys are rejected by the dataclass constructors."""
         flat = {k: v for k, v in data.items() if k not in ("engine", "ppo")}
+        if flat.get("obs_dtype") == "bfloat16":  # written before compact storage: bf16 is gone
+            flat["obs_dtype"] = "auto"
         return cls(
             **flat, engine=EngineConfig(**data.get("engine", {})), ppo=PPOConfig(**data.get("ppo", {}))
         )
@@ -166,27 +173,39 @@ def default_actors(device: torch.device) -> int:
     return 4096 if device.type == "cuda" else 4
 
 
-def storage_dtype(cfg: TrainConfig, device: torch.device) -> torch.dtype:
-    """The observation storage dtype for this run."""
-    if cfg.obs_dtype == "auto":
-        return torch.bfloat16 if device.type == "cuda" else torch.float32
-    return {"float32": torch.float32, "bfloat16": torch.bfloat16}[cfg.obs_dtype]
+OBS_STORAGE = ("auto", "compact", "float32")
+"""Values of TrainConfig.obs_dtype."""
 
 
-def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int]) -> TrainConfig:
+def compact_storage(cfg: TrainConfig, env_compact: bool) -> bool:
+    """Whether this run stores observations compact, for an env whose observations are DistanceMatrix
+    v2 (`env_compact`) or not."""
+    if cfg.obs_dtype not in OBS_STORAGE:
+        raise ValueError(f"obs_dtype must be one of {', '.join(OBS_STORAGE)}, got {cfg.obs_dtype!r}")
+    if cfg.obs_dtype == "compact" and not env_compact:
+        raise ValueError("obs_dtype compact needs DistanceMatrix v2 observations (the drone env's)")
+    return env_compact and cfg.obs_dtype != "float32"
+
+
+def obs_bytes(obs_shape: tuple[int, int, int], compact: bool) -> int:
+    """Bytes one stored observation takes: 3 per ray compact, 4 per value as float32."""
+    c, az, el = obs_shape
+    return 3 * az * el if compact else 4 * c * az * el
+
+
+def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = True) -> TrainConfig:
     """Fill the derived defaults (actor count, rollout length) once, right after parsing.
 
     The rollout length defaults to 512 (the original system's value) but is capped, to a multiple of
-    the BPTT chunk, so that N·T stored observations fit in `rollout_memory_gb`: at 256×48 and 8,192
-    actors in bf16 that is 16 steps. The minibatch count grows so no minibatch exceeds max_minibatch.
+    the BPTT chunk, so that N·T stored observations (`compact` or float32, see obs_bytes) fit in
+    `rollout_memory_gb`: at 256×48 and 8,192 actors compact that is 64 steps. The minibatch count
+    grows so no minibatch exceeds max_minibatch.
     """
     device = torch.device(cfg.device)
     n_actors = cfg.n_actors or default_actors(device)
     rollout = cfg.rollout_length
     if rollout == 0:
-        c, az, el = obs_shape
-        bytes_per_step = n_actors * c * az * el * storage_dtype(cfg, device).itemsize
-        fit = int(cfg.rollout_memory_gb * 2**30 // bytes_per_step)
+        fit = int(cfg.rollout_memory_gb * 2**30 // (n_actors * obs_bytes(obs_shape, compact)))
         rollout = max(8, min(512, fit // 8 * 8))
     bptt = min(cfg.ppo.bptt_chunk, rollout)
     rollout = max(bptt, rollout // bptt * bptt)

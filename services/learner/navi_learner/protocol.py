@@ -61,7 +61,13 @@ class StepLike(Protocol):
 
 
 class BatchedEnv(Protocol):
-    """N actors stepped together on one device."""
+    """N actors stepped together on one device.
+
+    An env whose observations are DistanceMatrix v2 exactly as navi_env.observation writes them (channel
+    0 float16 values, channel 1 from the semantic table, channel 2 the difference of consecutive channel
+    0s, 0 where an episode starts) says so with a true `compact_obs` attribute: its rollouts are then
+    stored in 3 bytes per ray (navi_learner.rollout). Without it, or false, they are stored as float32.
+    """
 
     @property
     def n_actors(self) -> int: ...

@@ -23,7 +23,7 @@ from navi_learner.checkpoint import (
     prune_checkpoints,
     save_checkpoint,
 )
-from navi_learner.config import TrainConfig, resolve, storage_dtype
+from navi_learner.config import TrainConfig, compact_storage, resolve
 from navi_learner.dist import Dist, Sync, write_debug
 from navi_learner.gae import bootstrap_truncated, gae
 from navi_learner.memory import EpisodicMemory
@@ -114,12 +114,15 @@ def collect(
     carry: tuple[torch.Tensor, torch.Tensor, CoreState],
     timers: StageTimers,
     sync: Sync | None = None,
+    check_storage: bool = False,
 ) -> tuple[tuple[torch.Tensor, torch.Tensor, CoreState], torch.Tensor]:
     """Fill the storage with one rollout; returns the new (obs, resets, state) carry and the mean
     extrinsic reward per actor-step (a device scalar). With `sync` the RND normaliser follows every
-    rank's actors (3 numbers all-reduced per step)."""
+    rank's actors (3 numbers all-reduced per step). With `check_storage` (a run's first rollout) the
+    stored form of step 1's observation is compared with what the policy saw (one host read)."""
     obs, resets, state = carry
     ext_sum = torch.zeros((), device=env.device)  # () float32
+    buf.begin()
     for t in range(buf.t_len):
         with timers("forward"), torch.no_grad():
             buf.store_state(t, state)
@@ -127,11 +130,19 @@ def collect(
             novelty = policy.rnd.intrinsic(out.emb, None if sync is None else sync.sum_)  # (N,)
             loop = memory.step(out.emb, resets)  # (N,)
             intrinsic = cfg.ppo.intrinsic_rnd_weight * novelty - cfg.ppo.intrinsic_episodic_weight * loop
-            buf.obs[t].copy_(obs)
+            buf.resets[t].copy_(resets)
+            buf.store_obs(t, obs, resets)
+            if check_storage and t == 1:  # once per run: the stored form gives back what the policy saw
+                check_storage = False
+                if not torch.equal(buf.obs_at(t), obs):
+                    raise ValueError(
+                        "the env's observations do not survive compact storage (it sets compact_obs but "
+                        "they are not DistanceMatrix v2 as navi_env.observation writes them): "
+                        "train with obs_dtype float32"
+                    )
             buf.actions[t].copy_(out.action)
             buf.logp[t].copy_(out.logp)
             buf.values[t].copy_(out.value)
-            buf.resets[t].copy_(resets)
             state = out.state
         with timers("env"):
             step = env.step(out.action)
@@ -256,7 +267,10 @@ def train(
     (checkpoints, metrics, TensorBoard, manifest, report, registry) and runs the monitor."""
     d = dist or Dist()
     device = env.device
-    cfg = resolve(replace(cfg, n_actors=cfg.n_actors or env.n_actors, device=str(device)), env.obs_shape)
+    compact = compact_storage(cfg, bool(getattr(env, "compact_obs", False)))
+    cfg = resolve(
+        replace(cfg, n_actors=cfg.n_actors or env.n_actors, device=str(device)), env.obs_shape, compact
+    )
     if cfg.n_actors != env.n_actors:
         raise ValueError(f"config asks for {cfg.n_actors} actors but the env has {env.n_actors}")
     torch.manual_seed(cfg.seed)
@@ -312,10 +326,10 @@ def train(
         cfg.rollout_length,
         cfg.n_actors,
         env.obs_shape,
-        storage_dtype(cfg, device),
         policy.initial_state(cfg.n_actors, device),
         cfg.ppo.bptt_chunk,
         device,
+        compact,
     )
     memory = EpisodicMemory(
         cfg.n_actors, cfg.engine.memory_slots, cfg.engine.embed_dim, cfg.engine.memory_threshold, device
@@ -373,7 +387,9 @@ def train(
     try:
         while st.step_id < cfg.total_steps and not stopped and not interrupted:
             policy.eval()
-            carry, ext_mean = collect(policy, env, buf, memory, stats, cfg, carry, timers, sync)
+            carry, ext_mean = collect(
+                policy, env, buf, memory, stats, cfg, carry, timers, sync, check_storage=updates == 0
+            )
             with timers("learn"):
                 advantages(policy, buf, cfg, carry)
                 policy.train()

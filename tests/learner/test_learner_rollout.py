@@ -1,0 +1,118 @@
+"""Compact rollout storage: the update sees bit for bit the observations the policy acted on.
+
+The drone env's observations are stored as float16 depth and a semantic byte per ray (3 bytes instead
+of 12); each minibatch rebuilds the three channels (delta depth from consecutive frames and the reset
+flags). Two rollouts are collected with short episodes (resets inside a rollout and across the
+rollout boundary) and the sensor's noise and dropout on, and every minibatch sequence is compared with
+what `act` was given, on the CPU (eager kernels) and on CUDA (the env's compiled observation pass in
+its CUDA graph, compiled pack and unpack).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from navi_env.analytic_scenes import demo_room, free_points
+from navi_env.config import EnvConfig, SensorConfig
+from navi_env.env import SdfDagEnv
+from navi_env.scene import load_corpus
+from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, compact_storage, obs_bytes, resolve
+from navi_learner.memory import EpisodicMemory
+from navi_learner.policy import ActOut, CognitiveMambaPolicy
+from navi_learner.rollout import RolloutStorage
+from navi_learner.stats import EpisodeStats
+from navi_learner.temporal import CoreState
+from navi_learner.train import StageTimers, collect
+
+ACTORS, T_LEN, CHUNK = 6, 8, 4
+DEVICES = [
+    "cpu",
+    pytest.param(
+        "cuda",
+        marks=[
+            pytest.mark.gpu,
+            pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
+        ],
+    ),
+]
+
+
+def small_env(device: str) -> SdfDagEnv:
+    """A 16 m room at 32³, 32×8 rays, 5-step episodes, sensor noise and dropout on."""
+    scene = demo_room(32, 16.0)
+    spawns = free_points(scene, 8, clearance=1.5, seed=3)
+    corpus = load_corpus([scene.gmdag(spawns=spawns)], device)
+    sensor = SensorConfig(range_noise_std=0.05, dropout=0.02)
+    cfg = replace(EnvConfig(), azimuth_bins=32, elevation_bins=8, max_steps_per_episode=5, sensor=sensor)
+    return SdfDagEnv(corpus, ACTORS, device, cfg, seed=5)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_minibatches_rebuild_exactly_what_the_policy_saw(device: str) -> None:
+    torch.manual_seed(0)
+    dev = torch.device(device)
+    env = small_env(device)
+    engine = EngineConfig.tiny()
+    cfg = TrainConfig(n_actors=ACTORS, rollout_length=T_LEN, engine=engine, ppo=PPOConfig(bptt_chunk=CHUNK))
+    policy = CognitiveMambaPolicy(env.obs_shape, engine).to(dev)
+    seen: list[torch.Tensor] = []
+    act = policy.act
+
+    def recording_act(
+        obs: torch.Tensor, resets: torch.Tensor, state: CoreState, deterministic: bool = False
+    ) -> ActOut:
+        seen.append(obs.clone())  # (N, 3, Az, El) float32, exactly as the policy got it
+        return act(obs, resets, state, deterministic)
+
+    policy.act = recording_act  # type: ignore[method-assign]
+    assert compact_storage(cfg, env.compact_obs)
+    buf = RolloutStorage(
+        T_LEN, ACTORS, env.obs_shape, policy.initial_state(ACTORS, dev), CHUNK, dev, compact=True
+    )
+    assert buf.depth16.dtype == torch.float16 and buf.semantic.dtype == torch.uint8
+    memory = EpisodicMemory(ACTORS, engine.memory_slots, engine.embed_dim, engine.memory_threshold, dev)
+    stats, timers = EpisodeStats(ACTORS, dev), StageTimers(False)
+    starts = torch.ones(ACTORS, dtype=torch.bool, device=dev)  # (N,)
+    carry = (env.reset(seed=1), starts, policy.initial_state(ACTORS, dev))
+    gen = torch.Generator().manual_seed(0)
+    for rollout in range(2):
+        seen.clear()
+        carry, _ = collect(policy, env, buf, memory, stats, cfg, carry, timers, check_storage=rollout == 0)
+        frames = torch.stack(seen)  # (T, N, 3, Az, El)
+        assert bool(buf.resets[1:].any()) and bool((~buf.resets).any())  # episodes end inside the rollout
+        assert bool((frames[:, :, 2] != 0).any())  # the drones moved: delta depth is not all zero
+        for t in range(T_LEN):
+            assert torch.equal(buf.obs_at(t), frames[t]), (rollout, t)
+        covered = 0
+        for mb in buf.minibatches(3, gen):
+            for i, (c, a) in enumerate(zip(mb.chunks.tolist(), mb.actors.tolist(), strict=True)):
+                want = frames[c * CHUNK : (c + 1) * CHUNK, a]  # (L, 3, Az, El)
+                assert torch.equal(mb.obs[:, i], want), (rollout, c, a)
+                covered += 1
+        assert covered == ACTORS * T_LEN // CHUNK
+    # the second rollout's first frame follows the first rollout's last one, unless an episode began
+    assert not bool(buf.resets[0].all())
+
+
+def test_a_non_distance_matrix_env_cannot_store_compact() -> None:
+    cfg = TrainConfig(obs_dtype="compact")
+    with pytest.raises(ValueError, match="DistanceMatrix v2"):
+        compact_storage(cfg, False)
+    assert not compact_storage(TrainConfig(), False) and compact_storage(TrainConfig(), True)
+    assert not compact_storage(TrainConfig(obs_dtype="float32"), True)
+    with pytest.raises(ValueError, match="obs_dtype"):
+        compact_storage(TrainConfig(obs_dtype="bfloat16"), True)
+    # a checkpoint written before compact storage (bf16) resumes with the default storage
+    assert TrainConfig.from_dict({**TrainConfig().to_dict(), "obs_dtype": "bfloat16"}).obs_dtype == "auto"
+
+
+def test_default_rollout_is_64_steps_at_8192_actors_in_20_gb() -> None:
+    shape = (3, 256, 48)
+    assert obs_bytes(shape, True) == 3 * 256 * 48 and obs_bytes(shape, False) == 12 * 256 * 48
+    cfg = resolve(TrainConfig(n_actors=8192, device="cpu"), shape, compact=True)
+    assert cfg.rollout_length == 64
+    assert 8192 * 65 * obs_bytes(shape, True) <= cfg.rollout_memory_gb * 2**30  # T + 1 depth frames
+    assert resolve(TrainConfig(n_actors=8192, device="cpu"), shape, compact=False).rollout_length == 16
