@@ -136,3 +136,38 @@ def test_bench_trace_with_moving_obstacles(scene_file: Path) -> None:
     assert crowded["obstacles_per_agent"] == 16 and crowded["obstacle_hit_fraction"] > 0.05
     # Primitives end rays early: the walk takes fewer steps on average.
     assert crowded["mean_steps"] < plain["mean_steps"]
+
+
+def test_bench_trace_over_a_folder_summarises_every_map(tmp_path: Path) -> None:
+    """--corpus: one row per .gmdag (sorted), and a summary whose extremes, medians and target lists are
+    those of the rows; the dense ratio is 4·R³ bytes over the scene's device bytes."""
+    for name, size in (("big", 16.0), ("small", 4.0), ("mid", 8.0)):
+        room = demo_room(32 if name != "small" else 16, size)
+        write_gmdag(room.gmdag(spawns=free_points(room, 4, 0.1 * size, seed=0)), tmp_path / f"{name}.gmdag")
+    (tmp_path / "notes.txt").write_text("not a scene")
+    res = CliRunner().invoke(
+        build_app(),
+        ["bench", "trace", "--corpus", str(tmp_path), "--agents", "4", "--device", "cpu", "--steps", "1",
+         "--azimuth", "32", "--elevation", "8", "--json"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    report = json.loads(res.stdout.strip().splitlines()[-1])
+    rows, summary = report["maps"], report["summary"]
+    assert [r["scene"] for r in rows] == ["big", "mid", "small"] and summary["maps"] == 3
+    for r in rows:
+        assert r["dense_ratio"] == 4 * r["resolution"] ** 3 / r["bytes_per_scene"]
+    for key in ("grays_per_s", "mean_steps", "p99_steps", "bytes_per_scene", "dense_ratio"):
+        values = sorted(r[key] for r in rows)
+        s = summary[key]
+        assert (s["min"], s["median"], s["max"]) == (values[0], values[1], values[2]), key
+        assert {r["scene"]: r[key] for r in rows}[s["min_scene"]] == s["min"]
+    assert summary["below_target_grays"] == [r["scene"] for r in rows]  # the CPU is far below 10 G rays/s
+    assert summary["below_target_dense_ratio"] == [r["scene"] for r in rows if r["dense_ratio"] < 100]
+    assert "[3/3]" in res.stderr  # a progress line per map
+
+
+def test_bench_trace_needs_one_of_gmdag_or_corpus(scene_file: Path, tmp_path: Path) -> None:
+    app = build_app()
+    for args in ([], ["--gmdag", str(scene_file), "--corpus", str(tmp_path)], ["--corpus", str(tmp_path)]):
+        res = CliRunner().invoke(app, ["bench", "trace", "--device", "cpu", *args])
+        assert res.exit_code == 2 and "error:" in res.output, args

@@ -3,7 +3,9 @@
 Agents stand at the scene's spawn points (cycled, random yaw) or, without spawns, at random points
 with clearance; every agent casts the same body-frame pattern rotated by its yaw inside the kernel.
 Timing: CUDA events around `launches` back-to-back launches after warm-up (perf_counter on the CPU).
-Steps per ray come from one extra launch with the step counter on.
+Steps per ray come from one extra launch with the step counter on. `bench_trace_maps` runs the same
+measurement on every scene file of a folder, one at a time, and summarises the rates, steps and bytes
+(min / median / max, and how many maps miss the rate and memory targets).
 
 Shapes: B agents, R = Az * El rays per agent.
 """
@@ -11,8 +13,10 @@ Shapes: B agents, R = Az * El rays per agent.
 from __future__ import annotations
 
 import math
+import statistics
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -192,6 +196,71 @@ def bench_trace_file(path: Path, cfg: TraceBenchConfig) -> TraceBenchResult:
     """Load one .gmdag onto cfg.device and benchmark it."""
     corpus = load_scene(path, cfg.device)
     return bench_trace(corpus, cfg)
+
+
+TARGET_GRAYS = 10.0
+"""G rays/s every map should reach (issue 14, point 1)."""
+TARGET_DENSE_RATIO = 100.0
+"""How many times smaller than a dense float32 grid every map should be on the device (point 2)."""
+
+
+def dense_bytes(resolution: int) -> int:
+    """Bytes of a dense float32 grid of resolution^3 cells (512^3: 512 MiB)."""
+    return 4 * resolution**3
+
+
+def bench_trace_maps(
+    paths: list[Path], cfg: TraceBenchConfig, say: Callable[[str], None]
+) -> dict[str, object]:
+    """bench_trace on each scene file (loaded alone, freed before the next); `say` gets a line per map.
+    Returns {"maps": [each result plus dense_ratio], "summary": summarise_maps(...)}."""
+    if not paths:
+        raise ValueError("no .gmdag files to measure")
+    rows: list[dict[str, object]] = []
+    for i, path in enumerate(paths):
+        corpus = load_scene(path, cfg.device)
+        r = bench_trace(corpus, cfg)
+        row = asdict(r) | {"dense_ratio": dense_bytes(r.resolution) / r.bytes_per_scene}
+        rows.append(row)
+        say(
+            f"[{i + 1}/{len(paths)}] {r.scene}: {r.grays_per_s:.2f} G rays/s, {r.mean_steps:.1f} mean / "
+            f"{r.p99_steps:.0f} p99 steps, {r.bytes_per_scene / 1e6:.1f} MB ({row['dense_ratio']:.0f}x dense)"
+        )
+        del corpus
+        if torch.device(cfg.device).type == "cuda":
+            torch.cuda.empty_cache()
+    return {"maps": rows, "summary": summarise_maps(rows)}
+
+
+def summarise_maps(rows: list[dict[str, object]]) -> dict[str, object]:
+    """Min / median / max over maps of the rate, the steps per ray and the device bytes (with the maps
+    at the extremes), and the maps below TARGET_GRAYS and TARGET_DENSE_RATIO."""
+
+    def spread(key: str) -> dict[str, object]:
+        values = [float(r[key]) for r in rows]  # type: ignore[arg-type]
+        lo, hi = min(range(len(rows)), key=values.__getitem__), max(range(len(rows)), key=values.__getitem__)
+        return {
+            "min": values[lo],
+            "min_scene": rows[lo]["scene"],
+            "median": statistics.median(values),
+            "max": values[hi],
+            "max_scene": rows[hi]["scene"],
+        }
+
+    def below(key: str, target: float) -> list[object]:
+        return [r["scene"] for r in rows if float(r[key]) < target]  # type: ignore[arg-type]
+
+    return {
+        "maps": len(rows),
+        "grays_per_s": spread("grays_per_s"),
+        "mean_steps": spread("mean_steps"),
+        "p99_steps": spread("p99_steps"),
+        "bytes_per_scene": spread("bytes_per_scene"),
+        "dense_ratio": spread("dense_ratio"),
+        "below_target_grays": below("grays_per_s", TARGET_GRAYS),
+        "below_target_dense_ratio": below("dense_ratio", TARGET_DENSE_RATIO),
+        "targets": {"grays_per_s": TARGET_GRAYS, "dense_ratio": TARGET_DENSE_RATIO},
+    }
 
 
 def rays_for_warp(corpus: SceneCorpus, cfg: TraceBenchConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -86,7 +86,15 @@ def raycast(
 
 
 def bench_trace_cmd(
-    gmdag: Annotated[Path, typer.Option("--gmdag", help="Scene file (.gmdag).")],
+    gmdag: Annotated[Path | None, typer.Option("--gmdag", help="Scene file (.gmdag).")] = None,
+    corpus_dir: Annotated[
+        Path | None,
+        typer.Option(
+            "--corpus",
+            help="Instead of --gmdag: measure every .gmdag of this folder, one at a time, and summarise "
+            "(min / median / max rate, steps and bytes; maps below 10 G rays/s and below 100x dense).",
+        ),
+    ] = None,
     agents: Annotated[int, typer.Option(help="Agents (batch), each casting the full pattern.")] = 4096,
     device: Annotated[str, typer.Option(help="cpu, cuda or cuda:N.")] = "cuda",
     steps: Annotated[int, typer.Option("--steps", help="Timed launches (after warm-up).")] = 20,
@@ -117,17 +125,36 @@ def bench_trace_cmd(
 ) -> None:
     """G rays/s and observations/s of the tracer with the 256x48 spherical pattern."""
     from navi_compiler.gmdag import GmdagError
-    from navi_env.bench_trace import TraceBenchConfig, bench_trace
+    from navi_env.bench_trace import TraceBenchConfig, bench_trace, bench_trace_maps
     from navi_env.scene import load_scene
 
     if agents < 1 or steps < 1:
         raise _fail("--agents and --steps must be at least 1")
+    if (gmdag is None) == (corpus_dir is None):
+        raise _fail("give one of --gmdag FILE or --corpus DIR")
     if vs_warp and mesh is None:
         raise _fail("--vs-warp needs --mesh FILE.npz (vertices, triangles) of the scene's source mesh")
     cfg = TraceBenchConfig(
         agents=agents, device=device, launches=steps, azimuth_bins=azimuth, elevation_bins=elevation,
         max_steps=max_steps, tiled_order=tiled, obstacles=obstacles,
     )  # fmt: skip
+    if corpus_dir is not None:
+        if vs_warp:
+            raise _fail("--vs-warp needs one scene (--gmdag)")
+        paths = sorted(corpus_dir.glob("*.gmdag")) if corpus_dir.is_dir() else []
+        if not paths:
+            raise _fail(f"{corpus_dir} holds no .gmdag files")
+        try:
+            report = bench_trace_maps(paths, cfg, lambda line: typer.echo(line, err=True))
+        except (OSError, GmdagError, ValueError, RuntimeError) as exc:
+            raise _fail(str(exc)) from None
+        if as_json:
+            sys.stdout.write(json.dumps(report) + "\n")
+        else:
+            for key, value in report["summary"].items():  # type: ignore[attr-defined]
+                typer.echo(f"{key:>26}: {value}")
+        return
+    assert gmdag is not None
     try:
         corpus = load_scene(gmdag, device)
         measured = bench_trace(corpus, cfg)
