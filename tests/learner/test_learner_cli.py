@@ -103,6 +103,10 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     assert code == 2 and "does not exist" in err
     code, _, err = invoke("models", "rollback")
     assert code == 2 and "no previous version" in err
+    code, _, err = invoke("train", "--env", "toy", "--obs-storage", "compact", "--device", "cpu", "--fresh")
+    assert code == 2 and "DistanceMatrix v2" in err  # the toy env's observations are not
+    code, _, err = invoke("bench", "train", "--env", "toy", "--obs-storage", "bfloat16", "--device", "cpu")
+    assert code == 2 and "--obs-storage" in err
     code, _, err = invoke("bench", "learn", "--reward", "no_such_weight=1", "--device", "cpu")
     assert code == 2 and "unknown reward weight" in err and "exploration_weight" in err
     code, _, err = invoke("bench", "learn", "--reward", "exploration_weight", "--device", "cpu")

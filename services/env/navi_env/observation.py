@@ -96,8 +96,8 @@ def pack(obs: torch.Tensor, depth16: torch.Tensor, semantic: torch.Tensor) -> No
     float16 and the semantic code of channel 1 into semantic (B, Az, El) uint8. Exact for observations
     this module wrote (see unpack); anything else comes back different (train.collect checks once)."""
     depth16.copy_(obs[:, 0])
-    ch1 = obs[:, 1]  # (B, Az, El) 0 or table[code] = code * 0.5/255 + (0.5 - 0.5/255), a few ulps at most
-    code = torch.where(ch1 > 0.0, (ch1 - (0.5 - 0.5 / 255.0)) * 510.0, 0.0)  # (B, Az, El) float32
+    ch1 = obs[:, 1]  # (B, Az, El): 0 (miss) or table[code] = code * 0.5/255 + (0.5 - 0.5/255)
+    code = torch.where(ch1 > 0.0, (ch1 - (0.5 - 0.5 / 255.0)) * 510.0, 0.0)  # (B, Az, El) within ulps of it
     semantic.copy_(code.round_().clamp_(0.0, 255.0))
 
 

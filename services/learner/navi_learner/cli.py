@@ -144,11 +144,15 @@ def train_config(
     every: int,
     device: str,
     seed: int,
+    obs_storage: str = "auto",
+    max_minibatch: int = 8_192,
+    compile_encoder: bool = True,
 ) -> TrainConfig:
     """TrainConfig from CLI options (0 keeps a default)."""
-    from navi_learner.config import TEMPORAL_CORES, EngineConfig, PPOConfig, TrainConfig
+    from navi_learner.config import OBS_STORAGE, TEMPORAL_CORES, EngineConfig, PPOConfig, TrainConfig
 
     name = check_choice(core, TEMPORAL_CORES, "--temporal-core")
+    check_choice(obs_storage, OBS_STORAGE, "--obs-storage")
     engine = EngineConfig(
         temporal_core="gru" if name == "gru" else "mambapy" if name == "mambapy" else "mamba2"
     )
@@ -159,8 +163,10 @@ def train_config(
         checkpoint_every=every,
         device=device,
         seed=seed,
+        compile=compile_encoder,
+        obs_dtype=obs_storage,
         engine=engine,
-        ppo=PPOConfig(lr=lr, ppo_epochs=epochs),
+        ppo=PPOConfig(lr=lr, ppo_epochs=epochs, max_minibatch=max_minibatch),
     )
 
 
@@ -276,7 +282,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         import torch
 
         from navi_learner import dist
-        from navi_learner.config import OBS_STORAGE, default_actors
+        from navi_learner.config import StorageError, default_actors
         from navi_learner.envs import corpus_summary
         from navi_learner.registry import ModelRegistry
         from navi_learner.train import train as run_train
@@ -299,16 +305,11 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 checkpoint_every,
                 dev,
                 seed,
+                obs_storage,
+                max_minibatch,
+                compile_encoder,
             )
-            check_choice(obs_storage, OBS_STORAGE, "--obs-storage")
-            cfg = replace(
-                cfg,
-                compile=compile_encoder,
-                time_limit_s=time_limit,
-                obs_dtype=obs_storage,
-                ppo=replace(cfg.ppo, max_minibatch=max_minibatch),
-            )
-            resume, cfg = resume_choice(checkpoint, fresh, cfg)
+            resume, cfg = resume_choice(checkpoint, fresh, replace(cfg, time_limit_s=time_limit))
             n = cfg.n_actors or default_actors(torch.device(dev))
             environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles, squad)
             summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
@@ -321,7 +322,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 dist=d,
                 should_stop=None if signals is None else signals.requested,
             )
-        except dist.DistError as err:
+        except (dist.DistError, StorageError) as err:
             raise fail(str(err)) from err
         finally:
             dist.shutdown(d)
@@ -755,7 +756,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
 
         from navi_learner import dist
         from navi_learner.bench import bench_train, bench_train_scaling
-        from navi_learner.config import OBS_STORAGE, default_actors
+        from navi_learner.config import StorageError, default_actors
 
         if nproc > 1 and not dist.launched():
             args = dist.strip_option(dist.strip_option(sys.argv[1:], "--nproc"), "--result-file")
@@ -769,18 +770,14 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
             except ValueError as err:
                 raise fail(str(err)) from err
             try:
-                cfg = train_config(actors, temporal_core, rollout_length, 1, 5e-4, 0, 10**12, dev, 0)
-                check_choice(obs_storage, OBS_STORAGE, "--obs-storage")
-                cfg = replace(
-                    cfg,
-                    compile=compile_encoder,
-                    obs_dtype=obs_storage,
-                    ppo=replace(cfg.ppo, max_minibatch=max_minibatch),
-                )
+                cfg = train_config(
+                    actors, temporal_core, rollout_length, 1, 5e-4, 0, 10**12, dev, 0, obs_storage,
+                    max_minibatch, compile_encoder,
+                )  # fmt: skip
                 n = actors or default_actors(torch.device(dev))
                 environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)
                 result = bench_train(environment, replace(cfg, n_actors=n), updates=updates, dist=d)
-            except dist.DistError as err:
+            except (dist.DistError, StorageError) as err:
                 raise fail(str(err)) from err
             finally:
                 dist.shutdown(d)

@@ -177,13 +177,19 @@ OBS_STORAGE = ("auto", "compact", "float32")
 """Values of TrainConfig.obs_dtype."""
 
 
+class StorageError(ValueError):
+    """An observation storage the run cannot use."""
+
+
 def compact_storage(cfg: TrainConfig, env_compact: bool) -> bool:
     """Whether this run stores observations compact, for an env whose observations are DistanceMatrix
     v2 (`env_compact`) or not."""
     if cfg.obs_dtype not in OBS_STORAGE:
-        raise ValueError(f"obs_dtype must be one of {', '.join(OBS_STORAGE)}, got {cfg.obs_dtype!r}")
+        raise StorageError(f"obs_dtype must be one of {', '.join(OBS_STORAGE)}, got {cfg.obs_dtype!r}")
     if cfg.obs_dtype == "compact" and not env_compact:
-        raise ValueError("obs_dtype compact needs DistanceMatrix v2 observations (the drone env's)")
+        raise StorageError(
+            "compact observation storage needs DistanceMatrix v2 observations (the drone env's)"
+        )
     return env_compact and cfg.obs_dtype != "float32"
 
 
