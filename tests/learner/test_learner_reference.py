@@ -17,6 +17,8 @@ import torch
 
 from navi_env.corpus import build_default_corpus
 from navi_learner.baselines import RandomPolicy, reactive_for_env
+from navi_learner.bench_learn import LearnConfig
+from navi_learner.bench_learn import train_config as bench_train_config
 from navi_learner.checkpoint import load_checkpoint
 from navi_learner.competence import EvalProtocol
 from navi_learner.envs import make_env
@@ -27,6 +29,7 @@ from navi_learner.main_job import (
     UNSEEN_SCENES,
     UNSEEN_SEED,
     MainJobConfig,
+    cuda_config,
     main_job,
 )
 
@@ -96,3 +99,18 @@ def test_main_job_cpu_path_fine_tunes_the_reference_and_reports_live(
     }
     assert_beats_both(trained, rand, reactive)
     assert "vs reactive: beats it" in report.read_text()
+
+
+def test_main_job_trains_on_a_gpu_with_the_learning_benchmarks_settings(tmp_path: Path) -> None:
+    """`navi run` on CUDA is the measured `navi bench learn` run: same actors, rollout, PPO settings
+    (the benchmark pins its own minibatch size, so a change of the PPO default leaves both alike)."""
+    job = MainJobConfig(corpus=tmp_path, unseen=tmp_path, models_dir=tmp_path, device="cuda", budget_s=99.0)
+    ours = cuda_config(job)
+    bench = bench_train_config(LearnConfig(), "mamba2", job.seed, torch.device("cuda"))
+    assert ours.ppo == bench.ppo
+    assert (ours.n_actors, ours.rollout_length, ours.engine) == (
+        bench.n_actors,
+        bench.rollout_length,
+        bench.engine,
+    )
+    assert ours.time_limit_s == job.budget_s

@@ -113,7 +113,7 @@ def cuda_config(job: MainJobConfig) -> TrainConfig:
         time_limit_s=job.budget_s,
         seed=job.seed,
         device=job.device,
-        ppo=PPOConfig(lr=3e-4, ppo_epochs=2),
+        ppo=PPOConfig(lr=3e-4, ppo_epochs=2, max_minibatch=16_384),
     )
 
 
