@@ -103,9 +103,9 @@ class RolloutStorage:
         if self.compact:
             self.depth16[0].copy_(self.depth16[self.t_len])
 
-    def store_obs(self, t: int, obs: torch.Tensor, resets: torch.Tensor) -> None:
-        """Keep step t's observation obs (N, 3, Az, El) float32, which follows step t - 1's unless
-        resets (N,) bool (must be stored in self.resets[t] too)."""
+    def store_obs(self, t: int, obs: torch.Tensor) -> None:
+        """Keep step t's observation obs (N, 3, Az, El) float32. Compact storage rebuilds its delta
+        channel from step t - 1's frame and self.resets[t], so store resets[t] as well."""
         if self.compact:
             self._pack(obs, self.depth16[t + 1], self.semantic[t])
         else:

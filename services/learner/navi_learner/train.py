@@ -131,7 +131,7 @@ def collect(
             loop = memory.step(out.emb, resets)  # (N,)
             intrinsic = cfg.ppo.intrinsic_rnd_weight * novelty - cfg.ppo.intrinsic_episodic_weight * loop
             buf.resets[t].copy_(resets)
-            buf.store_obs(t, obs, resets)
+            buf.store_obs(t, obs)
             if check_storage and t == 1:  # once per run: the stored form gives back what the policy saw
                 check_storage = False
                 if not torch.equal(buf.obs_at(t), obs):
