@@ -13,7 +13,7 @@ from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.dist import Sync, setup, shutdown
 from navi_learner.policy import CognitiveMambaPolicy
 from navi_learner.rollout import RolloutStorage
-from navi_learner.train import make_optimizer, update
+from navi_learner.train import update
 
 ENGINE = EngineConfig.tiny()
 OBS = (3, 16, 8)
@@ -25,7 +25,7 @@ def parity_setup() -> tuple[CognitiveMambaPolicy, torch.optim.Optimizer, Rollout
     """The same policy, optimizer and 8-actor rollout in every process (fixed seeds)."""
     torch.manual_seed(0)
     policy = CognitiveMambaPolicy(OBS, ENGINE)
-    optimizer = make_optimizer([q for q in policy.parameters() if q.requires_grad], 1e-3)
+    optimizer = torch.optim.Adam([q for q in policy.parameters() if q.requires_grad], lr=1e-3, eps=1e-5)
     ppo = PPOConfig(num_minibatches=1, ppo_epochs=1, bptt_chunk=CHUNK)
     cfg = TrainConfig(n_actors=ACTORS, rollout_length=ROLLOUT, engine=ENGINE, ppo=ppo)
     buf = RolloutStorage(ROLLOUT, ACTORS, OBS, policy.initial_state(ACTORS, CPU), CHUNK, CPU)

@@ -12,7 +12,7 @@ from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.policy import CognitiveMambaPolicy
 from navi_learner.ppo import ppo_loss
 from navi_learner.rollout import RolloutStorage
-from navi_learner.train import make_optimizer, update
+from navi_learner.train import update
 
 
 def test_ppo_loss_hand_computed() -> None:
@@ -98,13 +98,11 @@ def test_non_finite_loss_skips_the_update_and_is_counted() -> None:
     torch.manual_seed(0)
     policy, buf, cfg = tiny_setup()
     buf.advantages[2, 1] = float("nan")
-    opt = make_optimizer([p for p in policy.parameters() if p.requires_grad], 1e-2)
+    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
     before = {k: v.clone() for k, v in policy.state_dict().items()}
     _, skipped = update(policy, opt, buf, cfg, torch.Generator().manual_seed(0))
     assert skipped >= 1
     poisoned_all = skipped == cfg.ppo.num_minibatches * cfg.ppo.ppo_epochs
-    taken = cfg.ppo.num_minibatches * cfg.ppo.ppo_epochs - skipped  # Adam counted only the steps taken
-    assert {float(s["step"]) for s in opt.state.values()} == {float(taken)}
     for k, v in policy.state_dict().items():
         assert torch.isfinite(v).all(), k
         if poisoned_all:
@@ -115,33 +113,23 @@ def test_non_finite_gradient_never_reaches_the_weights(caplog: pytest.LogCapture
     torch.manual_seed(0)
     policy, buf, cfg = tiny_setup()
     buf.returns[:] = float("inf")
-    opt = make_optimizer([p for p in policy.parameters() if p.requires_grad], 1e-2)
+    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
     before = {k: v.clone() for k, v in policy.state_dict().items()}
     with caplog.at_level(logging.WARNING):
         _, skipped = update(
             policy, opt, buf, cfg, torch.Generator().manual_seed(0), logging.getLogger("guard")
         )
-    warnings = [r.message for r in caplog.records if "non-finite" in r.message]
-    assert len(warnings) == 1 and f"{skipped} optimizer step(s)" in warnings[0]  # one line per update
+    assert sum("non-finite" in r.message for r in caplog.records) == skipped
     assert skipped == cfg.ppo.num_minibatches
     for k, v in policy.state_dict().items():
         assert torch.equal(v, before[k]), k
-    for state in opt.state.values():  # the fused step ran with found_inf: Adam's moments never moved
-        assert float(state["step"]) == 0.0
-        assert not state["exp_avg"].any() and not state["exp_avg_sq"].any()
-
-
-def test_update_refuses_an_optimizer_that_cannot_skip_on_the_device() -> None:
-    policy, buf, cfg = tiny_setup()
-    plain = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
-    with pytest.raises(ValueError, match="fused"):
-        update(policy, plain, buf, cfg, torch.Generator().manual_seed(0))
+    assert len(opt.state) == 0
 
 
 def test_finite_update_changes_the_weights() -> None:
     torch.manual_seed(0)
     policy, buf, cfg = tiny_setup()
-    opt = make_optimizer([p for p in policy.parameters() if p.requires_grad], 1e-2)
+    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
     before = policy.heads.log_std.detach().clone()
     _, skipped = update(policy, opt, buf, cfg, torch.Generator().manual_seed(0))
     assert skipped == 0

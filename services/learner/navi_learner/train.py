@@ -173,11 +173,6 @@ def advantages(
     buf.returns.copy_(ret)
 
 
-def make_optimizer(params: list[torch.nn.Parameter], lr: float) -> torch.optim.Adam:
-    """The learner's Adam: fused, so that `update` can skip a step on the device (found_inf)."""
-    return torch.optim.Adam(params, lr=lr, eps=1e-5, fused=True)
-
-
 def update(
     policy: CognitiveMambaPolicy,
     optimizer: torch.optim.Optimizer,
@@ -188,21 +183,16 @@ def update(
     sync: Sync | None = None,
 ) -> tuple[dict[str, torch.Tensor], int]:
     """PPO epochs over sequence minibatches. A non-finite loss or gradient norm skips that optimizer
-    step and is counted; `optimizer` is make_optimizer's fused Adam, which takes the skip decision on the
-    device (its found_inf: weights, moments and step counts stay as they were), so the whole update reads
-    the host once, for the skip count at the end. Returns mean metrics (device) and the skip count.
+    step (one host read per minibatch) and is counted. Returns mean metrics (device) and the skip count.
 
     With `sync` (a data-parallel run, equal minibatches on every rank) the advantages are normalised
     over the union of the ranks' minibatches and the gradients averaged over ranks before clipping (one
     all-reduce of a flat buffer that carries the non-finite-loss flags too): a step on W ranks is a
     single-process step on the union, and every rank takes the same skip decision."""
-    if not optimizer.defaults.get("fused"):
-        raise ValueError("update needs a fused optimizer (make_optimizer): it skips steps on the device")
     p = cfg.ppo
     params = [q for q in policy.parameters() if q.requires_grad]
     sums: dict[str, torch.Tensor] = {}
-    count = 0
-    skips = torch.zeros((), device=buf.actions.device)  # () float32 skipped optimizer steps
+    count, skipped = 0, 0
     for _ in range(p.ppo_epochs):
         for mb in buf.minibatches(p.num_minibatches, gen):
             ev = policy.evaluate(mb.obs, mb.resets, mb.state, mb.actions)
@@ -234,17 +224,16 @@ def update(
                 some_loss_bad = sync.average_grads(total)  # () bool, the same on every rank
                 grad_norm = torch.nn.utils.clip_grad_norm_(params, p.max_grad_norm)
                 ok = ~some_loss_bad & torch.isfinite(grad_norm)  # () bool
-            bad = (~ok).float()  # () 1.0 when this minibatch must not move anything
-            optimizer.found_inf = bad  # type: ignore[attr-defined]  # read by the fused step
-            optimizer.step()
-            skips += bad
+            if bool(ok):
+                optimizer.step()
+            else:
+                skipped += 1
+                if logger is not None:
+                    logger.warning("non-finite loss or gradient: optimizer step skipped")
             optimizer.zero_grad(set_to_none=True)
             for k, v in {**metrics, "rnd_loss": rnd_loss.detach(), "grad_norm": grad_norm.detach()}.items():
                 sums[k] = sums.get(k, torch.zeros((), device=v.device)) + v  # () float32
             count += 1
-    skipped = int(skips)  # the update's one host read
-    if skipped and logger is not None:
-        logger.warning(f"non-finite loss or gradient: {skipped} optimizer step(s) of this update skipped")
     return {k: v / max(count, 1) for k, v in sums.items()}, skipped
 
 
@@ -291,7 +280,7 @@ def train(
     policy = CognitiveMambaPolicy(env.obs_shape, cfg.engine).to(device)
     policy.amp = cfg.amp and device.type == "cuda"
     params = [q for q in policy.parameters() if q.requires_grad]
-    optimizer = make_optimizer(params, cfg.ppo.lr)
+    optimizer = torch.optim.Adam(params, lr=cfg.ppo.lr, eps=1e-5)
     sync = Sync(d, params, device) if d.active else None
     if sync is not None:
         run_id, root = sync.broadcast_object((run_id, root))
