@@ -68,7 +68,7 @@ def write_observation(
 def round_to_half(x: torch.Tensor) -> torch.Tensor:
     """x (any shape) float32 rounded to the nearest float16 value (ties to even), kept as float32: the
     same values as x.half().float() for |x| <= 65504. Spelled out in integer operations because
-    inductor drops a float32 -> float16 -> float32 round trip as a no-op (torch 2.11)."""
+    inductor drops a float32 -> float16 -> float32 round trip as a no-op (torch 2.11 and 2.13)."""
     bits = x.view(torch.int32)  # same shape, the float's bits
     normal = ((bits + (0x0FFF + ((bits >> 13) & 1))) & -8192).view(torch.float32)  # 10 mantissa bits kept
     tiny = torch.round(x * 2.0**24) * 2.0**-24  # below 2^-14 float16 is fixed point in steps of 2^-24
