@@ -80,6 +80,7 @@ class RolloutStorage:
             )  # (T+1, N, Az, El)
             self.semantic = torch.zeros(t_len, n, az, el, dtype=torch.uint8, device=device)  # (T, N, Az, El)
             self.table = semantic_table(device)  # (256,) float32
+            self.frame_steps = torch.arange(bptt_chunk + 1, device=device)[:, None]  # (L+1, 1) int64
             fast = device.type == "cuda"
             self._pack = _compiled(pack) if fast else pack
             self._unpack = _compiled(unpack) if fast else unpack
@@ -115,9 +116,8 @@ class RolloutStorage:
         """Step t's stored observation (N, 3, Az, El) float32, as the policy saw it."""
         if not self.compact:
             return self.obs[t]
-        return unpack(self.depth16[t : t + 2], self.semantic[t : t + 1], self.resets[t : t + 1], self.table)[
-            0
-        ]
+        frames = unpack(self.depth16[t : t + 2], self.semantic[t : t + 1], self.resets[t : t + 1], self.table)
+        return frames[0]  # (N, 3, Az, El)
 
     def store_state(self, t: int, state: CoreState) -> None:
         """Keep the recurrent state entering step t when t starts a BPTT chunk."""
@@ -143,9 +143,7 @@ class RolloutStorage:
 
             resets = seq(self.resets)  # (L, M) bool
             if self.compact:
-                frames = (
-                    c[None] * self.chunk + torch.arange(self.chunk + 1, device=device)[:, None]
-                )  # (L+1, M)
+                frames = c[None] * self.chunk + self.frame_steps  # (L+1, M) from the frame before
                 depth16 = self.depth16[frames, a[None]]  # (L+1, M, Az, El) float16, from the frame before
                 obs = self._unpack(depth16, seq(self.semantic), resets, self.table)  # (L, M, 3, Az, El)
             else:

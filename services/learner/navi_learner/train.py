@@ -138,7 +138,7 @@ def collect(
                     raise ValueError(
                         "the env's observations do not survive compact storage (it sets compact_obs but "
                         "they are not DistanceMatrix v2 as navi_env.observation writes them): "
-                        "train with obs_dtype float32"
+                        "train with --obs-storage float32 (obs_dtype float32)"
                     )
             buf.actions[t].copy_(out.action)
             buf.logp[t].copy_(out.logp)
