@@ -170,7 +170,7 @@ def test_onnx_export_matches_pytorch_step(tmp_path: Path) -> None:
     code, _, err = invoke("export", ckpt, "--onnx", "policy.onnx")
     assert code == 0, err
     loaded = load_checkpoint(Path(ckpt))
-    policy = CognitiveMambaPolicy((3, 16, 8), EngineConfig(**loaded.meta.config["engine"]))
+    policy = CognitiveMambaPolicy((3, 16, 8), EngineConfig.from_dict(loaded.meta.config["engine"]))
     policy.load_state_dict(loaded.model)
     policy.eval()
     obs = torch.rand(3, 3, 16, 8)

@@ -2,18 +2,54 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 import pytest
 import torch
 
-from navi_learner.config import EngineConfig
-from navi_learner.encoder import RayViTEncoder, spherical_positions
+from navi_learner.config import EngineConfig, TrainConfig
+from navi_learner.encoder import RayViTEncoder, patchify, spherical_positions
 
 
 def test_canonical_shapes() -> None:
     enc = RayViTEncoder((3, 256, 48), EngineConfig())
-    assert enc.n_tokens == 192
+    assert enc.patch == (16, 8) and enc.n_tokens == 96  # 16 azimuth × 6 elevation patches
+    assert enc.embed.in_features == 4 * 16 * 8  # the three channels and near_field
     out = enc(torch.rand(2, 3, 256, 48))
     assert out.shape == (2, 128) and out.dtype == torch.float32
+
+
+def test_square_patch_of_older_checkpoints() -> None:
+    """An engine dict written before patch_el existed (square patches of patch_size) rebuilds them."""
+    for side, tokens in ((8, 192), (4, 768)):
+        old = {k: v for k, v in asdict(EngineConfig(patch_size=side)).items() if k != "patch_el"}
+        enc = RayViTEncoder((3, 256, 48), EngineConfig.from_dict(old))
+        assert enc.patch == (side, side) and enc.n_tokens == tokens
+        assert TrainConfig.from_dict(asdict(TrainConfig()) | {"engine": old}).engine.patch == (side, side)
+    assert EngineConfig.from_dict(asdict(EngineConfig())) == EngineConfig()  # today's dicts round-trip
+
+
+def test_patchify_puts_each_ray_in_its_patch() -> None:
+    """Token t = (azimuth patch i, elevation patch j) at t = i·Pe + j holds exactly the rays of its
+    pa × pe block, features in (channel, azimuth, elevation) order."""
+    c, az, el, pa, pe = 2, 16, 8, 4, 2
+    a = torch.arange(az).view(1, az, 1).expand(c, az, el)  # (C, Az, El) azimuth index
+    e = torch.arange(el).view(1, 1, el).expand(c, az, el)  # (C, Az, El) elevation index
+    ch = torch.arange(c).view(c, 1, 1).expand(c, az, el)  # (C, Az, El) channel index
+    obs = (ch * 10_000 + a * 100 + e).float().unsqueeze(0)  # (1, C, Az, El) ray codes
+    tokens = patchify(obs, (pa, pe))  # (1, P, C·pa·pe)
+    pe_n = el // pe
+    assert tokens.shape == (1, (az // pa) * pe_n, c * pa * pe)
+    for t in range(tokens.shape[1]):
+        i, j = divmod(t, pe_n)
+        want = [
+            k * 10_000 + (i * pa + x) * 100 + (j * pe + y)
+            for k in range(c)
+            for x in range(pa)
+            for y in range(pe)
+        ]
+        assert tokens[0, t].long().tolist() == want
+    assert torch.equal(patchify(obs, 4), patchify(obs, (4, 4)))  # an int is a square patch
 
 
 def test_positional_encoding_is_fixed() -> None:
@@ -42,3 +78,5 @@ def test_positions_are_distinct_and_periodic_in_azimuth() -> None:
 def test_patch_divisibility_is_checked() -> None:
     with pytest.raises(ValueError, match="divisible"):
         RayViTEncoder((3, 20, 8), EngineConfig())
+    with pytest.raises(ValueError, match="divisible"):
+        RayViTEncoder((3, 256, 44), EngineConfig())  # 44 elevation bins: not a multiple of 8

@@ -198,8 +198,9 @@ def bc_command(
         raise fail(str(exc)) from exc
     engine = EngineConfig(temporal_core=temporal_core)  # type: ignore[arg-type]
     _, az, el = loaded[0].obs_shape
-    if az % engine.patch_size or el % engine.patch_size:
-        raise fail(f"observations {az}x{el} are not divisible by the patch size {engine.patch_size}")
+    pa, pe = engine.patch
+    if az % pa or el % pe:
+        raise fail(f"observations {az}x{el} are not divisible by the {pa}x{pe} patch")
     config = BCConfig(epochs=epochs, bptt=bptt, streams=streams, lr=lr, seed=seed, device=device)
 
     def progress(epoch: int, loss: float) -> None:

@@ -193,7 +193,7 @@ def resume_choice(checkpoint: Path | None, fresh: bool, cfg: TrainConfig) -> tup
         )
         return None, cfg
     typer.echo(f"resuming from {path} (step {meta.step_id:,})", err=True)
-    return path, replace(cfg, engine=EngineConfig(**meta.config["engine"]))
+    return path, replace(cfg, engine=EngineConfig.from_dict(meta.config["engine"]))
 
 
 def print_metrics(rows: list[EvalMetrics], as_json: bool) -> None:

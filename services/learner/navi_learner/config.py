@@ -21,8 +21,10 @@ class EngineConfig:
 
     embed_dim: int = 128
     """D: width of the encoder tokens and of the embedding handed to the temporal core."""
-    patch_size: int = 8
-    """Square patch side in rays; Az and El must be divisible by it (8 → 192 tokens at 256×48)."""
+    patch_size: int = 16
+    """Patch side along azimuth in rays; Az must be divisible by it (16 × 8 → 16·6 = 96 tokens at 256×48)."""
+    patch_el: int = 8
+    """Patch side along elevation in rays (0: patch_size, a square patch); El must be divisible by it."""
     encoder_layers: int = 2
     """Number of pre-norm transformer blocks in the RayViT encoder."""
     encoder_heads: int = 4
@@ -69,6 +71,17 @@ class EngineConfig:
             rnd_dim=16,
         )
         return cls(**(small | overrides))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> EngineConfig:
+        """The engine a checkpoint stored. One written before `patch_el` existed had square patches of
+        `patch_size`, so a missing `patch_el` is 0 (square), not today's default."""
+        return cls(**({"patch_el": 0} | data))
+
+    @property
+    def patch(self) -> tuple[int, int]:
+        """(azimuth, elevation) patch sides in rays."""
+        return self.patch_size, self.patch_el or self.patch_size
 
 
 @dataclass
@@ -164,7 +177,9 @@ class TrainConfig:
         if flat.get("obs_dtype") == "bfloat16":  # written before compact storage: bf16 is gone
             flat["obs_dtype"] = "auto"
         return cls(
-            **flat, engine=EngineConfig(**data.get("engine", {})), ppo=PPOConfig(**data.get("ppo", {}))
+            **flat,
+            engine=EngineConfig.from_dict(data.get("engine", {})),
+            ppo=PPOConfig(**data.get("ppo", {})),
         )
 
 

@@ -3,7 +3,7 @@
 Channel 0 (depth / horizon, linear) resolves the near field poorly (a wall at 0.5 m and one at 1 m
 differ by 0.005), so the encoder adds a log-depth channel, `near_field`, that spreads it out (1 at
 contact, 0.67 at 1% of the horizon, 0 at the horizon). Non-overlapping patches of the four channels
-(patch 8: 32×6 = 192 tokens at 256×48) are embedded linearly, a fixed
+(16 azimuth × 8 elevation rays, 22.5° × 30°: 16×6 = 96 tokens at 256×48) are embedded linearly, a fixed
 spherical sin/cos positional encoding (computed once, a buffer, never trained) is added, a few lean
 pre-norm transformer blocks with fused attention (F.scaled_dot_product_attention) mix the tokens,
 and the mean token is projected to the embedding.
@@ -46,12 +46,13 @@ def spherical_positions(az_patches: int, el_patches: int, dim: int) -> torch.Ten
     return torch.cat([pos, pad], dim=1).float()  # (P, D) float32
 
 
-def patchify(obs: torch.Tensor, patch: int) -> torch.Tensor:
-    """(N, C, Az, El) -> (N, Az/p · El/p, C·p·p) tokens, azimuth-major."""
+def patchify(obs: torch.Tensor, patch: int | tuple[int, int]) -> torch.Tensor:
+    """(N, C, Az, El) -> (N, Az/pa · El/pe, C·pa·pe) tokens, azimuth-major (patch = pa or (pa, pe))."""
+    pa, pe = (patch, patch) if isinstance(patch, int) else patch
     n, c, az, el = obs.shape
-    x = obs.reshape(n, c, az // patch, patch, el // patch, patch)  # (N, C, Pa, p, Pe, p)
-    x = x.permute(0, 2, 4, 1, 3, 5)  # (N, Pa, Pe, C, p, p)
-    return x.reshape(n, (az // patch) * (el // patch), c * patch * patch)  # (N, P, C·p·p)
+    x = obs.reshape(n, c, az // pa, pa, el // pe, pe)  # (N, C, Pa, pa, Pe, pe)
+    x = x.permute(0, 2, 4, 1, 3, 5)  # (N, Pa, Pe, C, pa, pe)
+    return x.reshape(n, (az // pa) * (el // pe), c * pa * pe)  # (N, P, C·pa·pe)
 
 
 NEAR_FIELD_EPS = 1e-3
@@ -93,13 +94,13 @@ class RayViTEncoder(nn.Module):
     def __init__(self, obs_shape: tuple[int, int, int], cfg: EngineConfig) -> None:
         super().__init__()
         c, az, el = obs_shape
-        p = cfg.patch_size
-        if az % p or el % p:
-            raise ValueError(f"observation {az}x{el} is not divisible by patch size {p}")
-        self.patch = p
-        self.embed = nn.Linear((c + 1) * p * p, cfg.embed_dim)  # the channels and near_field
+        pa, pe = cfg.patch
+        if az % pa or el % pe:
+            raise ValueError(f"observation {az}x{el} is not divisible by the {pa}x{pe} patch")
+        self.patch = (pa, pe)
+        self.embed = nn.Linear((c + 1) * pa * pe, cfg.embed_dim)  # the channels and near_field
         self.register_buffer(
-            "pos", spherical_positions(az // p, el // p, cfg.embed_dim), persistent=False
+            "pos", spherical_positions(az // pa, el // pe, cfg.embed_dim), persistent=False
         )  # (P, D) float32
         self.blocks = nn.ModuleList(
             Block(cfg.embed_dim, cfg.encoder_heads, cfg.mlp_ratio) for _ in range(cfg.encoder_layers)

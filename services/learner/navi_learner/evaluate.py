@@ -74,7 +74,9 @@ class CheckpointPolicy(ModulePolicy):
         ckpt = load_checkpoint(path, device)
         shape = ckpt.meta.obs_shape
         self.obs_shape = (int(shape[0]), int(shape[1]), int(shape[2]))
-        policy = CognitiveMambaPolicy(self.obs_shape, EngineConfig(**ckpt.meta.config["engine"])).to(device)
+        policy = CognitiveMambaPolicy(self.obs_shape, EngineConfig.from_dict(ckpt.meta.config["engine"])).to(
+            device
+        )
         policy.load_state_dict(ckpt.model)
         policy.eval()
         super().__init__(policy, str(path), deterministic)

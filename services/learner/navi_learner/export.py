@@ -43,7 +43,7 @@ def export_onnx(checkpoint: Path, out: Path, n_actors: int = 2) -> Path:
     ckpt = load_checkpoint(checkpoint)
     shape = tuple(int(v) for v in ckpt.meta.obs_shape)
     obs_shape = (shape[0], shape[1], shape[2])
-    policy = CognitiveMambaPolicy(obs_shape, EngineConfig(**ckpt.meta.config["engine"]))
+    policy = CognitiveMambaPolicy(obs_shape, EngineConfig.from_dict(ckpt.meta.config["engine"]))
     policy.load_state_dict(ckpt.model)
     policy.eval()
     model = StepPolicy(policy)

@@ -142,7 +142,7 @@ def resume_point(registry: ModelRegistry, cfg: TrainConfig) -> tuple[Path | None
         return None, cfg
     budget = cfg.total_steps if cfg.total_steps >= 10**12 else meta.step_id + cfg.total_steps
     return registry.latest_path, replace(
-        cfg, engine=EngineConfig(**meta.config["engine"]), total_steps=budget
+        cfg, engine=EngineConfig.from_dict(meta.config["engine"]), total_steps=budget
     )
 
 
@@ -178,7 +178,7 @@ def main_job(job: MainJobConfig) -> Path:
         meta = read_meta(job.reference)
         made_by = json.loads(job.reference.with_suffix(".json").read_text()).get("command", "?")
         resume = job.reference
-        cfg = replace(cpu_config(job, meta.step_id), engine=EngineConfig(**meta.config["engine"]))
+        cfg = replace(cpu_config(job, meta.step_id), engine=EngineConfig.from_dict(meta.config["engine"]))
         print(
             f"[navi run] path: CPU. Fine-tuning the reference checkpoint {job.reference} (step {meta.step_id:,}, "
             f"made on a GPU by `{made_by}`) for {job.cpu_steps:,} "
