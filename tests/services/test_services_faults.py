@@ -264,6 +264,13 @@ def learner_up(port: int) -> bool:
         return False
 
 
+def learner_phase(port: int) -> str | None:
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).json().get("phase")
+    except (httpx.HTTPError, ValueError):
+        return None
+
+
 def promote_forever(port: int, token: str, runs: Path, stop: threading.Event) -> None:
     """Promote the newest checkpoint again and again (registry writes) until stopped or refused."""
     headers = {"Authorization": f"Bearer {token}"}
@@ -359,6 +366,8 @@ def test_garbage_on_every_subscribed_topic_is_counted_and_nothing_crashes(
         "learner": f"http://127.0.0.1:{ports['learner']}/metrics",
         "auditor": f"http://127.0.0.1:{ports['auditor']}/metrics",
     }
+    # the learner's promotion subscriber exists once /healthz says "inference" (its token comes earlier)
+    wait_for(lambda: learner_phase(ports["learner"]) == "inference", 90.0, "the learner's inference phase")
     worker = live_tokens(sess, "compiler", 0.5)[0].instance
     subscribed = {  # service -> (topic, key it listens on, queryable?)
         "compiler": [(COMPILE_JOBS, f"{COMPILE_JOBS.key}/{worker}", True)],

@@ -62,6 +62,7 @@ class EngineConfig:
         small: dict[str, Any] = dict(
             embed_dim=32,
             patch_size=4,
+            patch_el=4,
             encoder_layers=1,
             encoder_heads=2,
             ssm_head_dim=16,

@@ -594,8 +594,11 @@ def run_inference(
     pubs: MeshPublishers,
     sess: zenoh.Session,
     stop: threading.Event,
+    status: ServiceStatus,
 ) -> dict[str, Any]:
-    """Fly the model until stopped (or infer_steps), reloading it when the followed alias moves."""
+    """Fly the model until stopped (or infer_steps), reloading it when the followed alias moves. The
+    phase turns to "inference" once the promotion subscriber is declared and the model is loaded, so a
+    client that waits for it in /healthz knows its promotions are heard."""
     from navi_learner.evaluate import CheckpointPolicy
 
     registry = ModelRegistry(cfg.models_dir)
@@ -613,6 +616,7 @@ def run_inference(
     obs = env.reset(cfg.train.seed)  # (N, 3, Az, El)
     resets = torch.ones(env.n_actors, dtype=torch.bool, device=device)  # (N,)
     reward_sum = torch.zeros((), device=device)  # () float32
+    status.update(phase="inference", actors=env.n_actors)
     steps = 0
     window_t, window_steps = time.monotonic(), 0
     try:
@@ -763,8 +767,7 @@ def serve_learner(
         if cfg.mode == "train":
             summary = run_training(cfg, tap, pubs, status, d, stop)
         else:
-            status.update(phase="inference", actors=tap.n_actors)
-            summary = run_inference(cfg, tap, pubs, sess, stop)
+            summary = run_inference(cfg, tap, pubs, sess, stop, status)
         status.update(phase="done")
         repeater.close()  # the run is over: no frame is repeated as if it were live
         log.info("run finished: %s", json.dumps(summary, default=str))
