@@ -257,18 +257,17 @@ def test_learner_killed_while_writing_a_checkpoint_leaves_loadable_files(
                                       "mid_registry_write": mid_registry()})  # fmt: skip
 
 
-def learner_up(port: int) -> bool:
+def learner_health(port: int) -> dict[str, Any] | None:
+    """The learner's /healthz body, or None while it does not answer 200."""
     try:
-        return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200
-    except httpx.HTTPError:
-        return False
-
-
-def learner_phase(port: int) -> str | None:
-    try:
-        return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).json().get("phase")
+        reply = httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0)
+        return reply.json() if reply.status_code == 200 else None
     except (httpx.HTTPError, ValueError):
         return None
+
+
+def learner_up(port: int) -> bool:
+    return learner_health(port) is not None
 
 
 def promote_forever(port: int, token: str, runs: Path, stop: threading.Event) -> None:
@@ -367,7 +366,11 @@ def test_garbage_on_every_subscribed_topic_is_counted_and_nothing_crashes(
         "auditor": f"http://127.0.0.1:{ports['auditor']}/metrics",
     }
     # the learner's promotion subscriber exists once /healthz says "inference" (its token comes earlier)
-    wait_for(lambda: learner_phase(ports["learner"]) == "inference", 90.0, "the learner's inference phase")
+    wait_for(
+        lambda: (learner_health(ports["learner"]) or {}).get("phase") == "inference",
+        90.0,
+        "the learner's inference phase",
+    )
     worker = live_tokens(sess, "compiler", 0.5)[0].instance
     subscribed = {  # service -> (topic, key it listens on, queryable?)
         "compiler": [(COMPILE_JOBS, f"{COMPILE_JOBS.key}/{worker}", True)],
