@@ -94,11 +94,27 @@ def tiny_setup() -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
     return policy, buf, cfg
 
 
-def test_non_finite_loss_skips_the_update_and_is_counted() -> None:
+def adam(policy: CognitiveMambaPolicy, fused: bool) -> torch.optim.Adam:
+    """The learner's optimizer: fused (skips a step on the device, as on CUDA) or the host-checked one."""
+    return torch.optim.Adam(
+        [p for p in policy.parameters() if p.requires_grad], lr=1e-2, eps=1e-5, fused=fused
+    )
+
+
+def untouched(opt: torch.optim.Optimizer) -> bool:
+    """No step taken: no state, or (fused) state that is still the fresh one (step 0, zero moments)."""
+    return all(
+        float(st["step"]) == 0 and not st["exp_avg"].any() and not st["exp_avg_sq"].any()
+        for st in opt.state.values()
+    )
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_non_finite_loss_skips_the_update_and_is_counted(fused: bool) -> None:
     torch.manual_seed(0)
     policy, buf, cfg = tiny_setup()
     buf.advantages[2, 1] = float("nan")
-    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
+    opt = adam(policy, fused)
     before = {k: v.clone() for k, v in policy.state_dict().items()}
     _, skipped = update(policy, opt, buf, cfg, torch.Generator().manual_seed(0))
     assert skipped >= 1
@@ -109,28 +125,53 @@ def test_non_finite_loss_skips_the_update_and_is_counted() -> None:
             assert torch.equal(v, before[k]), k
 
 
-def test_non_finite_gradient_never_reaches_the_weights(caplog: pytest.LogCaptureFixture) -> None:
+@pytest.mark.parametrize("fused", [False, True])
+def test_non_finite_gradient_never_reaches_the_weights(fused: bool, caplog: pytest.LogCaptureFixture) -> None:
     torch.manual_seed(0)
     policy, buf, cfg = tiny_setup()
     buf.returns[:] = float("inf")
-    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
+    opt = adam(policy, fused)
     before = {k: v.clone() for k, v in policy.state_dict().items()}
     with caplog.at_level(logging.WARNING):
         _, skipped = update(
             policy, opt, buf, cfg, torch.Generator().manual_seed(0), logging.getLogger("guard")
         )
-    assert sum("non-finite" in r.message for r in caplog.records) == skipped
+    warned = [r.message for r in caplog.records if "non-finite" in r.message]
+    if fused:  # counted on the device, read and reported once per update
+        assert len(warned) == 1 and f"{skipped} optimizer step(s) skipped" in warned[0]
+    else:  # read on the host after every minibatch
+        assert len(warned) == skipped
     assert skipped == cfg.ppo.num_minibatches
     for k, v in policy.state_dict().items():
         assert torch.equal(v, before[k]), k
-    assert len(opt.state) == 0
+    assert untouched(opt)
+    assert getattr(opt, "found_inf", None) is None  # nothing left behind for a later step
 
 
-def test_finite_update_changes_the_weights() -> None:
+@pytest.mark.parametrize("fused", [False, True])
+def test_finite_update_changes_the_weights(fused: bool) -> None:
     torch.manual_seed(0)
     policy, buf, cfg = tiny_setup()
-    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], lr=1e-2)
+    opt = adam(policy, fused)
     before = policy.heads.log_std.detach().clone()
     _, skipped = update(policy, opt, buf, cfg, torch.Generator().manual_seed(0))
     assert skipped == 0
     assert not torch.equal(before, policy.heads.log_std.detach())
+
+
+@pytest.mark.parametrize("poison", [False, True])
+def test_fused_update_matches_the_host_checked_one(poison: bool) -> None:
+    """The CUDA learner's fused Adam with its on-device skip takes the same steps as plain Adam with a
+    host read per minibatch: same weights after an update, clean or with one poisoned minibatch."""
+    results = []
+    for fused in (False, True):
+        torch.manual_seed(0)
+        policy, buf, cfg = tiny_setup()
+        if poison:
+            buf.advantages[2, 1] = float("nan")
+        _, skipped = update(policy, adam(policy, fused), buf, cfg, torch.Generator().manual_seed(0))
+        results.append((skipped, policy.state_dict()))
+    (skip_a, a), (skip_b, b) = results
+    assert skip_a == skip_b and (skip_a > 0) == poison
+    for k in a:
+        torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=k)

@@ -183,7 +183,9 @@ def update(
     sync: Sync | None = None,
 ) -> tuple[dict[str, torch.Tensor], int]:
     """PPO epochs over sequence minibatches. A non-finite loss or gradient norm skips that optimizer
-    step (one host read per minibatch) and is counted. Returns mean metrics (device) and the skip count.
+    step and is counted. With a fused optimizer (the learner's on CUDA) the skip happens on the device
+    (`found_inf`) and the count is read once per update, so the host never waits for a minibatch;
+    otherwise one host read per minibatch decides. Returns mean metrics (device) and the skip count.
 
     With `sync` (a data-parallel run, equal minibatches on every rank) the advantages are normalised
     over the union of the ranks' minibatches and the gradients averaged over ranks before clipping (one
@@ -193,6 +195,8 @@ def update(
     params = [q for q in policy.parameters() if q.requires_grad]
     sums: dict[str, torch.Tensor] = {}
     count, skipped = 0, 0
+    on_device = bool(optimizer.defaults.get("fused"))  # the optimizer skips a step itself on found_inf
+    skips = torch.zeros((), device=params[0].device)  # () float32, steps skipped on the device
     for _ in range(p.ppo_epochs):
         for mb in buf.minibatches(p.num_minibatches, gen):
             ev = policy.evaluate(mb.obs, mb.resets, mb.state, mb.actions)
@@ -224,7 +228,12 @@ def update(
                 some_loss_bad = sync.average_grads(total)  # () bool, the same on every rank
                 grad_norm = torch.nn.utils.clip_grad_norm_(params, p.max_grad_norm)
                 ok = ~some_loss_bad & torch.isfinite(grad_norm)  # () bool
-            if bool(ok):
+            if on_device:  # no host read: a fused optimizer leaves its state alone where found_inf is 1
+                bad = (~ok).float()  # () float32
+                optimizer.found_inf = bad  # type: ignore[attr-defined]
+                optimizer.step()
+                skips += bad
+            elif bool(ok):
                 optimizer.step()
             else:
                 skipped += 1
@@ -234,6 +243,11 @@ def update(
             for k, v in {**metrics, "rnd_loss": rnd_loss.detach(), "grad_norm": grad_norm.detach()}.items():
                 sums[k] = sums.get(k, torch.zeros((), device=v.device)) + v  # () float32
             count += 1
+    if on_device:
+        optimizer.found_inf = None  # type: ignore[attr-defined]
+        skipped = int(skips)  # one host read per update
+        if skipped and logger is not None:
+            logger.warning(f"non-finite loss or gradient: {skipped} optimizer step(s) skipped")
     return {k: v / max(count, 1) for k, v in sums.items()}, skipped
 
 
@@ -280,7 +294,7 @@ def train(
     policy = CognitiveMambaPolicy(env.obs_shape, cfg.engine).to(device)
     policy.amp = cfg.amp and device.type == "cuda"
     params = [q for q in policy.parameters() if q.requires_grad]
-    optimizer = torch.optim.Adam(params, lr=cfg.ppo.lr, eps=1e-5)
+    optimizer = torch.optim.Adam(params, lr=cfg.ppo.lr, eps=1e-5, fused=device.type == "cuda")
     sync = Sync(d, params, device) if d.active else None
     if sync is not None:
         run_id, root = sync.broadcast_object((run_id, root))
