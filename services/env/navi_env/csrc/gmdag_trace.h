@@ -972,16 +972,19 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const
   return ray;
 }
 
+// A ray still walking after max_steps samples reports the distance reached (or the horizon) with
+// semantic 0.
+NAVI_HD void end_out_of_steps(const TraceArgs& a, Ray& ray) {
+  ray.res.depth = fminf(ray.t * ray.s.voxel, a.horizon);
+  ray.res.semantic = kOutOfSteps;
+  ray.done = true;
+}
+
 // One main-loop iteration of sphere tracing (see docs/SDFDAG_RUNTIME.md): sample, hit tests, step.
+// The caller stops at max_steps samples (end_out_of_steps).
 NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   const Scene& s = ray.s;
   Walker& w = ray.w;
-  if (ray.res.steps >= a.max_steps) {
-    ray.res.depth = fminf(ray.t * s.voxel, a.horizon);  // out of steps: the distance reached, semantic 0
-    ray.res.semantic = kOutOfSteps;
-    ray.done = true;
-    return;
-  }
   const int step = ray.res.steps;
   ray.res.steps = step + 1;
   const float t = ray.t;
@@ -1073,7 +1076,8 @@ NAVI_HD void trace_item(const TraceArgs& a, int64_t b, int64_t j, const PrimTabl
   const int64_t r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
   if (r < 0 || r >= a.num_rays) return;
   Ray ray = start_ray<kPrims>(a, b, j, r, t);
-  while (!ray.done) step_ray(a, ray);
+  while (!ray.done && ray.res.steps < a.max_steps) step_ray(a, ray);
+  if (!ray.done) end_out_of_steps(a, ray);
   finish_ray<kPrims>(a, ray);
 }
 
