@@ -274,9 +274,6 @@ def trace_ref(
     t = t0.clone()  # (M,)
     prev_t, prev_d = t0.clone(), torch.zeros(m, dtype=F32, device=dev)  # (M,), (M,)
     last_brick = torch.full((m,), -1, dtype=torch.int64, device=dev)  # (M,)
-    force_axis = torch.full((m,), -1, dtype=torch.int64, device=dev)  # (M,)
-    force_cell = torch.zeros(m, dtype=torch.int64, device=dev)  # (M,)
-    force_sign = torch.ones(m, dtype=torch.int64, device=dev)  # (M,)
     classes = scenes.brick_class.long()  # (Nb,)
 
     def semantic_of(brick: torch.Tensor) -> torch.Tensor:
@@ -290,13 +287,7 @@ def trace_ref(
         ok, dk, tk = o[idx], d[idx], t[idx]
         steps[idx] = step + 1
         pk = ok + tk[:, None] * dk  # (K, 3)
-        cells = cells_at(sk, pk)  # (K, 3)
-        fa, fc, fs = force_axis[idx], force_cell[idx], force_sign[idx]
-        for k in range(3):
-            forced = torch.where(fs > 0, torch.maximum(cells[:, k], fc), torch.minimum(cells[:, k], fc))
-            cells[:, k] = torch.where(fa == k, forced, cells[:, k])
-        force_axis[idx] = -1
-        f = field_at(sk, pk, cells)
+        f = field_at(sk, pk, cells_at(sk, pk))
         lb = torch.where(f.brick >= 0, f.brick, last_brick[idx])  # (K,)
         last_brick[idx] = lb
 
@@ -342,11 +333,9 @@ def trace_ref(
             t_exit = torch.where(axis == 0, te[0], torch.where(axis == 1, te[1], te[2]))  # (K,)
             d_axis = dk.gather(1, axis[:, None]).squeeze(1)  # (K,)
             cube_min = f.corner.gather(1, axis[:, None]).squeeze(1)  # (K,)
-            nxt = torch.where(far, torch.maximum(t_exit, tk) + f.dist, nxt)  # the bound past the exit
-            cell = torch.where(d_axis > 0, cube_min + edge, cube_min - 1)  # (K,)
-            force_axis[idx] = torch.where(far, axis, force_axis[idx])
-            force_sign[idx] = torch.where(far, torch.where(d_axis > 0, 1, -1), force_sign[idx])
-            force_cell[idx] = torch.where(far, cell, force_cell[idx])
+            # the bound past the exit (max(d, eps): progress even where rounding keeps p in the cube)
+            nxt = torch.where(far, torch.maximum(t_exit, tk) + torch.maximum(f.dist, eps[idx]), nxt)
+            cell = torch.where(d_axis > 0, cube_min + edge, cube_min - 1)  # (K,) across the exit face
             left = far & ((cell < 0) | (cell >= sk.resolution))  # (K,) left the cube: miss
             active[idx[left]] = False
             go = go & ~left

@@ -175,15 +175,6 @@ NAVI_HD float kNaN() { return bits_float(0x7FC00000); }
 
 NAVI_HD bool finite(float x) { return fabsf(x) <= 3.4028235e38f; }  // false for NaN and +-inf
 
-// float(n) for 0 <= n < 2^23 (exact either way; the device avoids the conversion unit).
-NAVI_HD float small_int_float(int n) {
-#ifdef __CUDA_ARCH__
-  return bits_float(kTwo23Bits + n) - kTwo23;
-#else
-  return static_cast<float>(n);
-#endif
-}
-
 // A scene record decoded into registers.
 struct Scene {
   uint32_t root, node_offset, brick_offset, grid_offset;
@@ -337,6 +328,10 @@ NAVI_HD float brick_distance(const uint32_t* w, float quant, float fx, float fy,
 
 NAVI_HD float unit_clamp(float x) { return fminf(fmaxf(x, 0.0f), 1.0f); }
 
+// The fraction of p along one axis of its cell (p minus the cell's corner), clamped to [0, 1] for
+// points on the cube's faces or just outside them (cell_of clamps the cell into the cube).
+NAVI_HD float cell_fraction(float p, float corner) { return unit_clamp(p - corner); }
+
 constexpr uint32_t kNoBrick = 0xFFFFFFFFu;
 
 // The field at a voxel-space point p inside the cube whose cell (ix, iy, iz) lies in `leaf`.
@@ -348,8 +343,9 @@ struct FieldSample {
   uint32_t brick;  // corpus brick index, or kNoBrick
 };
 
-NAVI_HD FieldSample leaf_field(const uint32_t* bricks, const Scene& s, const Leaf& leaf, float px, float py,
-                               float pz, const Cell& c) {
+// The field in cell c of `leaf` at fractions ux, uy, uz of the cell (cell_fraction).
+NAVI_HD FieldSample leaf_field(const uint32_t* bricks, const Scene& s, const Leaf& leaf, const Cell& c, float ux,
+                               float uy, float uz) {
   FieldSample f;
   f.solid = leaf.tag == kTagFarSolid;
   f.far_free = leaf.tag != kTagBrick && leaf.tag != kTagFarSolid;
@@ -357,10 +353,8 @@ NAVI_HD FieldSample leaf_field(const uint32_t* bricks, const Scene& s, const Lea
   if (leaf.tag == kTagBrick) {
     f.brick = s.brick_offset + leaf.payload;
     // The cell lies in this brick, so its local index is in [0, 7] and its corner words are
-    // leaf.words + corner_offset(ix, iy, iz) (the brick corner's offset cancels mod 2^32); the
-    // fraction is clamped for points on (or, after a forced exit, just outside) the cell's faces.
-    f.dist = brick_distance(bricks + (leaf.words + corner_offset(c.ix, c.iy, c.iz)), s.quant,
-                            unit_clamp(px - c.fx), unit_clamp(py - c.fy), unit_clamp(pz - c.fz));
+    // leaf.words + corner_offset(ix, iy, iz) (the brick corner's offset cancels mod 2^32).
+    f.dist = brick_distance(bricks + (leaf.words + corner_offset(c.ix, c.iy, c.iz)), s.quant, ux, uy, uz);
   } else if (leaf.tag == kTagFarSolid) {
     f.dist = -(static_cast<float>(leaf.payload) * kFarUnit);
   } else {
@@ -370,12 +364,9 @@ NAVI_HD FieldSample leaf_field(const uint32_t* bricks, const Scene& s, const Lea
   return f;
 }
 
-// Per-ray state for the walk: the cached leaf (the macro-cell void cache) and a forced exit cell.
+// Per-ray state for the walk: the cached leaf (the macro-cell void cache).
 struct Walker {
-  Leaf leaf;        // starts with corner -1, which contains no cell
-  int force_axis;   // -1, or the axis whose cell index must reach force_cell (after a far skip)
-  int force_cell;
-  int force_sign;   // +1 or -1: direction along force_axis
+  Leaf leaf;  // starts with corner -1, which contains no cell
 };
 
 NAVI_HD void walker_init(Walker& w) {
@@ -384,33 +375,17 @@ NAVI_HD void walker_init(Walker& w) {
   w.leaf.tag = kTagFarFree;
   w.leaf.payload = 0;
   w.leaf.words = 0;
-  w.force_axis = -1;
-  w.force_cell = 0;
-  w.force_sign = 1;
 }
 
 // Samples the field at voxel-space p, reusing the cached leaf when p's cell lies in it.
 NAVI_HD FieldSample walk_sample(const uint32_t* grid, const uint32_t* nodes, const uint32_t* bricks, const Scene& s,
                                 Walker& w, float px, float py, float pz) {
-  Cell c = cell_of(px, py, pz, s.cell_max);
-  if (w.force_axis >= 0) {
-    const int cur = w.force_axis == 0 ? c.ix : (w.force_axis == 1 ? c.iy : c.iz);
-    const int forced =
-        w.force_sign > 0 ? (cur > w.force_cell ? cur : w.force_cell) : (cur < w.force_cell ? cur : w.force_cell);
-    const float forced_f = small_int_float(forced);
-    if (w.force_axis == 0) {
-      c.ix = forced;
-      c.fx = forced_f;
-    } else if (w.force_axis == 1) {
-      c.iy = forced;
-      c.fy = forced_f;
-    } else {
-      c.iz = forced;
-      c.fz = forced_f;
-    }
-  }
+  const Cell c = cell_of(px, py, pz, s.cell_max);
+  // The fractions before the leaf lookup: then p need not live across it (on an H100 the device code
+  // recomputed p after the lookup instead, and ran 5-10% slower).
+  const float ux = cell_fraction(px, c.fx), uy = cell_fraction(py, c.fy), uz = cell_fraction(pz, c.fz);
   if (!leaf_contains(w.leaf, c.ix, c.iy, c.iz)) w.leaf = find_leaf(grid, nodes, s, c.ix, c.iy, c.iz);
-  return leaf_field(bricks, s, w.leaf, px, py, pz, c);
+  return leaf_field(bricks, s, w.leaf, c, ux, uy, uz);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -990,7 +965,6 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   const float t = ray.t;
   const float px = ray.ox + t * ray.dx, py = ray.oy + t * ray.dy, pz = ray.oz + t * ray.dz;
   const FieldSample f = walk_sample(a.grid, a.nodes, a.bricks, s, w, px, py, pz);
-  w.force_axis = -1;
   if (f.brick != kNoBrick) ray.last_brick = f.brick;
   if (f.solid || f.dist < 0.0f) {
     float hit = t;
@@ -1029,9 +1003,9 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
   float next = t + fmaxf(f.dist, ray.eps);
   if (f.far_free) {
     // Skip the whole far cube and then its lower bound d beyond the exit: every point of the closed
-    // cube, the exit point included, is at least d from the surface (the far code's promise). The
-    // next sample is forced into the neighbouring cube across the exit face, so rounding cannot stall
-    // (nor can a point on the exit face moving out, whose exit time may round below t).
+    // cube, the exit point included, is at least d from the surface (the far code's promise). A point
+    // that rounding leaves in the cube (or an exit time that rounds below t) only repeats the skip
+    // from t, which still moves the ray max(d, eps), so the walk cannot stall.
     const int edge = 1 << w.leaf.shift;
     const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
     const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
@@ -1040,11 +1014,9 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
     const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
     const float d_axis = axis == 0 ? ray.dx : (axis == 1 ? ray.dy : ray.dz);
     const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
-    next = fmaxf(t_exit, t) + f.dist;
-    w.force_axis = axis;
-    w.force_sign = d_axis > 0.0f ? 1 : -1;
-    w.force_cell = d_axis > 0.0f ? cube_min + edge : cube_min - 1;
-    if (w.force_cell < 0 || w.force_cell >= s.resolution) {  // left the cube: a miss
+    next = fmaxf(t_exit, t) + fmaxf(f.dist, ray.eps);
+    const int beyond = d_axis > 0.0f ? cube_min + edge : cube_min - 1;  // the cell across the exit face
+    if (beyond < 0 || beyond >= s.resolution) {  // left the cube: a miss
       ray.done = true;
       return;
     }
@@ -1109,7 +1081,8 @@ NAVI_HD void sample_point(const SampleArgs& a, int64_t i) {
   } else {
     const Cell c = cell_of(px, py, pz, s.cell_max);
     const Leaf leaf = find_leaf(a.grid, a.nodes, s, c.ix, c.iy, c.iz);
-    dist = leaf_field(a.bricks, s, leaf, px, py, pz, c).dist * s.voxel;
+    dist = leaf_field(a.bricks, s, leaf, c, cell_fraction(px, c.fx), cell_fraction(py, c.fy), cell_fraction(pz, c.fz))
+               .dist * s.voxel;
   }
   if (a.prims != nullptr && a.prims_per_world > 0) {
     const int64_t wid = static_cast<int64_t>(load_ro(a.prim_world + i));
