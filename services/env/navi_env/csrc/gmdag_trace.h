@@ -265,6 +265,26 @@ NAVI_HD Cell cell_of(float px, float py, float pz, float cell_max) {
   return c;
 }
 
+// floor(x) without the clamp, for 0 <= x < R the same as cell_axis; below 0 a negative index, at or
+// past R an index >= R (the host clamps to [-1, R] first so that the conversion stays defined).
+NAVI_HD void cell_axis_unclamped(float x, float res, int& i, float& f) {
+#ifdef __CUDA_ARCH__
+  (void)res;
+  const float r = __fadd_rd(x, kTwo23);
+  i = __float_as_int(r) - kTwo23Bits;
+  f = r - kTwo23;
+#else
+  f = floorf(fminf(fmaxf(x, -1.0f), res));
+  i = static_cast<int>(f);
+#endif
+}
+
+// Whether a cell index lies in [0, R - 1] on every axis (R is a power of two, so the or of three
+// indices in range stays below R, and a negative one sets the sign bit).
+NAVI_HD bool cell_in_cube(const Cell& c, int res) {
+  return static_cast<uint32_t>(c.ix | c.iy | c.iz) < static_cast<uint32_t>(res);
+}
+
 // The leaf holding cell (ix, iy, iz): one leaf-grid load (the descent from the root to depth D,
 // done once at load time by scene.py), then, for scenes deeper than the grid, the bounded stackless
 // descent through the nodes for the remaining L - D levels.
@@ -337,10 +357,9 @@ constexpr uint32_t kNoBrick = 0xFFFFFFFFu;
 // The field at a voxel-space point p inside the cube whose cell (ix, iy, iz) lies in `leaf`.
 // Far codes give their lower bound (negative for solid); `solid` marks a far-solid cube.
 struct FieldSample {
-  float dist;      // voxels
-  bool solid;      // inside a far-solid cube
-  bool far_free;   // inside a far-free cube (dist is its lower bound)
-  uint32_t brick;  // corpus brick index, or kNoBrick
+  float dist;     // voxels
+  bool solid;     // inside a far-solid cube
+  bool far_free;  // inside a far-free cube (dist is its lower bound)
 };
 
 // The field in cell c of `leaf` at fractions ux, uy, uz of the cell (cell_fraction).
@@ -349,9 +368,7 @@ NAVI_HD FieldSample leaf_field(const uint32_t* bricks, const Scene& s, const Lea
   FieldSample f;
   f.solid = leaf.tag == kTagFarSolid;
   f.far_free = leaf.tag != kTagBrick && leaf.tag != kTagFarSolid;
-  f.brick = kNoBrick;
   if (leaf.tag == kTagBrick) {
-    f.brick = s.brick_offset + leaf.payload;
     // The cell lies in this brick, so its local index is in [0, 7] and its corner words are
     // leaf.words + corner_offset(ix, iy, iz) (the brick corner's offset cancels mod 2^32).
     f.dist = brick_distance(bricks + (leaf.words + corner_offset(c.ix, c.iy, c.iz)), s.quant, ux, uy, uz);
@@ -364,27 +381,48 @@ NAVI_HD FieldSample leaf_field(const uint32_t* bricks, const Scene& s, const Lea
   return f;
 }
 
-// Per-ray state for the walk: the cached leaf (the macro-cell void cache).
+// A leaf corner that no cell index reaches, in the cube or out of it (walker_init).
+constexpr int kNoCorner = 0x40000000;
+
+// Per-ray state for the walk: the cached leaf (the macro-cell void cache) and the last brick sampled.
 struct Walker {
-  Leaf leaf;  // starts with corner -1, which contains no cell
+  Leaf leaf;            // starts with corner kNoCorner, which contains no cell
+  uint32_t last_brick;  // corpus index of the last brick sampled (the class of a hit), or kNoBrick
 };
 
 NAVI_HD void walker_init(Walker& w) {
-  w.leaf.cx = w.leaf.cy = w.leaf.cz = -1;
+  w.leaf.cx = w.leaf.cy = w.leaf.cz = kNoCorner;
   w.leaf.shift = kBrickShift;
   w.leaf.tag = kTagFarFree;
   w.leaf.payload = 0;
   w.leaf.words = 0;
+  w.last_brick = kNoBrick;
 }
 
 // Samples the field at voxel-space p, reusing the cached leaf when p's cell lies in it.
 NAVI_HD FieldSample walk_sample(const uint32_t* grid, const uint32_t* nodes, const uint32_t* bricks, const Scene& s,
                                 Walker& w, float px, float py, float pz) {
-  const Cell c = cell_of(px, py, pz, s.cell_max);
+  // The cell without the clamp into the cube: the walk's points lie in the cube but for rounding at
+  // its faces, and a point outside it cannot lie in the cached leaf, so the clamp waits for the lookup.
+  const float res = static_cast<float>(s.resolution);
+  Cell c;
+  cell_axis_unclamped(px, res, c.ix, c.fx);
+  cell_axis_unclamped(py, res, c.iy, c.fy);
+  cell_axis_unclamped(pz, res, c.iz, c.fz);
   // The fractions before the leaf lookup: then p need not live across it (on an H100 the device code
   // recomputed p after the lookup instead, and ran 5-10% slower).
-  const float ux = cell_fraction(px, c.fx), uy = cell_fraction(py, c.fy), uz = cell_fraction(pz, c.fz);
-  if (!leaf_contains(w.leaf, c.ix, c.iy, c.iz)) w.leaf = find_leaf(grid, nodes, s, c.ix, c.iy, c.iz);
+  float ux = cell_fraction(px, c.fx), uy = cell_fraction(py, c.fy), uz = cell_fraction(pz, c.fz);
+  if (!leaf_contains(w.leaf, c.ix, c.iy, c.iz)) {
+    if (!cell_in_cube(c, s.resolution)) {  // on a face or just past it: the nearest cell of the cube
+      c = cell_of(px, py, pz, s.cell_max);
+      ux = cell_fraction(px, c.fx);
+      uy = cell_fraction(py, c.fy);
+      uz = cell_fraction(pz, c.fz);
+    }
+    w.leaf = find_leaf(grid, nodes, s, c.ix, c.iy, c.iz);
+    // Samples in the cached leaf are in the same brick, so the last brick sampled changes only here.
+    if (w.leaf.tag == kTagBrick) w.last_brick = s.brick_offset + w.leaf.payload;
+  }
   return leaf_field(bricks, s, w.leaf, c, ux, uy, uz);
 }
 
@@ -831,10 +869,10 @@ struct Ray {
   float eps;                 // hit epsilon, voxels
   float t, t1;               // current time and the clip end (cube exit or horizon), voxels
   float prev_t, prev_d;      // previous sample
-  uint32_t last_brick;       // last brick sampled (class of a hit), or kNoBrick
+  float cross_d;             // the field at the sample that crossed into solid (kCrossing)
   int64_t out;               // output element b * R + r
   Walker w;
-  RayResult res;             // semantic < 0 while walking: kOutOfSteps or kPrimStashed
+  RayResult res;             // semantic < 0 while walking: kOutOfSteps, kPrimStashed, kSurface, kCrossing
   bool done;
 };
 
@@ -845,6 +883,10 @@ constexpr int32_t kOutOfSteps = -1;
 // already in the outputs (written before the walk, which ends at it), and stay there unless the walk
 // hits the static scene first. Nothing about the primitive is carried through the walk.
 constexpr int32_t kPrimStashed = -2;
+// res.semantic of a ray whose walk ended on the static surface: kSurface within epsilon of it (depth
+// set), kCrossing at a sample inside solid (depth and class set after the walk by settle_hit).
+constexpr int32_t kSurface = -3;
+constexpr int32_t kCrossing = -4;
 
 // Writes one element of the depth and semantic outputs.
 NAVI_HD void write_hit(const TraceArgs& a, int64_t out, float depth, int32_t semantic) {
@@ -941,7 +983,7 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const
   ray.t1 = t1;
   ray.prev_t = t0;
   ray.prev_d = 0.0f;
-  ray.last_brick = kNoBrick;
+  ray.cross_d = 0.0f;
   walker_init(ray.w);
   ray.done = false;
   return ray;
@@ -955,27 +997,82 @@ NAVI_HD void end_out_of_steps(const TraceArgs& a, Ray& ray) {
   ray.done = true;
 }
 
-// One main-loop iteration of sphere tracing (see docs/SDFDAG_RUNTIME.md): sample, hit tests, step.
-// The caller stops at max_steps samples (end_out_of_steps).
-NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
+// The main loop of sphere tracing (see docs/SDFDAG_RUNTIME.md): sample, hit tests, step, for at most
+// max_steps samples. A ray that ends here is done (a miss, kSurface or kCrossing); one that runs out of
+// samples is not (end_out_of_steps). The loop keeps its state in locals and leaves by `break`, which
+// the device compiler turns into fewer moves per step than a done flag.
+NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
   const Scene& s = ray.s;
   Walker& w = ray.w;
-  const int step = ray.res.steps;
-  ray.res.steps = step + 1;
-  const float t = ray.t;
-  const float px = ray.ox + t * ray.dx, py = ray.oy + t * ray.dy, pz = ray.oz + t * ray.dz;
-  const FieldSample f = walk_sample(a.grid, a.nodes, a.bricks, s, w, px, py, pz);
-  if (f.brick != kNoBrick) ray.last_brick = f.brick;
-  if (f.solid || f.dist < 0.0f) {
-    float hit = t;
-    if (step > 0) {
-      // Sign change between prev_t (free) and t (solid): bisect, then one secant step.
-      float lo = ray.prev_t, hi = t, flo = ray.prev_d, fhi = f.dist;
+  float t = ray.t, prev_t = ray.prev_t, prev_d = ray.prev_d;
+  int steps = ray.res.steps;
+  while (steps < a.max_steps) {
+    const int step = steps++;
+    const float px = ray.ox + t * ray.dx, py = ray.oy + t * ray.dy, pz = ray.oz + t * ray.dz;
+    const FieldSample f = walk_sample(a.grid, a.nodes, a.bricks, s, w, px, py, pz);
+    if (f.solid || f.dist < 0.0f) {  // inside: refined after the walk (settle_hit), out of the loop
+      ray.cross_d = f.dist;
+      ray.res.semantic = kCrossing;
+      ray.done = true;
+      break;
+    }
+    // Within epsilon of a surface while not moving away from it (a ray leaving the surface it
+    // starts on is not stopped by it).
+    if (step > 0 && !f.far_free && f.dist < ray.eps && f.dist <= prev_d) {
+      ray.res.depth = t * s.voxel;
+      ray.res.semantic = kSurface;
+      ray.done = true;
+      break;
+    }
+    float next = t + fmaxf(f.dist, ray.eps);
+    if (f.far_free) {
+      // Skip the whole far cube and then its lower bound d beyond the exit: every point of the closed
+      // cube, the exit point included, is at least d from the surface (the far code's promise). A point
+      // that rounding leaves in the cube (or an exit time that rounds below t) only repeats the skip
+      // from t, which still moves the ray max(d, eps), so the walk cannot stall.
+      const int edge = 1 << w.leaf.shift;
+      const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
+      const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
+      const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, w.leaf.cz, edge);
+      const int axis = (tx <= ty && tx <= tz) ? 0 : (ty <= tz ? 1 : 2);
+      const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
+      const float d_axis = axis == 0 ? ray.dx : (axis == 1 ? ray.dy : ray.dz);
+      const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
+      next = fmaxf(t_exit, t) + fmaxf(f.dist, ray.eps);
+      const int beyond = d_axis > 0.0f ? cube_min + edge : cube_min - 1;  // the cell across the exit face
+      if (beyond < 0 || beyond >= s.resolution) {  // left the cube: a miss
+        ray.done = true;
+        break;
+      }
+    }
+    prev_t = t;
+    prev_d = f.dist;
+    t = next;
+    if (next > ray.t1) {  // past the cube or the horizon: a miss
+      ray.done = true;
+      break;
+    }
+  }
+  ray.t = t;
+  ray.prev_t = prev_t;
+  ray.prev_d = prev_d;
+  ray.res.steps = steps;
+}
+
+// The depth and class of a ray whose walk ended on the static surface (kSurface, kCrossing), after
+// the main loop so that the rare refinement and the class lookup stay out of it. A crossing at the
+// first sample is a hit there (an origin inside solid reports depth 0); a later one lies between the
+// previous (free) sample and this one: 6 bisection halvings, then one secant step. The class is that
+// of the last brick sampled, refinement samples included.
+NAVI_HD void settle_hit(const TraceArgs& a, Ray& ray) {
+  if (ray.res.semantic == kCrossing) {
+    float hit = ray.t;
+    if (ray.res.steps > 1) {
+      float lo = ray.prev_t, hi = ray.t, flo = ray.prev_d, fhi = ray.cross_d;
       for (int k = 0; k < kRefineIterations; ++k) {
         const float mid = 0.5f * (lo + hi);
-        const FieldSample m = walk_sample(a.grid, a.nodes, a.bricks, s, w, ray.ox + mid * ray.dx,
+        const FieldSample m = walk_sample(a.grid, a.nodes, a.bricks, ray.s, ray.w, ray.ox + mid * ray.dx,
                                           ray.oy + mid * ray.dy, ray.oz + mid * ray.dz);
-        if (m.brick != kNoBrick) ray.last_brick = m.brick;
         if (m.solid || m.dist < 0.0f) {
           hi = mid;
           fhi = m.dist;
@@ -987,44 +1084,9 @@ NAVI_HD void step_ray(const TraceArgs& a, Ray& ray) {
       const float denom = flo - fhi;
       hit = denom > 0.0f ? lo + (hi - lo) * (flo / denom) : lo;
     }
-    ray.res.depth = hit * s.voxel;
-    ray.res.semantic = class_semantic(a.brick_class, ray.last_brick);
-    ray.done = true;
-    return;
+    ray.res.depth = hit * ray.s.voxel;
   }
-  // Within epsilon of a surface while not moving away from it (a ray leaving the surface it
-  // starts on is not stopped by it).
-  if (step > 0 && !f.far_free && f.dist < ray.eps && f.dist <= ray.prev_d) {
-    ray.res.depth = t * s.voxel;
-    ray.res.semantic = class_semantic(a.brick_class, ray.last_brick);
-    ray.done = true;
-    return;
-  }
-  float next = t + fmaxf(f.dist, ray.eps);
-  if (f.far_free) {
-    // Skip the whole far cube and then its lower bound d beyond the exit: every point of the closed
-    // cube, the exit point included, is at least d from the surface (the far code's promise). A point
-    // that rounding leaves in the cube (or an exit time that rounds below t) only repeats the skip
-    // from t, which still moves the ray max(d, eps), so the walk cannot stall.
-    const int edge = 1 << w.leaf.shift;
-    const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
-    const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
-    const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, w.leaf.cz, edge);
-    const int axis = (tx <= ty && tx <= tz) ? 0 : (ty <= tz ? 1 : 2);
-    const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
-    const float d_axis = axis == 0 ? ray.dx : (axis == 1 ? ray.dy : ray.dz);
-    const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
-    next = fmaxf(t_exit, t) + fmaxf(f.dist, ray.eps);
-    const int beyond = d_axis > 0.0f ? cube_min + edge : cube_min - 1;  // the cell across the exit face
-    if (beyond < 0 || beyond >= s.resolution) {  // left the cube: a miss
-      ray.done = true;
-      return;
-    }
-  }
-  ray.prev_t = t;
-  ray.prev_d = f.dist;
-  ray.t = next;
-  if (next > ray.t1) ray.done = true;  // past the cube or the horizon: a miss
+  ray.res.semantic = class_semantic(a.brick_class, ray.w.last_brick);
 }
 
 // Writes a finished ray's outputs. A ray whose walk ended without a hit keeps the primitive hit
@@ -1048,8 +1110,12 @@ NAVI_HD void trace_item(const TraceArgs& a, int64_t b, int64_t j, const PrimTabl
   const int64_t r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
   if (r < 0 || r >= a.num_rays) return;
   Ray ray = start_ray<kPrims>(a, b, j, r, t);
-  while (!ray.done && ray.res.steps < a.max_steps) step_ray(a, ray);
-  if (!ray.done) end_out_of_steps(a, ray);
+  if (!ray.done) walk_ray(a, ray);
+  if (!ray.done) {
+    end_out_of_steps(a, ray);
+  } else if (ray.res.semantic == kSurface || ray.res.semantic == kCrossing) {
+    settle_hit(a, ray);
+  }
   finish_ray<kPrims>(a, ray);
 }
 

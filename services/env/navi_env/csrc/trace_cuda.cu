@@ -7,10 +7,10 @@
 // persistent warps refilling lanes from a work counter). Warps that refill idle lanes from a chunk of
 // 256-3,072 of the actor's rays once 4-16 lanes are idle were 9-38% slower still (docs/PERFORMANCE.md,
 // stop 28): the refilled lanes no longer take the same branches (brick, far cube, leaf lookup)
-// together. At least 9 blocks per SM (56 registers; ptxas spills one 4-byte value): 4% faster on an
-// H100 than the 64 registers / 8 blocks it picked alone before stop 29, and as fast as 8 blocks with
-// 61 registers and no spill since; 10 blocks (48 registers) spill more and gain less. The grid is 2-d: x walks an actor's rays in blocks of 128, y the actors (strided beyond
-// 65,535), so no thread divides to find its actor.
+// together. At least 9 blocks per SM (56 registers, no spill since stop 30): 4% faster on an H100 than
+// the 64 registers / 8 blocks ptxas picked alone before stop 29, and as fast as 8 blocks with 61
+// registers; 10 blocks (48 registers) spill and gain less. The grid is 2-d: x walks an actor's rays in
+// blocks of 128, y the actors (strided beyond 65,535), so no thread divides to find its actor.
 #include <cuda_runtime.h>
 
 #include <cstdint>
