@@ -202,6 +202,9 @@ def _call(corpus: SceneCorpus, **over: object) -> None:
         ({"max_steps": 0}, ValueError, "max_steps"),
         ({"horizon": float("inf")}, ValueError, "horizon"),
         ({"hit_epsilon": -1.0}, ValueError, "hit_epsilon"),
+        ({"hit_slope": -0.01}, ValueError, "hit_slope"),
+        ({"hit_slope": 1.0}, ValueError, "hit_slope"),
+        ({"hit_slope": float("nan")}, ValueError, "hit_slope"),
     ],
 )
 def test_validation_rejects_bad_arguments(

@@ -56,18 +56,23 @@ def _assert_close(a: torch.Tensor, b: torch.Tensor) -> None:
     assert float(rel.max()) <= REL_TOL, f"max relative difference {float(rel.max()):.3g}"
 
 
+@pytest.mark.parametrize("hit_slope", [0.0, 0.03])
 def test_cpu_matches_reference_with_shared_directions(
-    corpus: tuple[list[AnalyticScene], SceneCorpus],
+    corpus: tuple[list[AnalyticScene], SceneCorpus], hit_slope: float
 ) -> None:
     scenes, c = corpus
     ids, origins = _batch(scenes, 6, seed=1)  # (B,), (B, 3)
     dirs = torch.tensor(random_directions(160, seed=2), dtype=torch.float32)  # (R, 3)
-    d1, s1, n1 = _run(trace, c, ids, origins, dirs, max_steps=200, horizon=30.0)
-    d2, s2, n2 = _run(trace_ref, c, ids, origins, dirs, max_steps=200, horizon=30.0)
+    kw = {"max_steps": 200, "horizon": 30.0, "hit_slope": hit_slope}
+    d1, s1, n1 = _run(trace, c, ids, origins, dirs, **kw)
+    d2, s2, n2 = _run(trace_ref, c, ids, origins, dirs, **kw)
     _assert_close(d1, d2)
     assert torch.equal(s1, s2) and torch.equal(n1, n2)
     assert 0.2 < float((s1 > 0).float().mean()) < 1.0  # the batch holds hits and misses
     assert float((d1 == 30.0).float().mean()) > 0.0
+    if hit_slope > 0:  # the growing threshold stops rays sooner than the fixed one
+        fixed = _run(trace, c, ids, origins, dirs, max_steps=200, horizon=30.0)[2]
+        assert float(n1.float().mean()) < float(fixed.float().mean())
 
 
 def test_cpu_matches_reference_from_outside_the_cube(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> None:

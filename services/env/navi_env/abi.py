@@ -46,7 +46,7 @@ class TraceArgs(ctypes.Structure):
         ("hit_epsilon", ctypes.c_float),
         ("prims_per_world", ctypes.c_int32),
         ("num_worlds", ctypes.c_int32),
-        ("reserved", ctypes.c_int32),
+        ("hit_slope", ctypes.c_float),
     ]
 
 

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from navi_env import obstacles
+from navi_env.config import EnvConfig
 from navi_env.rays import spherical_directions, tiled_ray_order
 from navi_env.scene import SceneCorpus, load_scene
 from navi_env.trace import DEFAULT_HORIZON, DEFAULT_MAX_STEPS, sample_distance, trace
@@ -44,6 +45,7 @@ class TraceBenchConfig:
     seed: int = 0
     tiled_order: bool = True  # trace in 16x2 direction tiles (rays.tiled_ray_order), the fast schedule
     obstacles: int = 0  # K dynamic primitives per agent (navi_env.obstacles.scatter), moved every launch
+    hit_slope: float = EnvConfig.hit_slope  # the hit threshold's growth with distance, as the env traces
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,7 @@ class TraceBenchResult:
     horizon_m: float
     obstacles_per_agent: int = 0  # K
     obstacle_hit_fraction: float = 0.0  # rays whose hit is a primitive
+    hit_slope: float = 0.0  # the threshold 0.1 voxel + hit_slope * t
 
 
 @dataclass(frozen=True)
@@ -155,10 +158,11 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
             drift.neg_()
         trace(corpus, agents.scene_ids, agents.origins, dirs, yaw=agents.yaw, out_depth=depth,
               out_semantic=semantic, ray_order=order, max_steps=cfg.max_steps, horizon=cfg.horizon,
-              skip_direction_validation=True, prims=prims_or_none)  # fmt: skip
+              skip_direction_validation=True, prims=prims_or_none, hit_slope=cfg.hit_slope)  # fmt: skip
 
     trace(corpus, agents.scene_ids, agents.origins, dirs, yaw=agents.yaw, out_depth=depth, out_semantic=semantic,
-          out_steps=steps, max_steps=cfg.max_steps, horizon=cfg.horizon, prims=prims_or_none)  # fmt: skip
+          out_steps=steps, max_steps=cfg.max_steps, horizon=cfg.horizon, prims=prims_or_none,
+          hit_slope=cfg.hit_slope)  # fmt: skip
     obstacle_hits = float((semantic == obstacles.OBSTACLE_CLASS + 1).float().mean()) if moving else 0.0
     step_counts = steps.flatten().float()  # (B*R,)
     for _ in range(cfg.warmup):
@@ -189,6 +193,7 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
         horizon_m=cfg.horizon,
         obstacles_per_agent=cfg.obstacles,
         obstacle_hit_fraction=obstacle_hits,
+        hit_slope=cfg.hit_slope,
     )
 
 

@@ -12,6 +12,7 @@ from typing import Annotated
 import typer
 
 from navi_env import cli_env
+from navi_env.config import EnvConfig
 
 TRACER = "Tracer"
 
@@ -101,6 +102,13 @@ def bench_trace_cmd(
     azimuth: Annotated[int, typer.Option(help="Azimuth bins of the spherical pattern.")] = 256,
     elevation: Annotated[int, typer.Option(help="Elevation bins of the spherical pattern.")] = 48,
     max_steps: Annotated[int, typer.Option(help="Sphere-tracing steps per ray.")] = 256,
+    hit_slope: Annotated[
+        float,
+        typer.Option(
+            help="Growth of the hit threshold with distance, 0.1 voxel + slope * t; the default is "
+            "the env's (EnvConfig.hit_slope), 0 a fixed threshold.",
+        ),
+    ] = EnvConfig.hit_slope,
     tiled: Annotated[
         bool,
         typer.Option("--tiled/--no-tiled", help="Schedule rays in 16x2 direction tiles (coherent warps)."),
@@ -130,13 +138,15 @@ def bench_trace_cmd(
 
     if agents < 1 or steps < 1:
         raise _fail("--agents and --steps must be at least 1")
+    if not 0.0 <= hit_slope < 1.0:
+        raise _fail(f"--hit-slope must be in [0, 1), got {hit_slope}")
     if (gmdag is None) == (corpus_dir is None):
         raise _fail("give one of --gmdag FILE or --corpus DIR")
     if vs_warp and mesh is None:
         raise _fail("--vs-warp needs --mesh FILE.npz (vertices, triangles) of the scene's source mesh")
     cfg = TraceBenchConfig(
         agents=agents, device=device, launches=steps, azimuth_bins=azimuth, elevation_bins=elevation,
-        max_steps=max_steps, tiled_order=tiled, obstacles=obstacles,
+        max_steps=max_steps, tiled_order=tiled, obstacles=obstacles, hit_slope=hit_slope,
     )  # fmt: skip
     if corpus_dir is not None:
         if vs_warp:

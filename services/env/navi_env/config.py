@@ -170,7 +170,12 @@ class EnvConfig:
     trace_max_steps: int = 256
     """Sphere-tracing iteration cap per ray."""
     hit_epsilon: float = 0.01
-    """Sphere-tracing hit threshold, meters."""
+    """Sphere-tracing hit threshold near the drone, meters."""
+    hit_slope: float = 0.005
+    """Growth of the hit threshold with distance: a ray stops within hit_epsilon + hit_slope * t of
+    a surface t meters away and reports where the line through its last two samples meets it. 0.005 is
+    a fifth of the default pattern's azimuth spacing (2 pi / 256): a ray passing that close to an edge
+    reads as a hit, and shallow rays on floors and walls stop in fewer steps (docs/SDFDAG_RUNTIME.md)."""
     dt: float = 0.1
     """Seconds of simulated time per step."""
     max_speed: float = 5.0
@@ -229,6 +234,8 @@ class EnvConfig:
             raise ValueError("need at least 4 azimuth and 2 elevation bins")
         if self.horizon <= 0 or self.dt <= 0 or self.max_speed <= 0 or self.drone_radius <= 0:
             raise ValueError("horizon, dt, max_speed and drone_radius must be positive")
+        if not (self.hit_epsilon > 0 and 0.0 <= self.hit_slope < 1.0):
+            raise ValueError("hit_epsilon must be positive and hit_slope in [0, 1)")
         if not 0.0 <= self.limiter_min_fraction <= 1.0:
             raise ValueError("limiter_min_fraction must be in [0, 1]")
         if not 0.0 < self.path_clearance_fraction <= 1.0:

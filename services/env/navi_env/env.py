@@ -536,6 +536,7 @@ class SdfDagEnv:
             max_steps=cfg.trace_max_steps,
             horizon=cfg.horizon,
             hit_epsilon=cfg.hit_epsilon,
+            hit_slope=cfg.hit_slope,
             skip_direction_validation=True,
             prims=self.prims,
         )

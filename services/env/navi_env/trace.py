@@ -49,6 +49,7 @@ class TraceParams:
     max_steps: int
     horizon: float  # meters
     hit_epsilon: float  # meters, or -1.0 for the per-scene default
+    hit_slope: float  # >= 0: the threshold at distance t is hit_epsilon + hit_slope * t
 
 
 def _fail_type(name: str, want: str, t: torch.Tensor) -> TypeError:
@@ -96,6 +97,7 @@ def validate_trace(
     horizon: float,
     hit_epsilon: float | None,
     skip_direction_validation: bool,
+    hit_slope: float = 0.0,
 ) -> TraceParams:
     """Check every argument of `trace`; raise TypeError/ValueError with the reason. Returns the shape."""
     if not isinstance(scenes, SceneCorpus):
@@ -141,6 +143,10 @@ def validate_trace(
         raise ValueError(f"horizon must be a positive finite number of meters, got {horizon}")
     if hit_epsilon is not None and not (0.0 < hit_epsilon < float("inf")):
         raise ValueError(f"hit_epsilon must be positive and finite (meters) or None, got {hit_epsilon}")
+    if not 0.0 <= hit_slope < 1.0:
+        raise ValueError(
+            f"hit_slope must be in [0, 1) (meters of threshold per meter of ray), got {hit_slope}"
+        )
     if not skip_direction_validation:
         _check_values(scenes, scene_ids, directions, ray_order)
     return TraceParams(
@@ -150,6 +156,7 @@ def validate_trace(
         max_steps=int(max_steps),
         horizon=float(horizon),
         hit_epsilon=-1.0 if hit_epsilon is None else float(hit_epsilon),
+        hit_slope=float(hit_slope),
     )
 
 
@@ -258,6 +265,7 @@ def trace(
     skip_direction_validation: bool = False,
     prims: torch.Tensor | None = None,
     prim_world: torch.Tensor | None = None,
+    hit_slope: float = 0.0,
 ) -> None:
     """Sphere-trace B actors x R rays; write depth (meters), semantic and step counts in place.
 
@@ -270,7 +278,10 @@ def trace(
     `navi_env.rays.tiled_ray_order`); results do not depend on it, speed does (coherent warps).
     Without validation a non-permutation leaves some outputs unwritten (never out of bounds).
     max_steps: bound per ray; a ray out of steps reports the distance reached and semantic 0.
-    hit_epsilon: meters; None uses 0.1 voxel of each scene. skip_direction_validation: skip the
+    hit_epsilon: meters; None uses 0.1 voxel of each scene. hit_slope: the hit threshold grows with
+    the distance t travelled, hit_epsilon + hit_slope * t (0: a fixed threshold); a ray stopped
+    within it reports where the line through its last two samples meets the surface (at most 16
+    times its last distance ahead). skip_direction_validation: skip the
     norm and scene-id checks (and their device sync); an out-of-range id then yields NaN depth.
     prims: (W, K, 16) float32 dynamic primitive records (navi_env.obstacles); prim_world: (B,) int32
     world of each actor (default: actor b sees world b). A ray reports the first primitive it enters
@@ -278,7 +289,7 @@ def trace(
     """
     p = validate_trace(
         scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps, ray_order,
-        max_steps, horizon, hit_epsilon, skip_direction_validation,
+        max_steps, horizon, hit_epsilon, skip_direction_validation, hit_slope,
     )  # fmt: skip
     worlds, per_world = check_prims(prims, prim_world, p.batch, scenes.device, "one per actor")
     scratch = None
@@ -310,6 +321,7 @@ def trace(
         max_steps=p.max_steps,
         horizon=p.horizon,
         hit_epsilon=p.hit_epsilon,
+        hit_slope=p.hit_slope,
         prims=_ptr(prims),
         prim_world=_ptr(prim_world),
         prims_per_world=per_world,

@@ -41,6 +41,7 @@ TAG_BRICK, TAG_FAR_FREE, TAG_FAR_SOLID = 1, 2, 3
 PAYLOAD_MASK = 0x3FFFFFFF
 FAR_UNIT = 1.0 / 16.0
 REFINE_ITERATIONS = 6
+SECANT_REACH = 16.0  # kSecantReach: a threshold stop reports the secant's zero at most this many d ahead
 BIG = 3.0e38
 F32 = torch.float32
 
@@ -222,13 +223,14 @@ def trace_ref(
     skip_direction_validation: bool = False,
     prims: torch.Tensor | None = None,
     prim_world: torch.Tensor | None = None,
+    hit_slope: float = 0.0,
 ) -> None:
     """Reference twin of `navi_env.trace.trace` (same arguments, same results; ray_order only
     schedules the compiled launchers, so it is validated and otherwise unused here). Primitive hits
     come from `obstacles.prim_hit_ref` in float64 (the kernel's are float32: equal to a tolerance)."""
     p = validate_trace(
         scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps, ray_order,
-        max_steps, horizon, hit_epsilon, skip_direction_validation,
+        max_steps, horizon, hit_epsilon, skip_direction_validation, hit_slope,
     )  # fmt: skip
     check_prims(prims, prim_world, p.batch, scenes.device, "one per actor")
     b, r = p.batch, p.rays
@@ -259,6 +261,7 @@ def trace_ref(
         eps = torch.tensor(p.hit_epsilon, dtype=F32, device=dev) * s.inv_voxel  # (M,)
     else:
         eps = torch.full((m,), DEFAULT_HIT_EPSILON_VOXELS, dtype=F32, device=dev)  # (M,)
+    slope = torch.tensor(p.hit_slope, dtype=F32, device=dev)  # () float32, as the kernel rounds it
     inv = torch.where(d != 0, 1.0 / d, torch.full_like(d, BIG))  # (M, 3)
     t0 = torch.zeros(m, dtype=F32, device=dev)  # (M,)
     t1 = reach * s.inv_voxel  # (M,)
@@ -272,7 +275,8 @@ def trace_ref(
     steps = torch.zeros(m, dtype=torch.int64, device=dev)  # (M,)
     active = sid_ok & finite & (t0 <= t1)  # (M,)
     t = t0.clone()  # (M,)
-    prev_t, prev_d = t0.clone(), torch.zeros(m, dtype=F32, device=dev)  # (M,), (M,)
+    prev_t = t0.clone()  # (M,)
+    prev_d = torch.full((m,), -1.0, dtype=F32, device=dev)  # (M,) below any free sample: no stop at sample 0
     last_brick = torch.full((m,), -1, dtype=torch.int64, device=dev)  # (M,)
     classes = scenes.brick_class.long()  # (Nb,)
 
@@ -314,7 +318,13 @@ def trace_ref(
             hit_t[ridx] = secant
             lb[ridx] = rb
             last_brick[idx] = lb
-        near = (step > 0) & ~f.far_free & (f.dist < eps[idx]) & (f.dist <= prev_d[idx])  # (K,)
+        threshold = eps[idx] + slope * tk  # (K,) voxels (one multiply-add on the device)
+        pd, pt = prev_d[idx], prev_t[idx]  # (K,), (K,) the previous sample
+        near = ~f.far_free & (f.dist < threshold) & (f.dist <= pd) & ~inside  # (K,)
+        if bool(near.any()):  # where the line through the last two samples meets zero (settle_hit)
+            run = torch.minimum(f.dist * (tk - pt) / (pd - f.dist), SECANT_REACH * f.dist)  # (K,)
+            stop = torch.minimum(torch.where(f.dist < pd, tk + run, tk), t1[idx])  # (K,)
+            hit_t = torch.where(near, stop, hit_t)
         hit = inside | near  # (K,)
         hidx = idx[hit]
         depth[hidx] = hit_t[hit] * sk.voxel[hit]

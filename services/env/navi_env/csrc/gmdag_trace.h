@@ -37,6 +37,7 @@ constexpr float kFarUnit = 1.0f / 16.0f;  // far-code payload unit, voxels
 // Hit epsilon in voxels when the caller passes hit_epsilon <= 0; also the minimum step.
 constexpr float kDefaultHitEpsilonVoxels = 0.1f;
 constexpr int kRefineIterations = 6;    // bisection halvings after a sign change, then one secant
+constexpr float kSecantReach = 16.0f;   // a stop within the threshold reports the secant's zero, at most this many d ahead
 constexpr float kBig = 3.0e38f;
 // Leaf-grid entries: tag (bits 31-30) | log2 cube edge (bits 29-26) | payload (bits 25-0).
 constexpr int kGridShiftBit = 26;
@@ -97,7 +98,7 @@ struct TraceArgs {
   float hit_epsilon;            // meters; <= 0 selects kDefaultHitEpsilonVoxels in each scene
   int32_t prims_per_world;      // K (0: no primitives)
   int32_t num_worlds;           // W; an actor whose world is outside [0, W) sees no primitive
-  int32_t reserved;             // zero
+  float hit_slope;              // >= 0: the hit threshold at distance t is epsilon + hit_slope * t
 };
 
 // Arguments of one point-query launch (sample_distance).
@@ -869,7 +870,7 @@ struct Ray {
   float eps;                 // hit epsilon, voxels
   float t, t1;               // current time and the clip end (cube exit or horizon), voxels
   float prev_t, prev_d;      // previous sample
-  float cross_d;             // the field at the sample that crossed into solid (kCrossing)
+  float end_d;               // the field at the last sample (the one that ended the walk: kSurface, kCrossing)
   int64_t out;               // output element b * R + r
   Walker w;
   RayResult res;             // semantic < 0 while walking: kOutOfSteps, kPrimStashed, kSurface, kCrossing
@@ -883,8 +884,8 @@ constexpr int32_t kOutOfSteps = -1;
 // already in the outputs (written before the walk, which ends at it), and stay there unless the walk
 // hits the static scene first. Nothing about the primitive is carried through the walk.
 constexpr int32_t kPrimStashed = -2;
-// res.semantic of a ray whose walk ended on the static surface: kSurface within epsilon of it (depth
-// set), kCrossing at a sample inside solid (depth and class set after the walk by settle_hit).
+// res.semantic of a ray whose walk ended on the static surface: kSurface at a free sample within the
+// hit threshold, kCrossing at a sample inside solid (depth and class set after the walk by settle_hit).
 constexpr int32_t kSurface = -3;
 constexpr int32_t kCrossing = -4;
 
@@ -982,8 +983,8 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const
   ray.t = t0;
   ray.t1 = t1;
   ray.prev_t = t0;
-  ray.prev_d = 0.0f;
-  ray.cross_d = 0.0f;
+  ray.prev_d = -1.0f;  // below any free sample: no surface stop at the first sample
+  ray.end_d = 0.0f;
   walker_init(ray.w);
   ray.done = false;
   return ray;
@@ -999,32 +1000,34 @@ NAVI_HD void end_out_of_steps(const TraceArgs& a, Ray& ray) {
 
 // The main loop of sphere tracing (see docs/SDFDAG_RUNTIME.md): sample, hit tests, step, for at most
 // max_steps samples. A ray that ends here is done (a miss, kSurface or kCrossing); one that runs out of
-// samples is not (end_out_of_steps). The loop keeps its state in locals and leaves by `break`, which
-// the device compiler turns into fewer moves per step than a done flag.
+// samples is not (end_out_of_steps). The loop keeps its state in locals (the last sample's field in
+// d, written out once after the loop) and leaves by `break`: the device compiler turns that into fewer
+// moves per step than a done flag, and the exits into predicated branches.
 NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
   const Scene& s = ray.s;
   Walker& w = ray.w;
-  float t = ray.t, prev_t = ray.prev_t, prev_d = ray.prev_d;
+  float t = ray.t, prev_t = ray.prev_t, prev_d = ray.prev_d, d = ray.end_d;
   int steps = ray.res.steps;
   while (steps < a.max_steps) {
-    const int step = steps++;
+    ++steps;
     const float px = ray.ox + t * ray.dx, py = ray.oy + t * ray.dy, pz = ray.oz + t * ray.dz;
     const FieldSample f = walk_sample(a.grid, a.nodes, a.bricks, s, w, px, py, pz);
-    if (f.solid || f.dist < 0.0f) {  // inside: refined after the walk (settle_hit), out of the loop
-      ray.cross_d = f.dist;
+    d = f.dist;
+    if (f.solid || d < 0.0f) {  // inside: refined after the walk (settle_hit), out of the loop
       ray.res.semantic = kCrossing;
       ray.done = true;
       break;
     }
-    // Within epsilon of a surface while not moving away from it (a ray leaving the surface it
-    // starts on is not stopped by it).
-    if (step > 0 && !f.far_free && f.dist < ray.eps && f.dist <= prev_d) {
-      ray.res.depth = t * s.voxel;
+    // Within the threshold of a surface while not moving away from it: a ray leaving the surface it
+    // starts on is not stopped by it, and none is at its first sample (prev_d starts at -1). The
+    // threshold grows with the distance travelled, so that a ray stops once the surface lies within
+    // a fixed fraction of its angular footprint.
+    if (!f.far_free && d < ray.eps + a.hit_slope * t && d <= prev_d) {
       ray.res.semantic = kSurface;
       ray.done = true;
       break;
     }
-    float next = t + fmaxf(f.dist, ray.eps);
+    float next = t + fmaxf(d, ray.eps);
     if (f.far_free) {
       // Skip the whole far cube and then its lower bound d beyond the exit: every point of the closed
       // cube, the exit point included, is at least d from the surface (the far code's promise). A point
@@ -1038,7 +1041,7 @@ NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
       const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
       const float d_axis = axis == 0 ? ray.dx : (axis == 1 ? ray.dy : ray.dz);
       const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
-      next = fmaxf(t_exit, t) + fmaxf(f.dist, ray.eps);
+      next = fmaxf(t_exit, t) + fmaxf(d, ray.eps);
       const int beyond = d_axis > 0.0f ? cube_min + edge : cube_min - 1;  // the cell across the exit face
       if (beyond < 0 || beyond >= s.resolution) {  // left the cube: a miss
         ray.done = true;
@@ -1046,7 +1049,7 @@ NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
       }
     }
     prev_t = t;
-    prev_d = f.dist;
+    prev_d = d;
     t = next;
     if (next > ray.t1) {  // past the cube or the horizon: a miss
       ray.done = true;
@@ -1056,36 +1059,44 @@ NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
   ray.t = t;
   ray.prev_t = prev_t;
   ray.prev_d = prev_d;
+  ray.end_d = d;
   ray.res.steps = steps;
 }
 
 // The depth and class of a ray whose walk ended on the static surface (kSurface, kCrossing), after
-// the main loop so that the rare refinement and the class lookup stay out of it. A crossing at the
-// first sample is a hit there (an origin inside solid reports depth 0); a later one lies between the
-// previous (free) sample and this one: 6 bisection halvings, then one secant step. The class is that
-// of the last brick sampled, refinement samples included.
+// the main loop so that the rare refinement and the class lookup stay out of it.
+// - kSurface (a free sample within the threshold, approaching): where the line through the last two
+//   samples meets zero, t + d (t - t_prev) / (d_prev - d), at most kSecantReach d ahead and not past
+//   the walk's end t1; t itself when the field did not fall. On a plane this is the exact crossing,
+//   however shallow the ray, so a larger threshold costs little depth accuracy.
+// - kCrossing: at the first sample, a hit there (an origin inside solid reports depth 0); later, the
+//   surface lies between the previous (free) sample and this one: 6 bisection halvings, then one
+//   secant step.
+// The class is that of the last brick sampled, refinement samples included.
 NAVI_HD void settle_hit(const TraceArgs& a, Ray& ray) {
-  if (ray.res.semantic == kCrossing) {
-    float hit = ray.t;
-    if (ray.res.steps > 1) {
-      float lo = ray.prev_t, hi = ray.t, flo = ray.prev_d, fhi = ray.cross_d;
-      for (int k = 0; k < kRefineIterations; ++k) {
-        const float mid = 0.5f * (lo + hi);
-        const FieldSample m = walk_sample(a.grid, a.nodes, a.bricks, ray.s, ray.w, ray.ox + mid * ray.dx,
-                                          ray.oy + mid * ray.dy, ray.oz + mid * ray.dz);
-        if (m.solid || m.dist < 0.0f) {
-          hi = mid;
-          fhi = m.dist;
-        } else {
-          lo = mid;
-          flo = m.dist;
-        }
+  float hit = ray.t;
+  if (ray.res.semantic == kSurface) {
+    const float d = ray.end_d;
+    if (d < ray.prev_d) hit = ray.t + fminf(d * (ray.t - ray.prev_t) / (ray.prev_d - d), kSecantReach * d);
+    hit = fminf(hit, ray.t1);
+  } else if (ray.res.steps > 1) {
+    float lo = ray.prev_t, hi = ray.t, flo = ray.prev_d, fhi = ray.end_d;
+    for (int k = 0; k < kRefineIterations; ++k) {
+      const float mid = 0.5f * (lo + hi);
+      const FieldSample m = walk_sample(a.grid, a.nodes, a.bricks, ray.s, ray.w, ray.ox + mid * ray.dx,
+                                        ray.oy + mid * ray.dy, ray.oz + mid * ray.dz);
+      if (m.solid || m.dist < 0.0f) {
+        hi = mid;
+        fhi = m.dist;
+      } else {
+        lo = mid;
+        flo = m.dist;
       }
-      const float denom = flo - fhi;
-      hit = denom > 0.0f ? lo + (hi - lo) * (flo / denom) : lo;
     }
-    ray.res.depth = hit * ray.s.voxel;
+    const float denom = flo - fhi;
+    hit = denom > 0.0f ? lo + (hi - lo) * (flo / denom) : lo;
   }
+  ray.res.depth = hit * ray.s.voxel;
   ray.res.semantic = class_semantic(a.brick_class, ray.w.last_brick);
 }
 
