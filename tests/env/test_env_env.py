@@ -10,7 +10,8 @@ import torch
 
 from navi_compiler.dag import build_gmdag
 from navi_compiler.gmdag import Gmdag
-from navi_env.config import EnvConfig, SensorConfig
+from navi_env import env as env_module
+from navi_env.config import EnvConfig, ObstacleConfig, SensorConfig
 from navi_env.env import INFO_KEYS, SdfDagEnv
 from navi_env.rewards import TERMS
 from navi_env.scene import SceneCorpus, load_corpus
@@ -135,6 +136,31 @@ def test_seeded_determinism(room: SceneCorpus) -> None:
     c = rollout(SdfDagEnv(room, 4, "cpu", cfg, spawns=spawns), 6, 15)
     assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
     assert not all(torch.equal(x, y) for x, y in zip(a, c, strict=True))
+
+
+@pytest.mark.parametrize(("obstacles", "squad"), [(0, 0), (3, 0), (2, 2)])
+def test_fused_stages_compile_whole_and_change_nothing(
+    room: SceneCorpus, monkeypatch: pytest.MonkeyPatch, obstacles: int, squad: int
+) -> None:
+    """The stages EnvConfig.fused_step compiles on CUDA trace into whole graphs (fullgraph: no break, the
+    distance samples as navi::sample_distance ops) that reproduce the eager rollout bit for bit; the
+    "aot_eager" backend runs those graphs with the eager kernels (inductor's own: test_env_gpu.py)."""
+    cfg = EnvConfig(
+        azimuth_bins=16,
+        elevation_bins=4,
+        max_steps_per_episode=6,
+        episodes_per_scene=1,
+        obstacles=ObstacleConfig(count=obstacles, squad=squad),
+    )
+    corpus = load_corpus([room_gmdag(), room_gmdag(spawn=(4.0, 4.0, 3.0))], "cpu")
+    spawns = [
+        torch.tensor([[8.0, 8.0, 4.0], [5.0, 5.0, 2.0]]),
+        torch.tensor([[4.0, 4.0, 3.0], [12.0, 9.0, 6.0]]),
+    ]
+    eager = rollout(SdfDagEnv(corpus, 4, "cpu", cfg, spawns=spawns), 3, 14)
+    monkeypatch.setattr(env_module, "_eager", lambda fn: env_module.fused(fn, "aot_eager", fullgraph=True))
+    compiled = rollout(SdfDagEnv(corpus, 4, "cpu", cfg, spawns=spawns), 3, 14)
+    assert all(torch.equal(x, y) for x, y in zip(eager, compiled, strict=True))
 
 
 def test_truncation_and_scene_rotation_counts() -> None:

@@ -222,6 +222,12 @@ class EnvConfig:
     obstacle) as torch.compile'd passes (navi_env.obstacle_motion; compiled by the first `reset` or
     `step`, before the CUDA graph is recorded): a few kernels instead of about 430 per step. False, and
     always on CPU: the eager kernels."""
+    fused_step: bool = True
+    """On CUDA, compile the elementwise work of the physics, episode and reward stages (the commanded
+    move, the contact-safe move's bisection around its distance samples, the exploration cells, spawns,
+    scene hops and reward terms) with torch.compile (`navi_env.env.fused`; compiled by the first steps,
+    before the CUDA graph is recorded): tens of kernels per step instead of about 550. False, and always
+    on CPU: the eager kernels."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """Optional noise, dropout and ray pattern; off by default."""
     reward: RewardConfig = field(default_factory=RewardConfig)

@@ -19,8 +19,9 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any, TypeVar, cast
 
 import torch
 
@@ -219,6 +220,13 @@ class SdfDagEnv:
         self.obs = f32(n, CHANNELS, cfg.azimuth_bins, cfg.elevation_bins)  # (N, 3, Az, El)
         self._fused_observation = cfg.fused_observation and dev.type == "cuda"
         self._fused_obstacles = cfg.fused_obstacles and dev.type == "cuda"
+        fuse = fused if cfg.fused_step and dev.type == "cuda" else _eager
+        self._commanded_step = fuse(physics.commanded_step)
+        self._safe_move = fuse(physics.safe_move)
+        self._visit = fuse(rewards.visit)
+        self._next_scene = fuse(episodes.next_scene)
+        self._draw_spawns = fuse(episodes.draw_spawns)
+        self._reward_terms = fuse(rewards.reward_terms)
         self._semantic_table = semantic_table(dev)  # (256,) float32 channel 1 per semantic code
         self.void = f32(n)  # (N,) view statistics of the current observation
         self.near = f32(n)  # (N,)
@@ -325,14 +333,13 @@ class SdfDagEnv:
         self.tick.add_(1)
         with stage("physics"):
             struck = self._move_obstacles()  # (N,) bool: an obstacle ran into the drone
-            vel, yaw_rate = physics.body_velocity(self.actions, cfg)  # (N, 3), (N,)
-            vel = vel * physics.limiter_scale(self.clearance, cfg)[:, None]  # (N, 3) body m/s
-            step = physics.body_to_world(vel, self.yaw) * cfg.dt  # (N, 3) commanded world move, m
+            # (N, 3) body m/s, (N,) rad/s, (N, 3) commanded world move, m
+            vel, yaw_rate, step = self._commanded_step(self.actions, self.clearance, self.yaw, cfg)
             if self.squad > 1:  # a mate may move up to its commanded length: it fills that much more room
                 self._place_drones(self.position, cfg.drone_radius + step.norm(dim=1))
             if self.prims is not None:
                 self.safe_distance.copy_(self._distance(self.position))  # the field changed under the drone
-            move = physics.safe_move(
+            move = self._safe_move(
                 self.position,
                 self.safe_distance,
                 step,
@@ -343,10 +350,9 @@ class SdfDagEnv:
                 cfg.drone_radius * cfg.path_clearance_fraction,
                 cfg.collision_iterations,
             )
-            cells = rewards.cell_index(
-                move.position, cfg.reward.exploration_cell, cfg.reward.exploration_table_bits
-            )
-            novel = rewards.visit_cells(self.visited, cells)  # (N,) bool
+            novel = self._visit(
+                self.visited, move.position, cfg.reward.exploration_cell, cfg.reward.exploration_table_bits
+            )  # (N,) bool
             contact, obstacle_contact, drone_contact = move.contact, struck, self.done
             if self.obstacles is not None:
                 nearest = obstacle_motion.obstacle_distance(
@@ -398,7 +404,7 @@ class SdfDagEnv:
                 near=after(self.near, self.before["near"]),
             )
             self.reward.zero_()
-            for name, value in rewards.reward_terms(inputs, cfg).items():
+            for name, value in self._reward_terms(inputs, cfg).items():
                 self.terms[name].copy_(value)
                 self.reward.add_(value)
             self.episode_return.add_(self.reward)
@@ -429,7 +435,7 @@ class SdfDagEnv:
     def _end_episodes(self, ended: torch.Tensor) -> None:
         """Auto-reset actors with `ended` (N,) bool: count, maybe rotate scene, spawn, clear state."""
         count, rotate = episodes.rotation(self.episodes_on_scene, ended, self.config)
-        other = episodes.next_scene(self.scene, self.spawns.scenes, self.seed, self.tick, self.actor)  # (N,)
+        other = self._next_scene(self.scene, self.spawns.scenes, self.seed, self.tick, self.actor)  # (N,)
         if self.squad > 1:  # the leader's count decides and its draw is the squad's next scene
             leader = self._mates[:, 0]  # (N,)
             rotate, other = rotate[leader], other[leader]
@@ -442,7 +448,7 @@ class SdfDagEnv:
 
     def _spawn(self, mask: torch.Tensor) -> None:
         """Place actors with `mask` (N,) bool at a fresh spawn of their scene; clear their visited cells."""
-        pos, clr, yaw = episodes.draw_spawns(
+        pos, clr, yaw = self._draw_spawns(
             self.spawns, self.scene, self.seed, self.tick, self.actor, self.squad
         )
         self.position.copy_(torch.where(mask[:, None], pos, self.position))
@@ -450,8 +456,7 @@ class SdfDagEnv:
         self.yaw.copy_(torch.where(mask, yaw, self.yaw))
         self.visited.masked_fill_(mask[:, None], 0)
         cfg = self.config.reward
-        cells = rewards.cell_index(self.position, cfg.exploration_cell, cfg.exploration_table_bits)  # (N,)
-        rewards.visit_cells(self.visited, cells)
+        self._visit(self.visited, self.position, cfg.exploration_cell, cfg.exploration_table_bits)
         self.fresh.copy_(mask)
 
     def _place_obstacles(self, mask: torch.Tensor) -> None:
@@ -593,3 +598,27 @@ class SdfDagEnv:
 @contextlib.contextmanager
 def _no_stage(name: str) -> Iterator[None]:
     yield
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def fused(fn: F, backend: str = "inductor", fullgraph: bool = False) -> F:
+    """fn compiled by torch.compile into few kernels (the env's CUDA path, EnvConfig.fused_step),
+    compiled by the first eager steps, before the step's CUDA graph is recorded. Inductor runs without
+    fp contraction (`emulate_precision_casts`) and with round-to-nearest division
+    (`eager_numerics.division_rounding`), so every float operation rounds as in the eager kernels;
+    `sample_distance` enters the graph as an opaque op (navi_env.trace._sample_op).
+
+    Shapes are specialised first and made dynamic when a second env brings other sizes. Not fullgraph:
+    past dynamo's recompile limit (many envs with other configurations in one process) a function
+    runs its eager kernels, which give the same values, instead of failing. Tests compile with
+    `fullgraph=True` and `backend="aot_eager"` (no codegen) to check that every graph stays whole."""
+    options: dict[str, str | int | bool | Callable[..., Any]] | None = None
+    if backend == "inductor":
+        options = {"emulate_precision_casts": True, "eager_numerics.division_rounding": True}
+    return cast(F, torch.compile(fn, fullgraph=fullgraph, backend=backend, options=options))
+
+
+def _eager(fn: F) -> F:
+    return fn

@@ -205,8 +205,10 @@ def observe(
 
 @functools.cache
 def _compiled_pass() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
-    """_fused_pass compiled once per process (torch.compile caches one program per input shape)."""
-    return torch.compile(_fused_pass, fullgraph=True, dynamic=False)
+    """_fused_pass compiled once per process (shapes specialised first, dynamic once a second env size
+    appears). Not fullgraph: past dynamo's recompile limit it runs eagerly, with the same values,
+    instead of failing the ninth differently sized env of a process."""
+    return torch.compile(_fused_pass)
 
 
 def _fused_pass(

@@ -418,8 +418,9 @@ _Fn = TypeVar("_Fn", bound=Callable[..., object])
 
 @functools.cache
 def _compiled(fn: _Fn) -> _Fn:
-    """fn compiled once per process (torch.compile caches one program per input shape)."""
-    return cast(_Fn, torch.compile(fn, fullgraph=True, dynamic=False))
+    """fn compiled once per process (shapes specialised first, dynamic once a second env size appears;
+    not fullgraph, so past dynamo's recompile limit it runs eagerly instead of failing)."""
+    return cast(_Fn, torch.compile(fn))
 
 
 def _call(fn: Callable[..., _T], fused: bool, *args: object) -> _T:

@@ -41,6 +41,18 @@ class Move:
     displacement: torch.Tensor  # (N, 3) float32 world meters actually moved
 
 
+def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Dot products (N,) of vectors (N, 3), summed in x, y, z order. Elementwise operations only (no
+    reduction kernel, no scalar divisor, which eager CUDA turns into a reciprocal multiply), so the eager
+    kernels and a torch.compile'd graph (EnvConfig.fused_step) round every physics value identically."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def length(v: torch.Tensor) -> torch.Tensor:
+    """Euclidean length (N,) of vectors (N, 3) (see `dot`)."""
+    return torch.sqrt(dot(v, v))
+
+
 def body_velocity(actions: torch.Tensor, config: EnvConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """Clip actions (N, 4) to [-1, 1] and scale: body velocity (N, 3) m/s and yaw rate (N,) rad/s.
 
@@ -51,8 +63,8 @@ def body_velocity(actions: torch.Tensor, config: EnvConfig) -> tuple[torch.Tenso
         (a[:, 0] * config.max_speed, a[:, 2] * config.max_lateral_speed, a[:, 1] * config.max_vertical_speed),
         dim=1,
     )  # (N, 3) body (x fwd, y left, z up) m/s
-    speed = vel.norm(dim=1, keepdim=True)  # (N, 1)
-    vel = vel * (config.max_speed / speed.clamp_min(config.max_speed))  # (N, 3) norm <= max_speed
+    limit = length(vel)[:, None].clamp_min(config.max_speed)  # (N, 1)
+    vel = vel / limit * config.max_speed  # (N, 3) norm <= max_speed
     yaw_rate = a[:, 3] * config.max_yaw_rate  # (N,) rad/s
     return vel, yaw_rate
 
@@ -61,7 +73,7 @@ def limiter_scale(clearance: torch.Tensor, config: EnvConfig) -> torch.Tensor:
     """Proximity speed limiter (N,) in [limiter_min_fraction, 1]: 1 beyond limiter_distance, linear
     down to limiter_min_fraction at the drone radius."""
     span = config.limiter_distance - config.drone_radius
-    ramp = (clearance - config.drone_radius) / span  # (N,)
+    ramp = (clearance - config.drone_radius) * (1.0 / span)  # (N,) a product: see `dot`
     return ramp.clamp(config.limiter_min_fraction, 1.0)
 
 
@@ -76,6 +88,16 @@ def body_to_world(vec: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
 def wrap_angle(angle: torch.Tensor) -> torch.Tensor:
     """Wrap radians into [-pi, pi)."""
     return torch.remainder(angle + math.pi, 2.0 * math.pi) - math.pi
+
+
+def commanded_step(
+    actions: torch.Tensor, clearance: torch.Tensor, yaw: torch.Tensor, config: EnvConfig
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What actions (N, 4) ask of drones with view clearance (N,) and yaw (N,): body velocity (N, 3) m/s
+    after the proximity limiter, yaw rate (N,) rad/s and the world move of one step (N, 3) meters."""
+    vel, yaw_rate = body_velocity(actions, config)  # (N, 3), (N,)
+    vel = vel * limiter_scale(clearance, config)[:, None]  # (N, 3) body m/s
+    return vel, yaw_rate, body_to_world(vel, yaw) * config.dt
 
 
 def path_bound(d0: torch.Tensor, dq: torch.Tensor, length: torch.Tensor) -> torch.Tensor:
@@ -99,7 +121,7 @@ def surface_normal(points: torch.Tensor, distance: DistanceFn) -> torch.Tensor:
     probes = torch.cat((points[:, None, :] + offsets, points[:, None, :] - offsets), dim=1)  # (N, 6, 3)
     d = distance(probes.reshape(n * 6, 3)).reshape(n, 6)  # (N, 6)
     grad = d[:, :3] - d[:, 3:]  # (N, 3)
-    return grad / grad.norm(dim=1, keepdim=True).clamp_min(1e-9)  # (N, 3)
+    return grad / length(grad)[:, None].clamp_min(1e-9)  # (N, 3)
 
 
 def safe_move(
@@ -117,7 +139,7 @@ def safe_move(
     (N, 3) each; never into a surface (see the module docstring). Fixed work per call, no host sync."""
     target = torch.minimum(torch.maximum(position + displacement, lo), hi)  # (N, 3)
     step = target - position  # (N, 3)
-    full = step.norm(dim=1)  # (N,)
+    full = length(step)  # (N,)
     d_target = distance(target)  # (N,)
     ok = _accept(clearance, d_target, full, radius, path_clearance)  # (N,) bool
     t_lo = ok.to(position.dtype)  # (N,) farthest accepted fraction
@@ -133,10 +155,10 @@ def safe_move(
     stop = position + t_lo[:, None] * step  # (N, 3)
     rest = target - stop  # (N, 3)
     normal = surface_normal(stop, distance)  # (N, 3)
-    into = (rest * normal).sum(dim=1, keepdim=True).clamp_max(0.0)  # (N, 1) <= 0
+    into = dot(rest, normal)[:, None].clamp_max(0.0)  # (N, 1) <= 0
     slide_to = torch.minimum(torch.maximum(stop + rest - into * normal, lo), hi)  # (N, 3)
     d_slide = distance(slide_to)  # (N,)
-    slid = _accept(d_lo, d_slide, (slide_to - stop).norm(dim=1), radius, path_clearance) & ~ok  # (N,) bool
+    slid = _accept(d_lo, d_slide, length(slide_to - stop), radius, path_clearance) & ~ok  # (N,) bool
     final = torch.where(slid[:, None], slide_to, stop)  # (N, 3)
     d_final = torch.where(slid, d_slide, d_lo)  # (N,)
     blocked_path = path_bound(clearance, d_target, full) < 0.0  # (N,) bool

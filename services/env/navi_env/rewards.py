@@ -166,6 +166,12 @@ def visit_cells(visited: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return novel[:, 0]
 
 
+def visit(visited: torch.Tensor, position: torch.Tensor, cell: float, bits: int) -> torch.Tensor:
+    """Mark the exploration cells of positions (N, 3) in `visited` (N, M/8) uint8 (cell_index, then
+    visit_cells); returns novel (N,) bool."""
+    return visit_cells(visited, cell_index(position, cell, bits))
+
+
 def visit_cells_ref(seen: list[set[int]], index: torch.Tensor) -> torch.Tensor:
     """Slow twin of `visit_cells` on Python sets of bit indices, one set per actor."""
     novel = []

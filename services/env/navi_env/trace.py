@@ -376,15 +376,37 @@ def sample_distance(
     prims (W, K, 16) and prim_world (N,) int32: the min with every primitive of the point's world,
     leaving out the primitive owned by prim_owner (N,) int32 (a drone's own sphere) when given.
     """
-    n, worlds, per_world = validate_sample(scenes, scene_ids, points, out, prims, prim_world, prim_owner)
+    n = validate_sample(scenes, scene_ids, points, out, prims, prim_world, prim_owner)[0]
+    buffers = (scenes.nodes, scenes.grid, scenes.bricks, scenes.table)
+    if out is None and torch.compiler.is_compiling():  # an opaque op in a compiled graph (see _sample_op)
+        return _sample_op(*buffers, scene_ids, points, prims, prim_world, prim_owner)
     result = torch.empty(n, dtype=torch.float32, device=scenes.device) if out is None else out  # (N,) float32
+    _launch_sample(*buffers, scene_ids, points, result, prims, prim_world, prim_owner)
+    return result
+
+
+def _launch_sample(
+    nodes: torch.Tensor,
+    grid: torch.Tensor,
+    bricks: torch.Tensor,
+    table: torch.Tensor,
+    scene_ids: torch.Tensor,
+    points: torch.Tensor,
+    result: torch.Tensor,
+    prims: torch.Tensor | None,
+    prim_world: torch.Tensor | None,
+    prim_owner: torch.Tensor | None,
+) -> None:
+    """The sample launch over validated arguments: a SceneCorpus' buffers, N points, result (N,)."""
+    n = points.shape[0]
     if n == 0:
-        return result
+        return
+    worlds, per_world = (0, 0) if prims is None else (int(prims.shape[0]), int(prims.shape[1]))
     args = SampleArgs(
-        nodes=scenes.nodes.data_ptr(),
-        grid=scenes.grid.data_ptr(),
-        bricks=scenes.bricks.data_ptr(),
-        scenes=scenes.table.data_ptr(),
+        nodes=nodes.data_ptr(),
+        grid=grid.data_ptr(),
+        bricks=bricks.data_ptr(),
+        scenes=table.data_ptr(),
         scene_ids=scene_ids.data_ptr(),
         points=points.data_ptr(),
         out_distance=result.data_ptr(),
@@ -392,13 +414,46 @@ def sample_distance(
         prim_world=_ptr(prim_world),
         prim_owner=_ptr(prim_owner),
         num_points=n,
-        num_scenes=len(scenes),
+        num_scenes=table.shape[0],
         scene_id_bytes=scene_ids.element_size(),
         prims_per_world=per_world,
         num_worlds=worlds,
     )
-    launch("sample", args, scenes.device)
+    launch("sample", args, points.device)
+
+
+@torch.library.custom_op("navi::sample_distance", mutates_args=())
+def _sample_op(
+    nodes: torch.Tensor,
+    grid: torch.Tensor,
+    bricks: torch.Tensor,
+    table: torch.Tensor,
+    scene_ids: torch.Tensor,
+    points: torch.Tensor,
+    prims: torch.Tensor | None,
+    prim_world: torch.Tensor | None,
+    prim_owner: torch.Tensor | None,
+) -> torch.Tensor:
+    """sample_distance as an op torch.compile keeps whole (arguments validated by the caller): the
+    distance (N,) float32 at points (N, 3), so the elementwise work around it fuses into few kernels."""
+    result = torch.empty(points.shape[0], dtype=torch.float32, device=points.device)  # (N,) float32
+    _launch_sample(nodes, grid, bricks, table, scene_ids, points, result, prims, prim_world, prim_owner)
     return result
+
+
+@_sample_op.register_fake
+def _(
+    nodes: torch.Tensor,
+    grid: torch.Tensor,
+    bricks: torch.Tensor,
+    table: torch.Tensor,
+    scene_ids: torch.Tensor,
+    points: torch.Tensor,
+    prims: torch.Tensor | None,
+    prim_world: torch.Tensor | None,
+    prim_owner: torch.Tensor | None,
+) -> torch.Tensor:
+    return points.new_empty(points.shape[0])  # (N,) float32
 
 
 def sweep_prims(
