@@ -147,6 +147,20 @@ def _check_pair(
     assert torch.equal(s1.cpu()[~tie], s2[~tie])
 
 
+def _check_cuda_pair(
+    gpu: tuple[torch.Tensor, torch.Tensor], cpu: tuple[torch.Tensor, torch.Tensor], voxel: torch.Tensor
+) -> None:
+    """CUDA against the CPU (or the reference): the primitives are exact on both (hits within 1e-3 m:
+    the device contracts multiply-adds), while CUDA reads the static field through the texture unit,
+    whose 8-bit filter weights move a static hit by a small fraction of a voxel (docs/SDFDAG_RUNTIME.md);
+    a rare grazing ray decides its hit a step apart. voxel: (B, 1) meters."""
+    (d1, s1), (d2, s2) = gpu, cpu
+    diff = (d1.cpu() - d2).abs()  # (B, R) meters
+    close = (diff < 1e-3) | (diff < 0.1 * voxel)
+    assert float(close.float().mean()) >= 0.995, float(close.float().mean())
+    assert float((s1.cpu() != s2).float().mean()) <= 0.005
+
+
 def test_cpu_matches_reference_with_primitives_moving_every_step(
     setting: tuple[list[AnalyticScene], SceneCorpus],
 ) -> None:
@@ -243,16 +257,16 @@ def test_cuda_matches_cpu_with_primitives_moving_every_step(
     dirs = torch.tensor(random_directions(128, seed=9), dtype=torch.float32)  # (R, 3)
     for step in range(4):
         ids, origins, world, prims = _step_inputs(scenes, 6, step)
-        static, _ = _trace(trace, cpu, ids, origins, dirs)
         on_cpu = _trace(trace, cpu, ids, origins, dirs, prims=prims, prim_world=world)
         on_gpu = _trace(
             trace, cuda, ids.cuda(), origins.cuda(), dirs.cuda(), prims=prims.cuda(), prim_world=world.cuda()
         )
-        _check_pair(on_gpu, on_cpu, static)
+        voxel = torch.tensor([s.voxel_size for s in scenes])[ids][:, None]  # (B, 1) meters
+        _check_cuda_pair(on_gpu, on_cpu, voxel)
         pts = origins + 0.3
         d_cpu = sample_distance(cpu, ids, pts, prims=prims, prim_world=world)
         d_gpu = sample_distance(cuda, ids.cuda(), pts.cuda(), prims=prims.cuda(), prim_world=world.cuda())
-        assert float((d_gpu.cpu() - d_cpu).abs().max()) < 1e-5
+        assert float(((d_gpu.cpu() - d_cpu).abs() / voxel[:, 0]).max()) < 0.02
 
 
 def _extreme_points(rec: list[float]) -> list[np.ndarray]:
@@ -371,7 +385,7 @@ def test_ray_group_masks_keep_every_primitive_a_ray_can_hit(
             trace, corpus, ids.to(dev), origins.to(dev), dirs.to(dev), yaw=yaw.to(dev), ray_order=order.to(dev),
             prims=table.contiguous().to(dev), max_steps=steps,
         )  # fmt: skip
-        if device == "cuda":  # the device contracts multiply-adds: hits move by float32 rounding
-            assert float((kernel[0].cpu() - want[0]).abs().max()) < 1e-3
+        if device == "cuda":  # the device contracts multiply-adds and filters the static field in hardware
+            _check_cuda_pair(kernel, want, torch.tensor([s.voxel_size for s in scenes])[ids][:, None])
         else:
             _check_pair(kernel, want, static)

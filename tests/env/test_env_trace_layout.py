@@ -12,7 +12,17 @@ import torch
 import navi_env.scene as scene_mod
 from navi_compiler.gmdag import PAYLOAD_MASK, TAG_FAR_FREE, TAG_NODE, Gmdag
 from navi_env.analytic_scenes import AnalyticScene, Box, Sphere, demo_room, free_points, random_directions
-from navi_env.scene import BRICK_WORDS, corner_words, grid_depth, leaf_grid, load_corpus, load_scene
+from navi_env.scene import (
+    BRICK_WORDS,
+    atlas_shift,
+    brick_atlas,
+    corner_words,
+    grid_depth,
+    leaf_grid,
+    load_corpus,
+    load_scene,
+    scene_nbytes,
+)
 from navi_env.trace import trace
 from navi_env.trace_ref import brick_samples, trace_ref
 
@@ -141,3 +151,26 @@ def test_too_many_bricks_for_the_grid_payload_is_rejected(monkeypatch: pytest.Mo
     monkeypatch.setattr(scene_mod, "GRID_PAYLOAD_LIMIT", len(g.bricks))
     with pytest.raises(ValueError, match="at most"):
         load_scene(g)
+
+
+def test_brick_atlas_holds_every_brick_once_as_a_tile() -> None:
+    """Brick b is the 9^3 tile at 9 (b mod 2^p, (b >> p) mod 2^p, b >> 2p), texel (i, j, k) = sample (i, j, k)."""
+    assert [atlas_shift(n) for n in (0, 1, 2, 8, 9, 64, 65, 512, 513)] == [0, 0, 1, 1, 2, 2, 3, 3, 4]
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 5, 70):
+        bricks = rng.integers(-127, 128, size=(n, 729), dtype=np.int8)  # (Nb, 729) sample i + 9j + 81k
+        texels, p = brick_atlas(bricks)  # (9Z, 9Y, 9X) int8 [z, y, x]
+        side, slabs = 1 << p, max(1, -(-n // (1 << 2 * p)))
+        assert p == atlas_shift(n) and texels.shape == (9 * slabs, 9 * side, 9 * side)
+        used = np.zeros(texels.shape, bool)
+        for b in range(n):
+            x, y, z = 9 * (b % side), 9 * ((b >> p) % side), 9 * (b >> 2 * p)
+            tile = texels[z : z + 9, y : y + 9, x : x + 9]  # (9k, 9j, 9i)
+            assert np.array_equal(tile.reshape(-1), bricks[b])  # [k, j, i] flattens to i + 9j + 81k
+            used[z : z + 9, y : y + 9, x : x + 9] = True
+        assert (texels[~used] == 0).all() and used.sum() == 729 * n
+
+
+def test_scene_bytes_on_cuda_count_a_729_byte_tile_per_brick() -> None:
+    assert scene_nbytes(3, 10, 6, atlas=True) == 32 * 3 + 730 * 10 + 4 * 64**3 + 64
+    assert scene_nbytes(3, 10, 6) == 32 * 3 + 2305 * 10 + 4 * 64**3 + 64

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import gc
+
 import numpy as np
 import pytest
 import torch
@@ -201,6 +204,9 @@ def test_sample_distance_matches_reference_and_the_analytic_field(
 
 @gpu
 def test_cuda_matches_cpu(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> None:
+    """The CUDA build reads the brick atlas through the texture unit, whose trilinear weights are 8-bit
+    fixed point: its field differs from the CPU's exact trilinear by a small fraction of a voxel, so
+    depths agree to a tolerance in voxels, and a rare grazing ray decides its hit one step apart."""
     scenes, c = corpus
     cuda = load_corpus([s.gmdag() for s in scenes], "cuda")
     ids, origins = _batch(scenes, 40, seed=12)  # (B,), (B, 3)
@@ -210,19 +216,74 @@ def test_cuda_matches_cpu(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> No
     d1, s1, _ = _run(trace, c, ids, origins, dirs, yaw=yaw)
     d2, s2, _ = _run(trace, cuda, ids.cuda(), origins.cuda(), dirs.cuda(), yaw=yaw.cuda(), ray_order=order)
     torch.cuda.synchronize()
-    # The CUDA build fuses multiply-adds and its cosf/sinf may differ from glibc by an ulp: a rare
-    # ray decides a hit one step apart (at most about one hit epsilon); the rest agree to 1e-4.
-    same = (d1 - d2.cpu()).abs() <= REL_TOL * d1.abs().clamp(min=1e-3)  # (B, R)
-    assert float(same.float().mean()) >= 0.999
-    assert float((d1 - d2.cpu()).abs().max()) <= 0.5  # meters: one voxel of the coarsest scene
-    assert float((s1 != s2.cpu()).float().mean()) <= 0.001
+    voxel = torch.tensor([s.voxel_size for s in scenes])[ids][:, None]  # (B, 1) meters
+    err = (d1 - d2.cpu()).abs() / voxel  # (B, R) voxels
+    assert float(err.median()) <= 0.01
+    assert float((err <= 0.1).float().mean()) >= 0.99
+    assert float((err > 1.0).float().mean()) <= 0.002  # a hit decided one step apart
+    assert float((s1 != s2.cpu()).float().mean()) <= 0.002
     p = torch.tensor(
         np.concatenate([free_points(s, 300, -1.0, seed=14) for s in scenes]), dtype=torch.float32
     )
     sid = torch.arange(len(scenes)).repeat_interleave(300)  # (N,)
     got, want = sample_distance(cuda, sid.cuda(), p.cuda()).cpu(), sample_distance(c, sid, p)  # (N,) each
+    voxel_n = torch.tensor([s.voxel_size for s in scenes])[sid]  # (N,) meters
+    assert float(((got - want).abs() / voxel_n).max()) <= 0.02
+
+
+@gpu
+def test_cuda_atlas_gives_the_samples_at_lattice_points(
+    corpus: tuple[list[AnalyticScene], SceneCorpus],
+) -> None:
+    """At a lattice point every filter weight is 0 or 1: the atlas' texel is the sample itself."""
+    scenes, c = corpus
+    cuda = load_corpus([s.gmdag() for s in scenes], "cuda")
+    rng = np.random.default_rng(21)
+    pts, sids = [], []
+    for i, s in enumerate(scenes):
+        cells = rng.integers(0, s.resolution + 1, size=(400, 3))  # (P, 3) lattice indices
+        pts.append(np.asarray(s.origin) + cells * s.voxel_size)
+        sids.append(np.full(len(cells), i))
+    p = torch.tensor(np.concatenate(pts), dtype=torch.float32)  # (N, 3) meters
+    sid = torch.tensor(np.concatenate(sids))  # (N,)
+    got, want = sample_distance(cuda, sid.cuda(), p.cuda()).cpu(), sample_distance(c, sid, p)  # (N,) each
     voxel = torch.tensor([s.voxel_size for s in scenes])[sid]  # (N,) meters
-    assert float(((got - want).abs() / voxel).max()) <= 1e-5  # fused multiply-adds: ulps of a voxel
+    assert float(((got - want).abs() / voxel).max()) <= 1e-4
+
+
+@gpu
+def test_cuda_corpora_free_their_atlas(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> None:
+    scenes, _ = corpus
+    gmdags = [s.gmdag() for s in scenes] * 40
+    first = load_corpus(gmdags, "cuda")  # warm-up: the library, the context, the allocator
+    assert first.atlas is not None and first.device_bytes >= sum(first.nbytes)
+    padding = first.atlas.nbytes - 729 * sum(info.brick_count for info in first.infos)
+    assert 0 <= padding < 729 * 4**first.atlas.shift  # fewer than one slab of tiles
+    del first
+    gc.collect()
+    torch.cuda.synchronize()
+    torch.cuda.empty_cache()
+    before = torch.cuda.mem_get_info()[0]
+    for _ in range(5):
+        held = load_corpus(gmdags, "cuda")
+        size = held.atlas.nbytes if held.atlas is not None else 0
+        del held
+    gc.collect()
+    torch.cuda.synchronize()
+    torch.cuda.empty_cache()
+    assert size > 1_000_000 and torch.cuda.mem_get_info()[0] >= before - size  # not five atlases held
+
+
+def test_corpora_refuse_a_missing_or_foreign_atlas(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> None:
+    _, c = corpus
+    ids, origins = torch.zeros(1, dtype=torch.int64), torch.zeros(1, 3)
+    depth = torch.empty(1, 4)
+    dirs = torch.tensor(random_directions(4, seed=2), dtype=torch.float32)
+    fake = type("Atlas", (), {"texture": 1, "shift": 0, "device": torch.device("cuda", 0), "nbytes": 0})()
+    with pytest.raises(ValueError, match="brick atlas"):
+        trace(dataclasses.replace(c, atlas=fake), ids, origins, dirs, out_depth=depth)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="corner words"):
+        trace_ref(dataclasses.replace(c, atlas=fake), ids, origins, dirs, out_depth=depth)  # type: ignore[arg-type]
 
 
 @gpu

@@ -32,6 +32,7 @@ class TraceArgs(ctypes.Structure):
         ("prims", ctypes.c_void_p),
         ("prim_world", ctypes.c_void_p),
         ("prim_scratch", ctypes.c_void_p),
+        ("brick_atlas", ctypes.c_uint64),
         ("num_actors", ctypes.c_int64),
         ("num_rays", ctypes.c_int64),
         ("prim_scratch_bytes", ctypes.c_int64),
@@ -47,6 +48,7 @@ class TraceArgs(ctypes.Structure):
         ("prims_per_world", ctypes.c_int32),
         ("num_worlds", ctypes.c_int32),
         ("hit_slope", ctypes.c_float),
+        ("atlas_shift", ctypes.c_int32),
     ]
 
 
@@ -65,6 +67,7 @@ class SampleArgs(ctypes.Structure):
         ("prims", ctypes.c_void_p),
         ("prim_world", ctypes.c_void_p),
         ("prim_owner", ctypes.c_void_p),
+        ("brick_atlas", ctypes.c_uint64),
         ("num_points", ctypes.c_int64),
         ("num_scenes", ctypes.c_int32),
         ("scene_id_bytes", ctypes.c_int32),
@@ -72,6 +75,7 @@ class SampleArgs(ctypes.Structure):
         ("device", ctypes.c_int32),
         ("prims_per_world", ctypes.c_int32),
         ("num_worlds", ctypes.c_int32),
+        ("atlas_shift", ctypes.c_int32),
     ]
 
 

@@ -100,6 +100,11 @@ def cuda_library() -> ctypes.CDLL:
     for name in ("navi_trace_args_size", "navi_sample_args_size", "navi_sweep_args_size"):
         getattr(lib, name).argtypes = []
         getattr(lib, name).restype = ctypes.c_int
+    lib.navi_atlas_create_cuda.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
+                                           ctypes.c_int, ctypes.POINTER(ctypes.c_uint64), ctypes.POINTER(ctypes.c_void_p)]  # fmt: skip
+    lib.navi_atlas_create_cuda.restype = ctypes.c_int
+    lib.navi_atlas_destroy_cuda.argtypes = [ctypes.c_uint64, ctypes.c_void_p, ctypes.c_int]
+    lib.navi_atlas_destroy_cuda.restype = ctypes.c_int
     lib.navi_cuda_error_string.argtypes = [ctypes.c_int]
     lib.navi_cuda_error_string.restype = ctypes.c_char_p
     check_layout(

@@ -9,9 +9,12 @@ Two buffers are a runtime layout of the file's data, built here (the .gmdag form
 - the leaf grid: the octree descended once, at load, to depth D = min(L, 7); entry (z * 2^D + y) * 2^D + x
   holds the child word there (or the leaf above it) as tag << 30 | log2(cube edge) << 26 | payload,
   so the tracer finds a leaf with one load instead of up to L dependent ones;
-- corner-word bricks: 576 u32 per brick; word (8i + j) * 9 + k holds the samples (i, j, k),
-  (i+1, j, k), (i, j+1, k), (i+1, j+1, k) plus 128 in bytes 0..3, so a trilinear sample is two
-  adjacent 32-bit loads instead of eight scattered bytes.
+- bricks on the CPU: corner words, 576 u32 per brick; word (8i + j) * 9 + k holds the samples
+  (i, j, k), (i+1, j, k), (i, j+1, k), (i+1, j+1, k) plus 128 in bytes 0..3, so a trilinear sample is
+  two adjacent 32-bit loads instead of eight scattered bytes;
+- bricks on a CUDA device: the brick atlas, one 3-d texture of int8 samples holding each brick once
+  as a 9 x 9 x 9 tile (729 bytes a brick instead of the corner words' 2,304), which the texture unit
+  interpolates trilinearly in one fetch (`BrickAtlas`, `brick_atlas`).
 
 Shapes: S scenes, Nn nodes (all scenes), Nb bricks (all scenes), Ng grid entries (all scenes),
 P spawns of one scene.
@@ -19,7 +22,10 @@ P spawns of one scene.
 
 from __future__ import annotations
 
+import ctypes
 import os
+import warnings
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -80,10 +86,11 @@ class SceneCorpus:
 
     nodes: torch.Tensor  # (Nn * 8,) int32 child words (u32 bits), all scenes
     grid: torch.Tensor  # (Ng,) int32 leaf-grid entries (u32 bits), all scenes
-    bricks: torch.Tensor  # (Nb * 576,) int32 corner words (u32 bits), all scenes
+    bricks: torch.Tensor  # (Nb * 576,) int32 corner words (u32 bits), all scenes; (0,) on CUDA
     brick_class: torch.Tensor  # (Nb,) uint8 class id per brick, all scenes
     table: torch.Tensor  # (S, 16) int32 scene records
     infos: tuple[SceneInfo, ...]  # (S,) host metadata, same order as the table
+    atlas: BrickAtlas | None = None  # the bricks on a CUDA device (None on the CPU)
 
     @property
     def device(self) -> torch.device:
@@ -97,18 +104,104 @@ class SceneCorpus:
         """Device bytes per scene."""
         return [info.nbytes for info in self.infos]
 
+    @property
+    def device_bytes(self) -> int:
+        """Every byte the corpus holds on its device: the buffers, and the atlas with its padding."""
+        buffers = (self.nodes, self.grid, self.bricks, self.brick_class, self.table)
+        return sum(t.numel() * t.element_size() for t in buffers) + (
+            0 if self.atlas is None else self.atlas.nbytes
+        )
+
+
+class BrickAtlas:
+    """The bricks of a CUDA corpus as one 3-d texture (csrc/trace_cuda.cu `navi_atlas_create_cuda`).
+
+    Brick b (corpus index) is the 9 x 9 x 9 texel tile at 9 * (b mod 2^p, (b >> p) mod 2^p, b >> 2p)
+    of a (9 * slabs, 9 * 2^p, 9 * 2^p) [z, y, x] array of signed bytes, texel (i, j, k) of the tile
+    holding sample (i, j, k). The texture and its array are freed when the atlas is collected.
+    """
+
+    def __init__(self, texels: np.ndarray, shift: int, device: torch.device) -> None:
+        from navi_env.cuda_build import cuda_library
+
+        d, h, w = texels.shape
+        index = device.index if device.index is not None else torch.cuda.current_device()
+        lib = cuda_library()
+        _free_pending(lib)
+        tex, array = ctypes.c_uint64(0), ctypes.c_void_p(None)
+        host = np.ascontiguousarray(texels, np.int8)  # (D, H, W) int8
+        code = lib.navi_atlas_create_cuda(
+            host.ctypes.data, w, h, d, index, ctypes.byref(tex), ctypes.byref(array)
+        )
+        if code != 0:
+            raise RuntimeError(
+                f"could not create the brick atlas ({w} x {h} x {d} texels) on cuda:{index}: "
+                f"{lib.navi_cuda_error_string(code).decode()}"
+            )
+        self.texture = int(tex.value)  # cudaTextureObject_t
+        self.shift = shift  # p
+        self.shape = (d, h, w)  # texels, [z, y, x]
+        self.device = torch.device("cuda", index)
+        self.nbytes = d * h * w  # device bytes of the array
+        done = weakref.finalize(self, _free_atlas, self.texture, array.value, index)
+        done.atexit = False  # the process' exit frees the device memory with the context
+
+
+_PENDING: list[tuple[int, int | None, int]] = []  # atlases collected while a CUDA graph was capturing
+
+
+def _free_atlas(texture: int, array: int | None, device: int) -> None:
+    """Free a collected atlas now, or at the next atlas creation when a graph capture is under way
+    (freeing synchronises the device, which a capture forbids)."""
+    from navi_env.cuda_build import cuda_library
+
+    _PENDING.append((texture, array, device))
+    _free_pending(cuda_library())
+
+
+def _free_pending(lib: ctypes.CDLL) -> None:
+    if not _PENDING or torch.cuda.is_current_stream_capturing():
+        return
+    while _PENDING:
+        texture, array, device = _PENDING.pop()
+        code = lib.navi_atlas_destroy_cuda(texture, array, device)
+        if code != 0:
+            warnings.warn(f"freeing a brick atlas on cuda:{device} failed: {lib.navi_cuda_error_string(code).decode()}",
+                          RuntimeWarning, stacklevel=2)  # fmt: skip
+
+
+def atlas_shift(brick_count: int) -> int:
+    """p: the smallest with 8^p >= brick_count, so the atlas is at most 2^p tiles along every axis."""
+    p = 0
+    while 8**p < brick_count:
+        p += 1
+    return p
+
+
+def brick_atlas(bricks: np.ndarray) -> tuple[np.ndarray, int]:
+    """The atlas texels (9 * slabs, 9 * 2^p, 9 * 2^p) int8 [z, y, x] of bricks (Nb, 729) int8 (sample
+    (i, j, k) at i + 9j + 81k) and p; slabs = ceil(Nb / 4^p) (at least one tile, zero-filled)."""
+    p = atlas_shift(len(bricks))
+    side = 1 << p
+    slabs = max(1, -(-len(bricks) // (side * side)))
+    tiles = np.zeros((slabs * side * side, BRICK_SIDE**3), np.int8)  # (slots, 729)
+    tiles[: len(bricks)] = bricks
+    t = tiles.reshape(slabs, side, side, BRICK_SIDE, BRICK_SIDE, BRICK_SIDE)  # (tz, ty, tx, k, j, i)
+    t = t.transpose(0, 3, 1, 4, 2, 5)  # (tz, k, ty, j, tx, i)
+    return np.ascontiguousarray(t.reshape(slabs * BRICK_SIDE, side * BRICK_SIDE, side * BRICK_SIDE)), p
+
 
 def grid_depth(levels: int) -> int:
     """D: the leaf grid of a scene with L levels has 2^D cells per axis."""
     return min(levels, MAX_GRID_DEPTH)
 
 
-def scene_nbytes(node_count: int, brick_count: int, levels: int) -> int:
-    """Device bytes of one scene: 32 per node, 4 * 576 + 1 per brick, 4 per leaf-grid entry, one
-    64-byte record."""
-    return (
-        32 * node_count + (4 * BRICK_WORDS + 1) * brick_count + 4 * 8 ** grid_depth(levels) + 4 * SCENE_WORDS
-    )
+def scene_nbytes(node_count: int, brick_count: int, levels: int, atlas: bool = False) -> int:
+    """Device bytes of one scene: 32 per node, per brick 4 * 576 corner words (CPU) or a 729-byte
+    atlas tile (`atlas`, CUDA) plus a class byte, 4 per leaf-grid entry, one 64-byte record. The atlas'
+    padding (fewer than 4^p tiles per corpus) is the corpus', not a scene's (`SceneCorpus.device_bytes`)."""
+    per_brick = (BRICK_SIDE**3 if atlas else 4 * BRICK_WORDS) + 1
+    return 32 * node_count + per_brick * brick_count + 4 * 8 ** grid_depth(levels) + 4 * SCENE_WORDS
 
 
 def leaf_grid(g: Gmdag) -> np.ndarray:
@@ -182,13 +275,15 @@ def _as_gmdag(src: SceneSource) -> tuple[Gmdag, str | None]:
 
 
 def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cpu") -> SceneCorpus:
-    """Read (or take) every scene, pack them, and copy each buffer to `device` once.
+    """Read (or take) every scene, pack them, and copy each buffer to `device` once (on a CUDA device the
+    bricks go into the corpus' brick atlas instead of corner words).
 
     sources: .gmdag paths or in-memory `Gmdag`s (validated by the compiler's reader/builder).
     """
     if len(sources) == 0:
         raise ValueError("load_corpus needs at least one scene")
     dev = torch.device(device)
+    on_cuda = dev.type == "cuda"
     gmdags: list[Gmdag] = []
     infos: list[SceneInfo] = []
     records: list[np.ndarray] = []
@@ -224,7 +319,7 @@ def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cp
                 flags=g.flags,
                 node_count=node_count,
                 brick_count=brick_count,
-                nbytes=scene_nbytes(node_count, brick_count, g.levels),
+                nbytes=scene_nbytes(node_count, brick_count, g.levels, atlas=on_cuda),
             )
         )
         gmdags.append(g)
@@ -233,11 +328,17 @@ def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cp
         grid_offset += len(grid)
     nodes = np.concatenate([g.nodes.reshape(-1) for g in gmdags]).view(np.int32)  # (Nn * 8,) int32
     grid_all = np.concatenate(grids).view(np.int32)  # (Ng,) int32
-    bricks = np.concatenate([corner_words(g.bricks).reshape(-1) for g in gmdags]).view(
-        np.int32
-    )  # (Nb * 576,)
     classes = np.concatenate([g.brick_class for g in gmdags])  # (Nb,) uint8
     table = np.stack(records)  # (S, 16) int32
+    atlas = None
+    if on_cuda:
+        texels, shift = brick_atlas(np.concatenate([g.bricks for g in gmdags]))  # (9Z, 9Y, 9X) int8
+        atlas = BrickAtlas(texels, shift, dev)
+        bricks = np.zeros(0, np.int32)  # (0,) the CUDA build reads the atlas
+    else:
+        bricks = np.concatenate([corner_words(g.bricks).reshape(-1) for g in gmdags]).view(
+            np.int32
+        )  # (Nb * 576,)
     return SceneCorpus(
         nodes=torch.from_numpy(nodes).to(dev),
         grid=torch.from_numpy(grid_all).to(dev),
@@ -245,6 +346,7 @@ def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cp
         brick_class=torch.from_numpy(classes).to(dev),
         table=torch.from_numpy(table).to(dev),
         infos=tuple(infos),
+        atlas=atlas,
     )
 
 

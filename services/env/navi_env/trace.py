@@ -103,6 +103,7 @@ def validate_trace(
     if not isinstance(scenes, SceneCorpus):
         raise TypeError(f"scenes must be a SceneCorpus, got {type(scenes).__name__}")
     dev = scenes.device
+    _check_atlas(scenes)
     b = _check_scene_ids(scene_ids, dev, "B")
     origins = _check_tensor("origins", origins, dev)
     directions = _check_tensor("directions", directions, dev)
@@ -328,6 +329,8 @@ def trace(
         num_worlds=worlds,
         prim_scratch=_ptr(scratch),
         prim_scratch_bytes=0 if scratch is None else scratch.numel(),
+        brick_atlas=_atlas(scenes)[0],
+        atlas_shift=_atlas(scenes)[1],
     )
     if p.batch * p.rays > 0:
         launch("trace", args, scenes.device)
@@ -346,6 +349,7 @@ def validate_sample(
     if not isinstance(scenes, SceneCorpus):
         raise TypeError(f"scenes must be a SceneCorpus, got {type(scenes).__name__}")
     dev = scenes.device
+    _check_atlas(scenes)
     n = _check_scene_ids(scene_ids, dev, "N")
     points = _check_tensor("points", points, dev)
     _check_float("points", points, (n, 3))
@@ -378,11 +382,31 @@ def sample_distance(
     """
     n = validate_sample(scenes, scene_ids, points, out, prims, prim_world, prim_owner)[0]
     buffers = (scenes.nodes, scenes.grid, scenes.bricks, scenes.table)
+    atlas, shift = _atlas(scenes)
     if out is None and torch.compiler.is_compiling():  # an opaque op in a compiled graph (see _sample_op)
-        return _sample_op(*buffers, scene_ids, points, prims, prim_world, prim_owner)
+        return _sample_op(*buffers, atlas, shift, scene_ids, points, prims, prim_world, prim_owner)
     result = torch.empty(n, dtype=torch.float32, device=scenes.device) if out is None else out  # (N,) float32
-    _launch_sample(*buffers, scene_ids, points, result, prims, prim_world, prim_owner)
+    _launch_sample(*buffers, atlas, shift, scene_ids, points, result, prims, prim_world, prim_owner)
     return result
+
+
+def _check_atlas(scenes: SceneCorpus) -> None:
+    """A CUDA corpus reads its bricks from its atlas, on its own device; a CPU corpus has none."""
+    dev = scenes.device
+    if dev.type == "cuda" and (
+        scenes.atlas is None
+        or scenes.atlas.device.index != (dev.index if dev.index is not None else torch.cuda.current_device())
+    ):
+        raise ValueError(
+            f"a corpus on {dev} needs its brick atlas there: load it with load_corpus(..., device)"
+        )
+    if dev.type != "cuda" and scenes.atlas is not None:
+        raise ValueError(f"a corpus on {dev} reads corner words; its brick atlas belongs to a CUDA corpus")
+
+
+def _atlas(scenes: SceneCorpus) -> tuple[int, int]:
+    """(texture object, p) of a CUDA corpus' brick atlas; (0, 0) on the CPU, which reads corner words."""
+    return (0, 0) if scenes.atlas is None else (scenes.atlas.texture, scenes.atlas.shift)
 
 
 def _launch_sample(
@@ -390,6 +414,8 @@ def _launch_sample(
     grid: torch.Tensor,
     bricks: torch.Tensor,
     table: torch.Tensor,
+    atlas: int,
+    atlas_shift: int,
     scene_ids: torch.Tensor,
     points: torch.Tensor,
     result: torch.Tensor,
@@ -418,6 +444,8 @@ def _launch_sample(
         scene_id_bytes=scene_ids.element_size(),
         prims_per_world=per_world,
         num_worlds=worlds,
+        brick_atlas=atlas,
+        atlas_shift=atlas_shift,
     )
     launch("sample", args, points.device)
 
@@ -428,6 +456,8 @@ def _sample_op(
     grid: torch.Tensor,
     bricks: torch.Tensor,
     table: torch.Tensor,
+    atlas: int,
+    atlas_shift: int,
     scene_ids: torch.Tensor,
     points: torch.Tensor,
     prims: torch.Tensor | None,
@@ -437,7 +467,8 @@ def _sample_op(
     """sample_distance as an op torch.compile keeps whole (arguments validated by the caller): the
     distance (N,) float32 at points (N, 3), so the elementwise work around it fuses into few kernels."""
     result = torch.empty(points.shape[0], dtype=torch.float32, device=points.device)  # (N,) float32
-    _launch_sample(nodes, grid, bricks, table, scene_ids, points, result, prims, prim_world, prim_owner)
+    _launch_sample(nodes, grid, bricks, table, atlas, atlas_shift, scene_ids, points, result, prims, prim_world,
+                   prim_owner)  # fmt: skip
     return result
 
 
@@ -447,6 +478,8 @@ def _(
     grid: torch.Tensor,
     bricks: torch.Tensor,
     table: torch.Tensor,
+    atlas: int,
+    atlas_shift: int,
     scene_ids: torch.Tensor,
     points: torch.Tensor,
     prims: torch.Tensor | None,

@@ -87,6 +87,8 @@ def brick_samples(words: torch.Tensor) -> torch.Tensor:
 
 def ref_scene(scenes: SceneCorpus, sid: torch.Tensor) -> RefScene:
     """Per-ray scene records for scene ids sid (M,) (already clamped into range)."""
+    if scenes.atlas is not None:
+        raise ValueError("the reference reads corner words: give it the corpus loaded on the CPU")
     rec = scenes.table[sid].long() & 0xFFFFFFFF  # (M, 16) int64 unsigned words
     frec = scenes.table[sid].view(F32)  # (M, 16) float32
     return RefScene(

@@ -69,7 +69,7 @@ enum SceneWord : int {
 struct TraceArgs {
   const uint32_t* nodes;        // (sum node_count * 8,) child words of every scene
   const uint32_t* grid;         // (sum 8^D,) leaf-grid entries of every scene
-  const uint32_t* bricks;       // (sum brick_count * 576,) corner words of every scene
+  const uint32_t* bricks;       // (sum brick_count * 576,) corner words of every scene (CPU build)
   const uint8_t* brick_class;   // (sum brick_count,) class id per brick
   const int32_t* scenes;        // (S, 16) scene records
   const void* scene_ids;        // (B,) int32 or int64
@@ -84,6 +84,7 @@ struct TraceArgs {
   const float* prims;           // (W, K, 16) dynamic primitive records (see PrimWord), or null
   const int32_t* prim_world;    // (B,) world of each actor's primitives, or null: actor b uses world b
   void* prim_scratch;           // prim_scratch_bytes() of device memory the launch may overwrite (with prims)
+  uint64_t brick_atlas;         // cudaTextureObject_t of the brick atlas (CUDA build; scene.py BrickAtlas)
   int64_t num_actors;           // B
   int64_t num_rays;             // R
   int64_t prim_scratch_bytes;   // size of prim_scratch
@@ -99,6 +100,7 @@ struct TraceArgs {
   int32_t prims_per_world;      // K (0: no primitives)
   int32_t num_worlds;           // W; an actor whose world is outside [0, W) sees no primitive
   float hit_slope;              // >= 0: the hit threshold at distance t is epsilon + hit_slope * t
+  int32_t atlas_shift;          // log2 of the bricks per atlas row and per atlas column (CUDA build)
 };
 
 // Arguments of one point-query launch (sample_distance).
@@ -114,6 +116,7 @@ struct SampleArgs {
   const float* prims;           // (W, K, 16) primitive records, or null
   const int32_t* prim_world;    // (N,) world of each point (required with prims)
   const int32_t* prim_owner;    // (N,) primitive owner to leave out at each point (a drone itself), or null
+  uint64_t brick_atlas;         // as in TraceArgs
   int64_t num_points;
   int32_t num_scenes;
   int32_t scene_id_bytes;
@@ -121,6 +124,7 @@ struct SampleArgs {
   int32_t device;
   int32_t prims_per_world;      // K
   int32_t num_worlds;           // W
+  int32_t atlas_shift;          // as in TraceArgs
 };
 
 // Arguments of one obstacle sweep launch (navi_env.obstacle_motion.sweep).
@@ -355,6 +359,45 @@ NAVI_HD float cell_fraction(float p, float corner) { return unit_clamp(p - corne
 
 constexpr uint32_t kNoBrick = 0xFFFFFFFFu;
 
+// Where a launch reads brick samples. The CPU build reads the corner words; the CUDA build reads the
+// brick atlas, a 3-d texture of the int8 samples (each brick once, a 9 x 9 x 9 tile) that the texture
+// unit interpolates trilinearly in one fetch (scene.py `brick_atlas`).
+struct BrickStore {
+  const uint32_t* words;  // corner words, or null
+  uint64_t atlas;         // cudaTextureObject_t, or 0
+  int32_t shift;          // log2 of the bricks per atlas row and per column
+};
+
+NAVI_HD BrickStore brick_store(const uint32_t* words, uint64_t atlas, int32_t shift) {
+  BrickStore b;
+  b.words = words;
+  b.atlas = atlas;
+  b.shift = shift;
+  return b;
+}
+
+#ifdef __CUDA_ARCH__
+// The field in cell (li, lj, lk) of brick b at fractions ux, uy, uz, from the atlas: brick b's tile
+// starts at texel 9 (b mod 2^p, (b >> p) mod 2^p, b >> 2p), and texel (x, y, z) of a tile holds sample
+// (x, y, z) as a signed normalised byte (sample / 127). With linear filtering and unnormalised
+// coordinates the unit interpolates the 8 texels around (x - 0.5, y - 0.5, z - 0.5), so the sample
+// point is the cell's texel plus the fraction plus 0.5. Its weights are 8-bit fixed point (CUDA C++
+// Programming Guide, "Linear Filtering"): the field differs from the exact trilinear of the CPU build
+// by at most about 1/256 of the samples' spread across the cell (docs/SDFDAG_RUNTIME.md).
+__device__ __forceinline__ float atlas_distance(const BrickStore& bs, uint32_t b, int li, int lj, int lk,
+                                                float quant, float ux, float uy, float uz) {
+  const uint32_t mask = (1u << bs.shift) - 1u;
+  const int tx = static_cast<int>((b & mask) * 9u) + li;
+  const int ty = static_cast<int>(((b >> bs.shift) & mask) * 9u) + lj;
+  const int tz = static_cast<int>((b >> (2 * bs.shift)) * 9u) + lk;
+  // small non-negative ints to float exactly without a conversion instruction (bits of 2^23 + n)
+  const float x = (__int_as_float(kTwo23Bits + tx) - kTwo23) + (ux + 0.5f);
+  const float y = (__int_as_float(kTwo23Bits + ty) - kTwo23) + (uy + 0.5f);
+  const float z = (__int_as_float(kTwo23Bits + tz) - kTwo23) + (uz + 0.5f);
+  return tex3D<float>(static_cast<cudaTextureObject_t>(bs.atlas), x, y, z) * (127.0f * quant);
+}
+#endif
+
 // The field at a voxel-space point p inside the cube whose cell (ix, iy, iz) lies in `leaf`.
 // Far codes give their lower bound (negative for solid); `solid` marks a far-solid cube.
 struct FieldSample {
@@ -364,7 +407,7 @@ struct FieldSample {
 };
 
 // The field in cell c of `leaf` at fractions ux, uy, uz of the cell (cell_fraction).
-NAVI_HD FieldSample leaf_field(const uint32_t* bricks, const Scene& s, const Leaf& leaf, const Cell& c, float ux,
+NAVI_HD FieldSample leaf_field(const BrickStore& bricks, const Scene& s, const Leaf& leaf, const Cell& c, float ux,
                                float uy, float uz) {
   FieldSample f;
   f.solid = leaf.tag == kTagFarSolid;
@@ -372,7 +415,12 @@ NAVI_HD FieldSample leaf_field(const uint32_t* bricks, const Scene& s, const Lea
   if (leaf.tag == kTagBrick) {
     // The cell lies in this brick, so its local index is in [0, 7] and its corner words are
     // leaf.words + corner_offset(ix, iy, iz) (the brick corner's offset cancels mod 2^32).
-    f.dist = brick_distance(bricks + (leaf.words + corner_offset(c.ix, c.iy, c.iz)), s.quant, ux, uy, uz);
+#ifdef __CUDA_ARCH__
+    f.dist = atlas_distance(bricks, s.brick_offset + leaf.payload, c.ix - leaf.cx, c.iy - leaf.cy, c.iz - leaf.cz,
+                            s.quant, ux, uy, uz);
+#else
+    f.dist = brick_distance(bricks.words + (leaf.words + corner_offset(c.ix, c.iy, c.iz)), s.quant, ux, uy, uz);
+#endif
   } else if (leaf.tag == kTagFarSolid) {
     f.dist = -(static_cast<float>(leaf.payload) * kFarUnit);
   } else {
@@ -401,7 +449,7 @@ NAVI_HD void walker_init(Walker& w) {
 }
 
 // Samples the field at voxel-space p, reusing the cached leaf when p's cell lies in it.
-NAVI_HD FieldSample walk_sample(const uint32_t* grid, const uint32_t* nodes, const uint32_t* bricks, const Scene& s,
+NAVI_HD FieldSample walk_sample(const uint32_t* grid, const uint32_t* nodes, const BrickStore& bricks, const Scene& s,
                                 Walker& w, float px, float py, float pz) {
   // The cell without the clamp into the cube: the walk's points lie in the cube but for rounding at
   // its faces, and a point outside it cannot lie in the cached leaf, so the clamp waits for the lookup.
@@ -1006,12 +1054,13 @@ NAVI_HD void end_out_of_steps(const TraceArgs& a, Ray& ray) {
 NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
   const Scene& s = ray.s;
   Walker& w = ray.w;
+  const BrickStore bricks = brick_store(a.bricks, a.brick_atlas, a.atlas_shift);
   float t = ray.t, prev_t = ray.prev_t, prev_d = ray.prev_d, d = ray.end_d;
   int steps = ray.res.steps;
   while (steps < a.max_steps) {
     ++steps;
     const float px = ray.ox + t * ray.dx, py = ray.oy + t * ray.dy, pz = ray.oz + t * ray.dz;
-    const FieldSample f = walk_sample(a.grid, a.nodes, a.bricks, s, w, px, py, pz);
+    const FieldSample f = walk_sample(a.grid, a.nodes, bricks, s, w, px, py, pz);
     d = f.dist;
     if (f.solid || d < 0.0f) {  // inside: refined after the walk (settle_hit), out of the loop
       ray.res.semantic = kCrossing;
@@ -1074,6 +1123,7 @@ NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
 //   secant step.
 // The class is that of the last brick sampled, refinement samples included.
 NAVI_HD void settle_hit(const TraceArgs& a, Ray& ray) {
+  const BrickStore bricks = brick_store(a.bricks, a.brick_atlas, a.atlas_shift);
   float hit = ray.t;
   if (ray.res.semantic == kSurface) {
     const float d = ray.end_d;
@@ -1083,7 +1133,7 @@ NAVI_HD void settle_hit(const TraceArgs& a, Ray& ray) {
     float lo = ray.prev_t, hi = ray.t, flo = ray.prev_d, fhi = ray.end_d;
     for (int k = 0; k < kRefineIterations; ++k) {
       const float mid = 0.5f * (lo + hi);
-      const FieldSample m = walk_sample(a.grid, a.nodes, a.bricks, ray.s, ray.w, ray.ox + mid * ray.dx,
+      const FieldSample m = walk_sample(a.grid, a.nodes, bricks, ray.s, ray.w, ray.ox + mid * ray.dx,
                                         ray.oy + mid * ray.dy, ray.oz + mid * ray.dz);
       if (m.solid || m.dist < 0.0f) {
         hi = mid;
@@ -1158,7 +1208,7 @@ NAVI_HD void sample_point(const SampleArgs& a, int64_t i) {
   } else {
     const Cell c = cell_of(px, py, pz, s.cell_max);
     const Leaf leaf = find_leaf(a.grid, a.nodes, s, c.ix, c.iy, c.iz);
-    dist = leaf_field(a.bricks, s, leaf, c, cell_fraction(px, c.fx), cell_fraction(py, c.fy), cell_fraction(pz, c.fz))
+    dist = leaf_field(brick_store(a.bricks, a.brick_atlas, a.atlas_shift), s, leaf, c, cell_fraction(px, c.fx), cell_fraction(py, c.fy), cell_fraction(pz, c.fz))
                .dist * s.voxel;
   }
   if (a.prims != nullptr && a.prims_per_world > 0) {

@@ -149,6 +149,61 @@ extern "C" int navi_sweep_cuda(const navi::SweepArgs* args) {
   return static_cast<int>(cudaGetLastError());
 }
 
+// The brick atlas of a corpus (scene.py `brick_atlas`): a w x h x d texel 3-d array of signed bytes,
+// copied from host memory laid out [z][y][x], read through a texture object with linear filtering,
+// clamped addressing, unnormalised coordinates and normalised float reads (sample / 127). Writes the
+// texture object and the array handle (both needed by navi_atlas_destroy_cuda); synchronous.
+extern "C" int navi_atlas_create_cuda(const int8_t* host, int64_t w, int64_t h, int64_t d, int device,
+                                      uint64_t* tex_out, void** array_out) {
+  *tex_out = 0;
+  *array_out = nullptr;
+  int err = select_device(device);
+  if (err != 0) return err;
+  const cudaChannelFormatDesc desc = cudaCreateChannelDesc<signed char>();
+  cudaArray_t array = nullptr;
+  cudaError_t e = cudaMalloc3DArray(&array, &desc, make_cudaExtent(w, h, d));
+  if (e != cudaSuccess) return static_cast<int>(e);
+  cudaMemcpy3DParms copy = {};
+  copy.srcPtr = make_cudaPitchedPtr(const_cast<int8_t*>(host), w, w, h);
+  copy.dstArray = array;
+  copy.extent = make_cudaExtent(w, h, d);
+  copy.kind = cudaMemcpyHostToDevice;
+  e = cudaMemcpy3D(&copy);
+  cudaResourceDesc res = {};
+  res.resType = cudaResourceTypeArray;
+  res.res.array.array = array;
+  cudaTextureDesc td = {};
+  for (int axis = 0; axis < 3; ++axis) td.addressMode[axis] = cudaAddressModeClamp;
+  td.filterMode = cudaFilterModeLinear;
+  td.readMode = cudaReadModeNormalizedFloat;
+  td.normalizedCoords = 0;
+  cudaTextureObject_t tex = 0;
+  if (e == cudaSuccess) e = cudaCreateTextureObject(&tex, &res, &td, nullptr);
+  if (e != cudaSuccess) {
+    cudaFreeArray(array);
+    return static_cast<int>(e);
+  }
+  *tex_out = static_cast<uint64_t>(tex);
+  *array_out = array;
+  return 0;
+}
+
+// Frees what navi_atlas_create_cuda made (after the device's pending work that may read it).
+extern "C" int navi_atlas_destroy_cuda(uint64_t tex, void* array, int device) {
+  int err = select_device(device);
+  if (err != 0) return err;
+  cudaError_t e = cudaDeviceSynchronize();
+  if (tex != 0) {
+    const cudaError_t e2 = cudaDestroyTextureObject(static_cast<cudaTextureObject_t>(tex));
+    if (e == cudaSuccess) e = e2;
+  }
+  if (array != nullptr) {
+    const cudaError_t e3 = cudaFreeArray(static_cast<cudaArray_t>(array));
+    if (e == cudaSuccess) e = e3;
+  }
+  return static_cast<int>(e);
+}
+
 extern "C" int navi_trace_args_size() { return static_cast<int>(sizeof(navi::TraceArgs)); }
 
 extern "C" int navi_sample_args_size() { return static_cast<int>(sizeof(navi::SampleArgs)); }

@@ -21,4 +21,8 @@ NAVI_EXPORT int navi_trace_args_size();
 NAVI_EXPORT int navi_sample_args_size();
 NAVI_EXPORT int navi_sweep_args_size();
 NAVI_EXPORT const char* navi_cuda_error_string(int code);
+// The CUDA build's brick atlas (scene.py BrickAtlas): a 3-d texture of int8 samples, made and freed.
+NAVI_EXPORT int navi_atlas_create_cuda(const int8_t* host, int64_t w, int64_t h, int64_t d, int device,
+                                       uint64_t* tex_out, void** array_out);
+NAVI_EXPORT int navi_atlas_destroy_cuda(uint64_t tex, void* array, int device);
 }
