@@ -1,5 +1,6 @@
-"""The runtime layout built by scene.py (leaf grid, corner-word bricks) holds exactly the file's data,
-and the tracer gives the same results whatever the grid depth (the node descent below the grid)."""
+"""The runtime layout built by scene.py (runtime tree, leaf grid, corner-word bricks, brick atlas) holds
+exactly the file's data but for the all-solid bricks (far-solid codes), and the tracer gives the same
+results whatever the grid depth (the node descent below the grid)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 import torch
 
 import navi_env.scene as scene_mod
-from navi_compiler.gmdag import PAYLOAD_MASK, TAG_FAR_FREE, TAG_NODE, Gmdag
+from navi_compiler.gmdag import PAYLOAD_MASK, TAG_BRICK, TAG_FAR_FREE, TAG_FAR_SOLID, TAG_NODE, Gmdag
 from navi_env.analytic_scenes import AnalyticScene, Box, Sphere, demo_room, free_points, random_directions
 from navi_env.scene import (
     BRICK_WORDS,
@@ -21,9 +22,10 @@ from navi_env.scene import (
     leaf_grid,
     load_corpus,
     load_scene,
+    runtime_tree,
     scene_nbytes,
 )
-from navi_env.trace import trace
+from navi_env.trace import sample_distance, trace
 from navi_env.trace_ref import brick_samples, trace_ref
 
 
@@ -35,6 +37,12 @@ def _scenes() -> list[AnalyticScene]:
         voxel_size=0.25,
     )
     return [demo_room(32, 8.0), sparse, boxes]
+
+
+def _solid_block() -> AnalyticScene:
+    """A box whose faces lie 1.6 voxels outside the brick [16, 24)^3: that brick is all solid yet
+    within the band, so the file holds it and the runtime tree makes it far solid."""
+    return AnalyticScene((Box((3.6, 3.6, 3.6), (9.0, 9.0, 9.0)),), resolution=32, voxel_size=0.25)
 
 
 def test_corner_words_hold_every_sample_plus_128() -> None:
@@ -52,7 +60,7 @@ def test_corner_words_hold_every_sample_plus_128() -> None:
     assert torch.equal(back, torch.from_numpy(bricks.reshape(-1)))
 
 
-def _descend(g: Gmdag, cell: tuple[int, int, int]) -> tuple[int, int, int]:
+def _descend(g: Gmdag | scene_mod.RuntimeTree, cell: tuple[int, int, int]) -> tuple[int, int, int]:
     """(tag, payload, log2 edge) of the leaf holding a cell, from the root, one level at a time."""
     word, shift = g.root, g.levels + 3
     nodes = g.nodes.reshape(-1, 8)
@@ -83,6 +91,105 @@ def test_leaf_grid_entries_are_the_descent_from_the_root(
                 assert (e >> 30, e & (2**26 - 1), (e >> 26) & 15) == (tag, payload, shift)
             else:  # deeper: the entry is the internal node covering the grid cell
                 assert e >> 30 == TAG_NODE and (e >> 26) & 15 == gshift
+
+
+def test_runtime_tree_turns_every_all_solid_brick_into_a_far_solid_code() -> None:
+    """An all-negative brick becomes far solid, its bound the smallest magnitude among its samples (the
+    float32 field, floored to 1/16 voxel); every other leaf is the file's, bricks renumbered in order."""
+    rng = np.random.default_rng(2)
+    solid_seen = kept_seen = 0
+    for s in [*_scenes(), _solid_block()]:
+        g = s.gmdag()
+        g = dataclasses.replace(g, brick_class=(np.arange(len(g.bricks)) % 7).astype(np.uint8))
+        t = runtime_tree(g)
+        all_solid = (g.bricks < 0).all(axis=1)  # (Nb,)
+        assert len(t.bricks) == int((~all_solid).sum()) and t.nodes.shape == (len(g.nodes), 8)
+        held = np.flatnonzero(~all_solid)  # (Nb',) file index of each brick held
+        assert np.array_equal(t.bricks, g.bricks[held]) and np.array_equal(t.brick_class, g.brick_class[held])
+        q = np.float32(g.quant_step)
+        for cell in rng.integers(0, g.resolution, size=(400, 3)):
+            c = tuple(int(v) for v in cell)
+            ftag, fpay, fshift = _descend(g, c)
+            tag, payload, shift = _descend(t, c)
+            assert shift == fshift
+            if ftag != TAG_BRICK:
+                assert (tag, payload) == (ftag, fpay)
+            elif all_solid[fpay]:
+                solid_seen += 1
+                bound = np.floor(16.0 * float(np.float32(-int(g.bricks[fpay].max())) * q))
+                assert (tag, payload) == (TAG_FAR_SOLID, bound)
+            else:
+                kept_seen += 1
+                assert tag == TAG_BRICK and held[payload] == fpay
+    assert solid_seen > 0 and kept_seen > 0
+
+
+def test_the_field_is_the_files_but_a_bound_in_all_solid_bricks() -> None:
+    """sample_distance against the file's own samples: the trilinear field of its brick, or in an
+    all-solid brick the (negative) far bound, never deeper than the file's field there."""
+    rng = np.random.default_rng(5)
+    for s in [*_scenes(), _solid_block()]:
+        g = s.gmdag()
+        corpus = load_scene(g)
+        ids = torch.zeros(2000, dtype=torch.int64)  # (N,)
+        world = torch.tensor(
+            np.array(g.origin) + rng.uniform(0.0, g.resolution, size=(2000, 3)) * g.voxel_size,
+            dtype=torch.float32,
+        )  # (N, 3) meters
+        got = sample_distance(corpus, ids, world).double().numpy() / g.voxel_size  # (N,) voxels
+        pv = (world.double().numpy() - np.array(g.origin, np.float32)) * np.float32(
+            1.0 / g.voxel_size
+        )  # (N, 3)
+        q = float(np.float32(g.quant_step))
+        for n in range(len(pv)):
+            cell = tuple(int(v) for v in np.clip(np.floor(pv[n]), 0, g.resolution - 1))
+            tag, payload, _ = _descend(g, cell)
+            if tag != TAG_BRICK:
+                assert got[n] == (payload / 16 if tag == TAG_FAR_FREE else -payload / 16)
+                continue
+            b = g.bricks[payload].reshape(9, 9, 9).astype(np.float64)  # (k, j, i)
+            i, j, k = (cell[a] % 8 for a in range(3))
+            fx, fy, fz = (float(np.clip(pv[n][a] - cell[a], 0.0, 1.0)) for a in range(3))
+            c = b[k : k + 2, j : j + 2, i : i + 2]  # (2, 2, 2) [dz, dy, dx]
+            x = c[..., 0] + fx * (c[..., 1] - c[..., 0])
+            y = x[:, 0] + fy * (x[:, 1] - x[:, 0])
+            field = (y[0] + fz * (y[1] - y[0])) * q  # the file's trilinear field, voxels
+            if (b < 0).all():
+                assert 0 < -got[n] <= -field + 1e-6 and -got[n] >= -b.max() * q - 1 / 16
+            else:
+                assert abs(got[n] - field) < 1e-5
+
+
+def test_rays_hit_the_same_surfaces_without_the_all_solid_bricks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tracing the runtime tree against tracing the file's own tree: rays from free space stop on the
+    same surfaces at the same depths (the far-solid bound only enters a crossing's last secant step
+    when that step ends in an all-solid brick, and the class of such a hit)."""
+    scenes = [*_scenes(), _solid_block()]
+    ids = torch.arange(len(scenes)).repeat_interleave(8)  # (B,)
+    origins = torch.tensor(
+        np.concatenate([free_points(s, 8, 0.0, seed=30 + i) for i, s in enumerate(scenes)]),
+        dtype=torch.float32,
+    )  # (B, 3)
+    dirs = torch.tensor(random_directions(600, seed=31), dtype=torch.float32)  # (R, 3)
+
+    def run() -> tuple[torch.Tensor, torch.Tensor]:
+        corpus = load_corpus([s.gmdag() for s in scenes])
+        depth = torch.empty(len(ids), 600)  # (B, R) float32
+        sem = torch.empty(len(ids), 600, dtype=torch.int32)  # (B, R) int32
+        trace(corpus, ids, origins, dirs, out_depth=depth, out_semantic=sem)
+        return depth, sem
+
+    held, held_sem = run()
+    monkeypatch.setattr(
+        scene_mod,
+        "runtime_tree",
+        lambda g: scene_mod.RuntimeTree(g.root, g.nodes.reshape(-1, 8), g.bricks, g.brick_class, g.levels),
+    )
+    full, full_sem = run()
+    # A difference needs a crossing refined to within a 64th of a step of an all-solid brick's face;
+    # here (and on 344k rays of three OpenArena maps, docs/PERFORMANCE.md) there is none.
+    assert torch.equal(held, full) and torch.equal(held_sem, full_sem)
+    assert float((held_sem > 0).float().mean()) > 0.2
 
 
 def _trace_both(corpus: scene_mod.SceneCorpus, scenes: list[AnalyticScene]) -> tuple[torch.Tensor, ...]:

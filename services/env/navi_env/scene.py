@@ -5,7 +5,12 @@ each, plus a table with one 16-word record per scene (layout `SceneWord` in csrc
 Payloads stay relative to their scene; the record's offsets rebase them at trace time, so loading is a
 few vectorised numpy passes and one host-to-device copy per buffer.
 
-Two buffers are a runtime layout of the file's data, built here (the .gmdag format does not change):
+The buffers are a runtime layout of the file's data, built here (the .gmdag format does not change):
+- the runtime tree (`runtime_tree`): the file's child words, except that a brick whose 729 samples are
+  all negative (inside solid, near a surface: 0.5-73% of the bricks of the OpenArena maps) becomes a
+  far-solid code whose bound is its smallest sample magnitude, floored to 1/16 voxel (inside solid
+  the tracers use the field only for its sign and a crossing's last secant step), so those bricks are
+  not held;
 - the leaf grid: the octree descended once, at load, to depth D = min(L, 7); entry (z * 2^D + y) * 2^D + x
   holds the child word there (or the leaf above it) as tag << 30 | log2(cube edge) << 26 | payload,
   so the tracer finds a leaf with one load instead of up to L dependent ones;
@@ -33,7 +38,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from navi_compiler.gmdag import BRICK_SIDE, PAYLOAD_MASK, TAG_NODE, Gmdag, read_gmdag
+from navi_compiler.gmdag import (
+    BRICK_SIDE,
+    PAYLOAD_MASK,
+    TAG_BRICK,
+    TAG_FAR_SOLID,
+    TAG_NODE,
+    Gmdag,
+    read_gmdag,
+)
 
 SCENE_WORDS = 16  # 32-bit words per scene record
 # Word indices of a scene record (mirror of enum SceneWord in gmdag_trace.h).
@@ -66,8 +79,8 @@ class SceneInfo:
     class_names: tuple[str, ...]  # class id -> name
     flags: int  # .gmdag header flags
     node_count: int
-    brick_count: int
-    nbytes: int  # bytes this scene occupies on the device (nodes, bricks, classes, record)
+    brick_count: int  # bricks held: the file's, less those that became far-solid codes (runtime_tree)
+    nbytes: int  # bytes this scene occupies on the device (nodes, grid, bricks, classes, record)
 
     @property
     def cube_min(self) -> np.ndarray:
@@ -204,8 +217,54 @@ def scene_nbytes(node_count: int, brick_count: int, levels: int, atlas: bool = F
     return 32 * node_count + per_brick * brick_count + 4 * 8 ** grid_depth(levels) + 4 * SCENE_WORDS
 
 
-def leaf_grid(g: Gmdag) -> np.ndarray:
-    """(8^D,) uint32 leaf-grid entries of scene g, D = grid_depth(L), index (z * 2^D + y) * 2^D + x.
+@dataclass(frozen=True)
+class RuntimeTree:
+    """The child words and bricks a scene is traced from (runtime_tree)."""
+
+    root: int  # child word of the root
+    nodes: np.ndarray  # (Nn, 8) uint32 child words
+    bricks: np.ndarray  # (Nb, 729) int8 the bricks held, sample (i, j, k) at i + 9j + 81k
+    brick_class: np.ndarray  # (Nb,) uint8
+    levels: int  # L
+
+
+def runtime_tree(g: Gmdag) -> RuntimeTree:
+    """Scene g's tree as the tracers hold it: a brick whose samples are all negative becomes a far-solid
+    code with bound floor(16 * |largest sample| * quant) / 16 voxels (the float32 field the tracers
+    would compute there is at least that deep), and the other bricks keep their order, renumbered.
+
+    Inside solid the tracers use the field only for its sign (a sample there ends a ray, which then
+    refines the crossing between its last free sample and this one) and the final secant step of that
+    refinement, so a ray hits the same surface; the semantic class of such a hit is that of the last
+    brick sampled before it instead of the solid brick's.
+    """
+    count = len(g.bricks)
+    top = g.bricks.max(axis=1).astype(np.int16) if count else np.zeros(0, np.int16)  # (Nb,) largest sample
+    solid = top < 0  # (Nb,) every sample inside solid
+    field = (-top[solid]).astype(np.float32) * np.float32(g.quant_step)  # (K,) float32 voxels
+    bound = np.minimum(np.floor(16.0 * field.astype(np.float64)), PAYLOAD_MASK).astype(np.uint32)  # (K,)
+    words = np.zeros(count, np.uint32)  # (Nb,) the child word that replaces each brick's
+    words[solid] = (TAG_FAR_SOLID << 30) | bound
+    words[~solid] = (TAG_BRICK << 30) | np.arange(int((~solid).sum()), dtype=np.uint32)
+
+    def rewrite(w: np.ndarray) -> np.ndarray:
+        is_brick = (w >> 30) == TAG_BRICK
+        return np.where(is_brick, words[np.where(is_brick, w & PAYLOAD_MASK, 0)], w).astype(np.uint32)
+
+    nodes = g.nodes.reshape(-1, 8).astype(np.uint32)  # (Nn, 8)
+    root = int(rewrite(np.array([g.root], np.uint32))[0]) if count else g.root
+    return RuntimeTree(
+        root=root,
+        nodes=rewrite(nodes) if count else nodes,
+        bricks=np.ascontiguousarray(g.bricks[~solid]),
+        brick_class=np.ascontiguousarray(g.brick_class[~solid]),
+        levels=g.levels,
+    )
+
+
+def leaf_grid(g: Gmdag | RuntimeTree) -> np.ndarray:
+    """(8^D,) uint32 leaf-grid entries of scene g (its file or runtime tree), D = grid_depth(L), index
+    (z * 2^D + y) * 2^D + x.
 
     Descends the octree from the root one depth at a time (a leaf above depth D fills all its cells):
     entry = tag << 30 | log2(edge of the entry's cube, voxels) << 26 | payload, where an entry still
@@ -249,11 +308,12 @@ def corner_words(bricks: np.ndarray) -> np.ndarray:
     return words.reshape(len(bricks), BRICK_WORDS)
 
 
-def scene_record(g: Gmdag, node_offset: int, brick_offset: int, grid_offset: int) -> np.ndarray:
-    """The (16,) int32 record of scene g whose nodes, bricks and grid start at the given corpus offsets."""
+def scene_record(g: Gmdag, root: int, node_offset: int, brick_offset: int, grid_offset: int) -> np.ndarray:
+    """The (16,) int32 record of scene g, traced from root word `root` (runtime_tree), whose nodes,
+    bricks and grid start at the given corpus offsets."""
     words = np.zeros(SCENE_WORDS, np.uint32)  # (16,) uint32
     floats = words.view(np.float32)  # (16,) float32 view of the same words
-    words[W_ROOT] = g.root
+    words[W_ROOT] = root
     words[W_NODE_OFFSET] = node_offset
     words[W_BRICK_OFFSET] = brick_offset
     words[W_RESOLUTION] = g.resolution
@@ -275,8 +335,8 @@ def _as_gmdag(src: SceneSource) -> tuple[Gmdag, str | None]:
 
 
 def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cpu") -> SceneCorpus:
-    """Read (or take) every scene, pack them, and copy each buffer to `device` once (on a CUDA device the
-    bricks go into the corpus' brick atlas instead of corner words).
+    """Read (or take) every scene, build its runtime tree, pack them, and copy each buffer to `device`
+    once (on a CUDA device the bricks go into the corpus' brick atlas instead of corner words).
 
     sources: .gmdag paths or in-memory `Gmdag`s (validated by the compiler's reader/builder).
     """
@@ -284,15 +344,16 @@ def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cp
         raise ValueError("load_corpus needs at least one scene")
     dev = torch.device(device)
     on_cuda = dev.type == "cuda"
-    gmdags: list[Gmdag] = []
+    trees: list[RuntimeTree] = []
     infos: list[SceneInfo] = []
     records: list[np.ndarray] = []
     grids: list[np.ndarray] = []
     node_offset = brick_offset = grid_offset = 0
     for i, src in enumerate(sources):
         g, stem = _as_gmdag(src)
-        node_count, brick_count = len(g.nodes), len(g.bricks)
-        grid = leaf_grid(g)  # (8^D,) uint32
+        t = runtime_tree(g)
+        node_count, brick_count = len(t.nodes), len(t.bricks)
+        grid = leaf_grid(t)  # (8^D,) uint32
         if (
             node_offset + node_count > MAX_OFFSET
             or (brick_offset + brick_count) * BRICK_WORDS > MAX_OFFSET
@@ -301,7 +362,7 @@ def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cp
             raise ValueError(
                 "the corpus holds more than 2^32 - 1 nodes, brick words or grid entries; split it"
             )
-        records.append(scene_record(g, node_offset, brick_offset, grid_offset))
+        records.append(scene_record(g, t.root, node_offset, brick_offset, grid_offset))
         grids.append(grid)
         infos.append(
             SceneInfo(
@@ -322,21 +383,21 @@ def load_corpus(sources: Sequence[SceneSource], device: str | torch.device = "cp
                 nbytes=scene_nbytes(node_count, brick_count, g.levels, atlas=on_cuda),
             )
         )
-        gmdags.append(g)
+        trees.append(t)
         node_offset += node_count
         brick_offset += brick_count
         grid_offset += len(grid)
-    nodes = np.concatenate([g.nodes.reshape(-1) for g in gmdags]).view(np.int32)  # (Nn * 8,) int32
+    nodes = np.concatenate([t.nodes.reshape(-1) for t in trees]).view(np.int32)  # (Nn * 8,) int32
     grid_all = np.concatenate(grids).view(np.int32)  # (Ng,) int32
-    classes = np.concatenate([g.brick_class for g in gmdags])  # (Nb,) uint8
+    classes = np.concatenate([t.brick_class for t in trees])  # (Nb,) uint8
     table = np.stack(records)  # (S, 16) int32
     atlas = None
     if on_cuda:
-        texels, shift = brick_atlas(np.concatenate([g.bricks for g in gmdags]))  # (9Z, 9Y, 9X) int8
+        texels, shift = brick_atlas(np.concatenate([t.bricks for t in trees]))  # (9Z, 9Y, 9X) int8
         atlas = BrickAtlas(texels, shift, dev)
         bricks = np.zeros(0, np.int32)  # (0,) the CUDA build reads the atlas
     else:
-        bricks = np.concatenate([corner_words(g.bricks).reshape(-1) for g in gmdags]).view(
+        bricks = np.concatenate([corner_words(t.bricks).reshape(-1) for t in trees]).view(
             np.int32
         )  # (Nb * 576,)
     return SceneCorpus(
