@@ -239,7 +239,7 @@ def runtime_tree(g: Gmdag) -> RuntimeTree:
     brick sampled before it instead of the solid brick's.
     """
     count = len(g.bricks)
-    top = g.bricks.max(axis=1).astype(np.int16) if count else np.zeros(0, np.int16)  # (Nb,) largest sample
+    top = g.bricks.max(axis=1).astype(np.int16)  # (Nb,) largest sample of each brick
     solid = top < 0  # (Nb,) every sample inside solid
     field = (-top[solid]).astype(np.float32) * np.float32(g.quant_step)  # (K,) float32 voxels
     bound = np.minimum(np.floor(16.0 * field.astype(np.float64)), PAYLOAD_MASK).astype(np.uint32)  # (K,)
