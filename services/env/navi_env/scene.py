@@ -243,19 +243,17 @@ def runtime_tree(g: Gmdag) -> RuntimeTree:
     solid = top < 0  # (Nb,) every sample inside solid
     field = (-top[solid]).astype(np.float32) * np.float32(g.quant_step)  # (K,) float32 voxels
     bound = np.minimum(np.floor(16.0 * field.astype(np.float64)), PAYLOAD_MASK).astype(np.uint32)  # (K,)
-    words = np.zeros(count, np.uint32)  # (Nb,) the child word that replaces each brick's
-    words[solid] = (TAG_FAR_SOLID << 30) | bound
-    words[~solid] = (TAG_BRICK << 30) | np.arange(int((~solid).sum()), dtype=np.uint32)
+    words = np.zeros(count + 1, np.uint32)  # (Nb + 1,) each brick's new child word; the last one unused
+    words[:count][solid] = (TAG_FAR_SOLID << 30) | bound
+    words[:count][~solid] = (TAG_BRICK << 30) | np.arange(int((~solid).sum()), dtype=np.uint32)
 
     def rewrite(w: np.ndarray) -> np.ndarray:
         is_brick = (w >> 30) == TAG_BRICK
-        return np.where(is_brick, words[np.where(is_brick, w & PAYLOAD_MASK, 0)], w).astype(np.uint32)
+        return np.where(is_brick, words[np.where(is_brick, w & PAYLOAD_MASK, count)], w).astype(np.uint32)
 
-    nodes = g.nodes.reshape(-1, 8).astype(np.uint32)  # (Nn, 8)
-    root = int(rewrite(np.array([g.root], np.uint32))[0]) if count else g.root
     return RuntimeTree(
-        root=root,
-        nodes=rewrite(nodes) if count else nodes,
+        root=int(rewrite(np.array([g.root], np.uint32))[0]),
+        nodes=rewrite(g.nodes.reshape(-1, 8).astype(np.uint32)),  # (Nn, 8)
         bricks=np.ascontiguousarray(g.bricks[~solid]),
         brick_class=np.ascontiguousarray(g.brick_class[~solid]),
         levels=g.levels,
