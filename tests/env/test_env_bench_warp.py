@@ -66,3 +66,53 @@ def test_warp_refit_anchor_casts_through_moving_boxes(tmp_path: Path) -> None:
     assert moving["refit_every_launch"] and moving["obstacle_triangles"] == 4 * 4 * 12
     assert moving["triangles"] == results[0]["triangles"] + 4 * 4 * 12
     assert 0.0 < moving["hit_fraction"] <= 1.0 and moving["grays_per_s"] > 0.0
+
+
+def test_compile_mesh_out_holds_the_surfaces_the_tracer_sees(tmp_path: Path) -> None:
+    """`navi compile --mesh-out` writes drawn and barrier triangles: rays through an open scene's lid
+    end on it in the tracer and in the exported mesh alike, while the drawn triangles alone let them
+    escape (the Warp anchor would then cast cheaper misses, not the same rays)."""
+    from typer.testing import CliRunner
+
+    from navi.cli import build_app
+    from navi_compiler.scenes import generate_scene, write_scene_mesh
+    from navi_env.accuracy import mesh_hits
+    from navi_env.bench_warp import load_mesh_npz
+    from navi_env.scene import load_scene
+    from navi_env.trace import trace
+
+    scene = generate_scene("yard", 4)  # walls and crates under an undrawn lid
+    src = write_scene_mesh(scene, tmp_path / "yard.obj")
+    out, mesh = tmp_path / "yard.gmdag", tmp_path / "yard.npz"
+    runner = CliRunner()
+    res = runner.invoke(
+        build_app(), ["compile", str(src), "-o", str(out), "--resolution", "64", "--mesh-out", str(mesh)]
+    )
+    assert res.exit_code == 0, res.output
+    vertices, triangles = load_mesh_npz(mesh)
+    assert vertices.dtype == np.float32 and triangles.dtype == np.int32
+    assert len(triangles) == len(scene.faces) + len(scene.barrier_faces) and len(scene.barrier_faces) > 0
+
+    corpus = load_scene(out, "cpu")
+    origins = torch.tensor(scene.seeds[:4], dtype=torch.float32)  # (B, 3) known-free points
+    gen = torch.Generator().manual_seed(0)
+    dirs = torch.randn(64, 3, generator=gen)  # (R, 3)
+    dirs[:, 2] = dirs[:, 2].abs() + 0.5  # upwards, towards the lid
+    dirs = dirs / dirs.norm(dim=1, keepdim=True)
+    depth = torch.empty(len(origins), len(dirs))  # (B, R) float32 meters
+    trace(corpus, torch.zeros(len(origins), dtype=torch.int64), origins, dirs, out_depth=depth, horizon=1e3)
+    o = origins[:, None, :].expand(-1, len(dirs), -1).reshape(-1, 3)  # (B*R, 3)
+    d = dirs[None].expand(len(origins), -1, -1).reshape(-1, 3)  # (B*R, 3)
+    tri = torch.from_numpy(vertices[triangles]).double()  # (F + Fb, 3, 3)
+    drawn = torch.from_numpy(scene.vertices[scene.faces])  # (F, 3, 3)
+    with_lid, drawn_only = mesh_hits(o, d, tri), mesh_hits(o, d, drawn)  # (B*R,) float64 each
+    ours = depth.reshape(-1).double()  # (B*R,)
+    voxel = corpus.infos[0].voxel_size
+    assert bool(torch.isfinite(with_lid).all())  # every upward ray meets a wall, a crate or the lid
+    assert float(((ours - with_lid).abs() < 1.5 * voxel).double().mean()) > 0.95
+    assert float(torch.isinf(drawn_only).double().mean()) > 0.3  # without the lid many escape
+
+    bad = runner.invoke(
+        build_app(), ["compile", str(src), "-o", str(out), "--mesh-out", str(tmp_path / "m.obj")]
+    )
+    assert bad.exit_code == 2 and ".npz" in bad.output

@@ -237,12 +237,26 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
                 "(default NAVI_MAX_SOURCE_BYTES, 256 MiB). With --remote the worker's own limit applies.",
             ),
         ] = None,
+        mesh_out: Annotated[
+            Path | None,
+            typer.Option(
+                "--mesh-out",
+                help="Also write the triangles the field measures to (drawn and barrier, world meters) as "
+                "an .npz with `vertices` (V,3) float32 and `triangles` (F,3) int32: the --mesh of "
+                "`navi bench trace --vs-warp`, so that Warp casts against the surfaces the tracer sees.",
+            ),
+        ] = None,
     ) -> None:
         """Compile a scene into a .gmdag signed-distance DAG."""
         from navi_compiler.compile import compile_scene
         from navi_compiler.gmdag import write_gmdag
+        from navi_compiler.scene import write_surface_mesh
 
         _check_device(engine, device)
+        if mesh_out is not None and (remote or mesh_out.suffix.lower() != ".npz"):
+            raise _fail("--mesh-out needs a local compile and a path ending in .npz")
+        if mesh_out is not None and not mesh_out.parent.exists():
+            raise _fail(f"output folder {mesh_out.parent} does not exist")
         if remote:
             _compile_remote(src, out, resolution, scale, seed, repair, map_name, timeout, json_out)
             return
@@ -269,6 +283,8 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
         if not out.parent.exists():
             raise _fail(f"output folder {out.parent} does not exist")
         write_gmdag(g, out)
+        if mesh_out is not None:
+            write_surface_mesh(scene, mesh_out)
         summary = _summary(asdict(stats), str(out), load_seconds)
         if json_out:
             typer.echo(json.dumps(summary))

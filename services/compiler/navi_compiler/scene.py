@@ -5,7 +5,9 @@ Shapes: V vertices, F drawn faces, Fb barrier faces, S seeds. Coordinates are wo
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -54,3 +56,26 @@ class Scene:
         used = np.unique(np.concatenate([self.faces.ravel(), self.barrier_faces.ravel()]))  # (U,)
         pts = self.vertices[used]  # (U, 3)
         return pts.min(axis=0), pts.max(axis=0)
+
+    def surface_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every triangle the field measures distances to, drawn and barrier alike (the surfaces a
+        traced ray can end on): vertices (V, 3) float32 meters and triangles (F + Fb, 3) int32."""
+        triangles = np.concatenate([self.faces, self.barrier_faces])  # (F + Fb, 3) int64
+        if len(self.vertices) >= 2**31:
+            raise ValueError(f"scene {self.name!r}: {len(self.vertices)} vertices do not fit int32 indices")
+        return self.vertices.astype(np.float32), triangles.astype(np.int32)
+
+
+def write_surface_mesh(scene: Scene, path: str | os.PathLike[str]) -> Path:
+    """Write `scene.surface_mesh()` as an .npz (arrays `vertices`, `triangles`), the mesh that
+    `navi bench trace --vs-warp --mesh` casts the benchmark's rays against. Atomic (temp file, then
+    rename); the folder must exist."""
+    out = Path(path)
+    if out.suffix.lower() != ".npz":
+        raise ValueError(f"the surface mesh is written as .npz, not {out.suffix or '(none)'!r}")
+    vertices, triangles = scene.surface_mesh()  # (V, 3) float32, (T, 3) int32
+    tmp = out.with_name(out.name + ".tmp")
+    with tmp.open("wb") as f:
+        np.savez_compressed(f, vertices=vertices, triangles=triangles)
+    os.replace(tmp, out)
+    return out

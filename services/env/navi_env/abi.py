@@ -49,6 +49,7 @@ class TraceArgs(ctypes.Structure):
         ("num_worlds", ctypes.c_int32),
         ("hit_slope", ctypes.c_float),
         ("atlas_shift", ctypes.c_int32),
+        ("origin_scratch", ctypes.c_void_p),
     ]
 
 

@@ -174,10 +174,11 @@ def bench_warp(
 
 
 def _tracer_depth(corpus: SceneCorpus, cfg: TraceBenchConfig) -> np.ndarray:
-    """(B, R) tracer depth for the benchmark's agents, on the host."""
+    """(B, R) tracer depth for the benchmark's agents, on the host, traced as `bench_trace` traces them
+    (its hit threshold slope; the ray order changes no result)."""
     agents = place_agents(corpus, cfg.agents, cfg.clearance_voxels, cfg.seed)
     pattern = spherical_directions(cfg.azimuth_bins, cfg.elevation_bins, corpus.device)  # (R, 3)
     depth = torch.empty(cfg.agents, len(pattern), device=corpus.device)  # (B, R) float32
     trace(corpus, agents.scene_ids, agents.origins, pattern, yaw=agents.yaw, out_depth=depth,
-          max_steps=cfg.max_steps, horizon=cfg.horizon)  # fmt: skip
+          max_steps=cfg.max_steps, horizon=cfg.horizon, hit_slope=cfg.hit_slope)  # fmt: skip
     return depth.cpu().numpy()

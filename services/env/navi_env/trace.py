@@ -28,6 +28,7 @@ DEFAULT_HIT_EPSILON_VOXELS = 0.1  # used per scene when hit_epsilon is None (kDe
 NORM_TOLERANCE = 1e-3  # | |direction| - 1 | allowed
 RAY_GROUP = 128  # work items per ray group (kRayGroup in gmdag_trace.h)
 MASK_PRIMS = 64  # most primitives per world with per-group masks (kMaskPrims)
+ORIGIN_SAMPLE_BYTES = 48  # one actor's origin sample (sizeof(OriginSample) in gmdag_trace.h)
 
 
 def prim_scratch_bytes(batch: int, rays: int, per_world: int, shared: bool) -> int:
@@ -267,6 +268,7 @@ def trace(
     prims: torch.Tensor | None = None,
     prim_world: torch.Tensor | None = None,
     hit_slope: float = 0.0,
+    origin_pass: bool = True,
 ) -> None:
     """Sphere-trace B actors x R rays; write depth (meters), semantic and step counts in place.
 
@@ -287,6 +289,9 @@ def trace(
     prims: (W, K, 16) float32 dynamic primitive records (navi_env.obstacles); prim_world: (B,) int32
     world of each actor (default: actor b sees world b). A ray reports the first primitive it enters
     when that comes before the static surface; actor b never sees the primitive it owns.
+    origin_pass: sample each actor's origin once before its rays (every ray whose origin lies in the
+    cube takes its first sample there) instead of once per ray; the results, steps included, are the
+    same bit for bit (False is for tests and measurements).
     """
     p = validate_trace(
         scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps, ray_order,
@@ -299,6 +304,11 @@ def trace(
         # and a buffer per call stays correct when calls overlap on several streams)
         nbytes = prim_scratch_bytes(p.batch, p.rays, per_world, p.shared)
         scratch = torch.empty(nbytes, dtype=torch.uint8, device=scenes.device)  # (bytes,)
+    origin = None
+    if origin_pass and p.batch * p.rays > 0:
+        origin = torch.empty(
+            p.batch * ORIGIN_SAMPLE_BYTES, dtype=torch.uint8, device=scenes.device
+        )  # (B*48,)
     args = TraceArgs(
         nodes=scenes.nodes.data_ptr(),
         grid=scenes.grid.data_ptr(),
@@ -331,6 +341,7 @@ def trace(
         prim_scratch_bytes=0 if scratch is None else scratch.numel(),
         brick_atlas=_atlas(scenes)[0],
         atlas_shift=_atlas(scenes)[1],
+        origin_scratch=_ptr(origin),
     )
     if p.batch * p.rays > 0:
         launch("trace", args, scenes.device)

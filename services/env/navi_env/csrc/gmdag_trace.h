@@ -101,6 +101,8 @@ struct TraceArgs {
   int32_t num_worlds;           // W; an actor whose world is outside [0, W) sees no primitive
   float hit_slope;              // >= 0: the hit threshold at distance t is epsilon + hit_slope * t
   int32_t atlas_shift;          // log2 of the bricks per atlas row and per atlas column (CUDA build)
+  void* origin_scratch;         // (B,) OriginSample the launch fills before its rays, or null (each ray
+                                // takes its first sample itself; same results)
 };
 
 // Arguments of one point-query launch (sample_distance).
@@ -878,6 +880,67 @@ NAVI_HD float min_prim_distance(const float* prims, int64_t world, int32_t k_cou
 }
 
 // ---------------------------------------------------------------------------------------------
+// The origin sample. Every ray of an actor whose origin lies in its scene's cube starts at t = 0, so
+// its first sample is at the origin itself (o + 0 d = o exactly, fused or not): the same field, leaf
+// and brick for all R rays. A launch with origin_scratch takes that sample once per actor before the
+// rays (one thread per actor), and each ray's first step starts from the record (first_step): one
+// sample and leaf lookup less per ray, bit-identical to sampling the origin itself.
+constexpr int32_t kOriginValid = 1;     // the record holds the sample (origin finite and in the cube)
+constexpr int32_t kOriginSolid = 2;     // FieldSample.solid
+constexpr int32_t kOriginFarFree = 4;   // FieldSample.far_free
+
+struct alignas(16) OriginSample {
+  Leaf leaf;            // the walker's leaf after the sample
+  uint32_t last_brick;  // the walker's last brick after the sample
+  float dist;           // FieldSample.dist, voxels
+  int32_t flags;        // kOriginValid | kOriginSolid | kOriginFarFree
+};
+
+static_assert(sizeof(OriginSample) == 48, "mirrored by navi_env.trace.ORIGIN_SAMPLE_BYTES");
+
+// Actor b's origin sample (flags 0 where its rays cannot use one: bad scene id, non-finite origin, an
+// origin outside the cube, whose rays start at their own entry times).
+NAVI_HD OriginSample origin_sample(const TraceArgs& a, int64_t b) {
+  Walker w;
+  walker_init(w);
+  OriginSample o;
+  o.leaf = w.leaf;
+  o.last_brick = w.last_brick;
+  o.dist = 0.0f;
+  o.flags = 0;
+  const int64_t sid = load_scene_id(a.scene_ids, a.scene_id_bytes, b);
+  if (sid < 0 || sid >= a.num_scenes) return o;
+  const Scene s = load_scene(a.scenes, sid);
+  const float ox = (load_ro(a.origins + b * 3) - s.ox) * s.inv_voxel;
+  const float oy = (load_ro(a.origins + b * 3 + 1) - s.oy) * s.inv_voxel;
+  const float oz = (load_ro(a.origins + b * 3 + 2) - s.oz) * s.inv_voxel;
+  const float res = static_cast<float>(s.resolution);
+  // inside the closed cube (false for NaN): every ray's slab clip then starts at t = 0
+  if (!(ox >= 0.0f && ox <= res && oy >= 0.0f && oy <= res && oz >= 0.0f && oz <= res)) return o;
+  const FieldSample f = walk_sample(a.grid, a.nodes, brick_store(a.bricks, a.brick_atlas, a.atlas_shift), s, w,
+                                    ox, oy, oz);
+  o.leaf = w.leaf;
+  o.last_brick = w.last_brick;
+  o.dist = f.dist;
+  o.flags = kOriginValid | (f.solid ? kOriginSolid : 0) | (f.far_free ? kOriginFarFree : 0);
+  return o;
+}
+
+// Record b of origin_scratch (16-byte loads on the device).
+NAVI_HD OriginSample load_origin(const TraceArgs& a, int64_t b) {
+  const OriginSample* p = static_cast<const OriginSample*>(a.origin_scratch) + b;
+#ifdef __CUDA_ARCH__
+  OriginSample o;
+  const int4* src = reinterpret_cast<const int4*>(p);
+  int4* dst = reinterpret_cast<int4*>(&o);
+  for (int k = 0; k < static_cast<int>(sizeof(OriginSample) / 16); ++k) dst[k] = __ldg(src + k);
+  return o;
+#else
+  return *p;
+#endif
+}
+
+// ---------------------------------------------------------------------------------------------
 // One ray.
 
 // Narrows [t0, t1] to the ray's part inside the slab [0, res] along one axis (inv = 1 / d).
@@ -1046,6 +1109,68 @@ NAVI_HD void end_out_of_steps(const TraceArgs& a, Ray& ray) {
   ray.done = true;
 }
 
+// What one main-loop step does after its sample f (at t, in the walker's leaf w.leaf): the hit tests,
+// then the step. Returns true when the ray is done (a miss, kSurface or kCrossing); otherwise t, prev_t
+// and prev_d have moved on. first_step calls it; walk_ray's loop spells the same tests and step out
+// inline, because with the loop calling this function (and the first step peeled inside walk_ray) the
+// device code ran 0-4% slower on the 50 OpenArena maps instead of 2-5% faster (docs/PERFORMANCE.md,
+// stop 34). Tests trace with and without origin samples and demand the same outputs bit for bit,
+// which holds the two copies together.
+NAVI_HD bool take_step(const TraceArgs& a, Ray& ray, const Walker& w, const FieldSample& f, float& t, float& prev_t,
+                       float& prev_d) {
+  const float d = f.dist;
+  if (f.solid || d < 0.0f) {  // inside: refined after the walk (settle_hit), out of the loop
+    ray.res.semantic = kCrossing;
+    return true;
+  }
+  // Within the threshold of a surface while not moving away from it: a ray leaving the surface it
+  // starts on is not stopped by it, and none is at its first sample (prev_d starts at -1). The
+  // threshold grows with the distance travelled, so that a ray stops once the surface lies within
+  // a fixed fraction of its angular footprint.
+  if (!f.far_free && d < ray.eps + a.hit_slope * t && d <= prev_d) {
+    ray.res.semantic = kSurface;
+    return true;
+  }
+  float next = t + fmaxf(d, ray.eps);
+  if (f.far_free) {
+    // Skip the whole far cube and then its lower bound d beyond the exit: every point of the closed
+    // cube, the exit point included, is at least d from the surface (the far code's promise). A point
+    // that rounding leaves in the cube (or an exit time that rounds below t) only repeats the skip
+    // from t, which still moves the ray max(d, eps), so the walk cannot stall.
+    const int edge = 1 << w.leaf.shift;
+    const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
+    const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
+    const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, w.leaf.cz, edge);
+    const int axis = (tx <= ty && tx <= tz) ? 0 : (ty <= tz ? 1 : 2);
+    const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
+    const float d_axis = axis == 0 ? ray.dx : (axis == 1 ? ray.dy : ray.dz);
+    const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
+    next = fmaxf(t_exit, t) + fmaxf(d, ray.eps);
+    const int beyond = d_axis > 0.0f ? cube_min + edge : cube_min - 1;  // the cell across the exit face
+    if (beyond < 0 || beyond >= ray.s.resolution) return true;  // left the cube: a miss
+  }
+  prev_t = t;
+  prev_d = d;
+  t = next;
+  return next > ray.t1;  // past the cube or the horizon: a miss
+}
+
+// The first step of a ray that starts at its actor's origin (t = 0), taken from the actor's origin
+// sample instead of sampling the field; rays that start elsewhere (an origin outside the cube) and
+// launches without origin samples leave it to walk_ray.
+NAVI_HD void first_step(const TraceArgs& a, Ray& ray, const OriginSample& origin) {
+  if ((origin.flags & kOriginValid) == 0 || ray.t != 0.0f || ray.res.steps != 0 || a.max_steps <= 0) return;
+  ray.res.steps = 1;
+  ray.w.leaf = origin.leaf;
+  ray.w.last_brick = origin.last_brick;
+  FieldSample f;
+  f.dist = origin.dist;
+  f.solid = (origin.flags & kOriginSolid) != 0;
+  f.far_free = (origin.flags & kOriginFarFree) != 0;
+  ray.end_d = f.dist;
+  ray.done = take_step(a, ray, ray.w, f, ray.t, ray.prev_t, ray.prev_d);
+}
+
 // The main loop of sphere tracing (see docs/SDFDAG_RUNTIME.md): sample, hit tests, step, for at most
 // max_steps samples. A ray that ends here is done (a miss, kSurface or kCrossing); one that runs out of
 // samples is not (end_out_of_steps). The loop keeps its state in locals (the last sample's field in
@@ -1171,6 +1296,7 @@ NAVI_HD void trace_item(const TraceArgs& a, int64_t b, int64_t j, const PrimTabl
   const int64_t r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
   if (r < 0 || r >= a.num_rays) return;
   Ray ray = start_ray<kPrims>(a, b, j, r, t);
+  if (!ray.done && a.origin_scratch != nullptr) first_step(a, ray, load_origin(a, b));
   if (!ray.done) walk_ray(a, ray);
   if (!ray.done) {
     end_out_of_steps(a, ray);

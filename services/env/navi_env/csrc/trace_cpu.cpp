@@ -46,6 +46,11 @@ int parallel_for(int64_t count, int32_t threads, const Body& body) {
 extern "C" int navi_trace_cpu(const navi::TraceArgs* args) {
   const navi::TraceArgs a = *args;
   const int64_t items = a.num_actors * a.num_rays;
+  if (a.origin_scratch != nullptr && items > 0) {
+    auto* origins = static_cast<navi::OriginSample*>(a.origin_scratch);
+    const int err = parallel_for(a.num_actors, a.cpu_threads, [&](int64_t b) { origins[b] = navi::origin_sample(a, b); });
+    if (err != 0) return err;
+  }
   if (navi::has_prims(a)) {
     if (a.prim_scratch == nullptr || a.prim_scratch_bytes < navi::prim_scratch_bytes(a)) return kErrScratch;
     const navi::PrimTables t = navi::prim_tables(a);

@@ -85,6 +85,12 @@ __global__ void __launch_bounds__(kThreads, kMinBlocksPerSmPrims)
   for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item<true>(a, b, j, t);
 }
 
+// Each actor's origin sample (gmdag_trace.h, "The origin sample"), before the rays.
+__global__ void __launch_bounds__(kThreads) origin_kernel(const navi::TraceArgs a) {
+  const int64_t b = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
+  if (b < a.num_actors) static_cast<navi::OriginSample*>(a.origin_scratch)[b] = navi::origin_sample(a, b);
+}
+
 __global__ void __launch_bounds__(kThreads) sample_kernel(const navi::SampleArgs a) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
   if (i < a.num_points) navi::sample_point(a, i);
@@ -114,6 +120,7 @@ extern "C" int navi_trace_cuda(const navi::TraceArgs* args) {
   const dim3 grid(static_cast<unsigned>((args->num_rays + kThreads - 1) / kThreads),
                   static_cast<unsigned>(args->num_actors < kMaxGridY ? args->num_actors : kMaxGridY));
   const cudaStream_t stream = static_cast<cudaStream_t>(args->stream);
+  if (args->origin_scratch != nullptr) origin_kernel<<<blocks_for(args->num_actors), kThreads, 0, stream>>>(*args);
   if (navi::has_prims(*args)) {
     const navi::TraceArgs& a = *args;
     if (a.prim_scratch == nullptr || a.prim_scratch_bytes < navi::prim_scratch_bytes(a)) {
