@@ -75,7 +75,10 @@ def write_surface_mesh(scene: Scene, path: str | os.PathLike[str]) -> Path:
         raise ValueError(f"the surface mesh is written as .npz, not {out.suffix or '(none)'!r}")
     vertices, triangles = scene.surface_mesh()  # (V, 3) float32, (T, 3) int32
     tmp = out.with_name(out.name + ".tmp")
-    with tmp.open("wb") as f:
-        np.savez_compressed(f, vertices=vertices, triangles=triangles)
-    os.replace(tmp, out)
+    try:
+        with tmp.open("wb") as f:
+            np.savez_compressed(f, vertices=vertices, triangles=triangles)
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
     return out

@@ -306,9 +306,10 @@ def trace(
         scratch = torch.empty(nbytes, dtype=torch.uint8, device=scenes.device)  # (bytes,)
     origin = None
     if origin_pass and p.batch * p.rays > 0:
-        origin = torch.empty(
-            p.batch * ORIGIN_SAMPLE_BYTES, dtype=torch.uint8, device=scenes.device
-        )  # (B*48,)
+        # the launch's origin samples: like the primitive tables a fresh buffer per call (free from the
+        # caching allocator, private to a CUDA graph's pool, correct when calls overlap on streams)
+        nbytes = p.batch * ORIGIN_SAMPLE_BYTES
+        origin = torch.empty(nbytes, dtype=torch.uint8, device=scenes.device)  # (B * 48,) OriginSample
     args = TraceArgs(
         nodes=scenes.nodes.data_ptr(),
         grid=scenes.grid.data_ptr(),
