@@ -12,7 +12,14 @@ import torch
 
 import navi_env.scene as scene_mod
 from navi_compiler.gmdag import PAYLOAD_MASK, TAG_BRICK, TAG_FAR_FREE, TAG_FAR_SOLID, TAG_NODE, Gmdag
-from navi_env.analytic_scenes import AnalyticScene, Box, Sphere, demo_room, free_points, random_directions
+from navi_env.analytic_scenes import (
+    AnalyticScene,
+    Box,
+    demo_room,
+    free_points,
+    leaf_kind_scenes,
+    random_directions,
+)
 from navi_env.scene import (
     BRICK_WORDS,
     atlas_shift,
@@ -27,16 +34,6 @@ from navi_env.scene import (
 )
 from navi_env.trace import sample_distance, trace
 from navi_env.trace_ref import brick_samples, trace_ref
-
-
-def _scenes() -> list[AnalyticScene]:
-    sparse = AnalyticScene((Sphere((21.0, 12.0, 9.5), 2.5),), resolution=64, voxel_size=0.5)  # far codes
-    boxes = AnalyticScene(
-        (Box((1.0, 1.5, 0.5), (3.0, 6.0, 2.5)), Box((4.5, 0.7, 1.0), (7.2, 2.1, 7.0))),
-        resolution=32,
-        voxel_size=0.25,
-    )
-    return [demo_room(32, 8.0), sparse, boxes]
 
 
 def _solid_block() -> AnalyticScene:
@@ -77,7 +74,7 @@ def test_leaf_grid_entries_are_the_descent_from_the_root(
 ) -> None:
     monkeypatch.setattr(scene_mod, "MAX_GRID_DEPTH", depth_cap)
     rng = np.random.default_rng(1)
-    for s in _scenes():
+    for s in leaf_kind_scenes():
         g = s.gmdag()
         d = grid_depth(g.levels)
         entries = leaf_grid(g).astype(np.int64)  # (8^D,)
@@ -98,7 +95,7 @@ def test_runtime_tree_turns_every_all_solid_brick_into_a_far_solid_code() -> Non
     float32 field, floored to 1/16 voxel); every other leaf is the file's, bricks renumbered in order."""
     rng = np.random.default_rng(2)
     solid_seen = kept_seen = 0
-    for s in [*_scenes(), _solid_block()]:
+    for s in [*leaf_kind_scenes(), _solid_block()]:
         g = s.gmdag()
         g = dataclasses.replace(g, brick_class=(np.arange(len(g.bricks)) % 7).astype(np.uint8))
         t = runtime_tree(g)
@@ -128,7 +125,7 @@ def test_the_field_is_the_files_but_a_bound_in_all_solid_bricks() -> None:
     """sample_distance against the file's own samples: the trilinear field of its brick, or in an
     all-solid brick the (negative) far bound, never deeper than the file's field there."""
     rng = np.random.default_rng(5)
-    for s in [*_scenes(), _solid_block()]:
+    for s in [*leaf_kind_scenes(), _solid_block()]:
         g = s.gmdag()
         corpus = load_scene(g)
         ids = torch.zeros(2000, dtype=torch.int64)  # (N,)
@@ -164,7 +161,7 @@ def test_rays_hit_the_same_surfaces_without_the_all_solid_bricks(monkeypatch: py
     """Tracing the runtime tree against tracing the file's own tree: rays from free space stop on the
     same surfaces at the same depths (the far-solid bound only enters a crossing's last secant step
     when that step ends in an all-solid brick, and the class of such a hit)."""
-    scenes = [*_scenes(), _solid_block()]
+    scenes = [*leaf_kind_scenes(), _solid_block()]
     ids = torch.arange(len(scenes)).repeat_interleave(8)  # (B,)
     origins = torch.tensor(
         np.concatenate([free_points(s, 8, 0.0, seed=30 + i) for i, s in enumerate(scenes)]),
@@ -209,7 +206,7 @@ def _trace_both(corpus: scene_mod.SceneCorpus, scenes: list[AnalyticScene]) -> t
 
 
 def test_traces_do_not_depend_on_the_grid_depth(monkeypatch: pytest.MonkeyPatch) -> None:
-    scenes = _scenes()
+    scenes = leaf_kind_scenes()
     full = _trace_both(load_corpus([s.gmdag() for s in scenes]), scenes)
     monkeypatch.setattr(scene_mod, "MAX_GRID_DEPTH", 1)  # the node descent does the rest
     shallow = _trace_both(load_corpus([s.gmdag() for s in scenes]), scenes)
@@ -239,7 +236,7 @@ def test_huge_far_payloads_clamp_without_changing_results() -> None:
 
 
 def test_scene_nbytes_counts_every_device_buffer() -> None:
-    scenes = _scenes()
+    scenes = leaf_kind_scenes()
     corpus = load_corpus([s.gmdag() for s in scenes])
     total = sum(
         t.numel() * t.element_size() for t in (corpus.nodes, corpus.grid, corpus.bricks, corpus.brick_class)

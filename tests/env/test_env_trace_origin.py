@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from navi_env import obstacles
-from navi_env.analytic_scenes import AnalyticScene, Box, Sphere, demo_room, free_points, random_directions
+from navi_env.analytic_scenes import AnalyticScene, free_points, leaf_kind_scenes, random_directions
 from navi_env.rays import tiled_ray_order
 from navi_env.scene import SceneCorpus, load_corpus
 from navi_env.trace import ORIGIN_SAMPLE_BYTES, trace
@@ -20,20 +20,10 @@ from navi_env.trace_ref import trace_ref
 R = 256  # rays per actor (a 16 x 16 pattern, so that tiled_ray_order applies)
 
 
-def _scenes() -> list[AnalyticScene]:
-    sparse = AnalyticScene((Sphere((21.0, 12.0, 9.5), 2.5),), resolution=64, voxel_size=0.5)  # far codes
-    boxes = AnalyticScene(
-        (Box((1.0, 1.5, 0.5), (3.0, 6.0, 2.5)), Box((4.5, 0.7, 1.0), (7.2, 2.1, 7.0))),
-        resolution=32,
-        voxel_size=0.25,
-    )
-    return [demo_room(32, 8.0), sparse, boxes]
-
-
 def _corpus(device: str) -> SceneCorpus:
     """The scenes, each brick labelled with its own class (1 + index mod 7), so that a hit's semantic
     tells which brick the walk sampled last."""
-    corpus = load_corpus([s.gmdag() for s in _scenes()], device)
+    corpus = load_corpus([s.gmdag() for s in leaf_kind_scenes()], device)
     n = len(corpus.brick_class)
     corpus.brick_class.copy_((torch.arange(n) % 7 + 1).to(torch.uint8))  # (Nb,) uint8
     return corpus
@@ -84,7 +74,7 @@ def _trace(
 
 def _check(device: str) -> None:
     corpus = _corpus(device)
-    ids, origins = _actors(_scenes())
+    ids, origins = _actors(leaf_kind_scenes())
     gen = torch.Generator().manual_seed(3)
     prims = obstacles.scatter(origins.nan_to_num(), 4, gen, near=0.5, far=3.0).to(device)  # (B, 4, 16)
     for p in (None, prims):
@@ -104,7 +94,7 @@ def test_origin_samples_change_nothing_on_the_cpu() -> None:
 def test_origin_samples_keep_the_reference_parity() -> None:
     """trace_ref samples every ray's origin itself: the launch with origin samples matches it."""
     corpus = _corpus("cpu")
-    ids, origins = _actors(_scenes())
+    ids, origins = _actors(leaf_kind_scenes())
     dirs = torch.tensor(random_directions(R, seed=8), dtype=torch.float32)  # (R, 3)
     out = []
     for fn in (trace, trace_ref):

@@ -173,6 +173,19 @@ def demo_room(resolution: int = 64, size: float = 16.0) -> AnalyticScene:
     )
 
 
+def leaf_kind_scenes() -> list[AnalyticScene]:
+    """Three small scenes that between them hold every leaf kind at two depths: `demo_room(32, 8.0)`
+    (bricks and far codes in a closed room), a lone sphere in a 64^3 cube (mostly far codes) and two
+    boxes at a finer voxel (tracer layout and parity tests)."""
+    sparse = AnalyticScene((Sphere((21.0, 12.0, 9.5), 2.5),), resolution=64, voxel_size=0.5)
+    boxes = AnalyticScene(
+        (Box((1.0, 1.5, 0.5), (3.0, 6.0, 2.5)), Box((4.5, 0.7, 1.0), (7.2, 2.1, 7.0))),
+        resolution=32,
+        voxel_size=0.25,
+    )
+    return [demo_room(32, 8.0), sparse, boxes]
+
+
 def free_points(scene: AnalyticScene, count: int, clearance: float, seed: int = 0) -> np.ndarray:
     """(count, 3) float64 points in the cube at least `clearance` meters from every solid."""
     rng = np.random.default_rng(seed)
