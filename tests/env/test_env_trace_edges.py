@@ -12,6 +12,7 @@ import torch
 from navi_env.analytic_scenes import AnalyticScene, Box, Room, Slab, demo_room, random_directions, slab_scene
 from navi_env.scene import SceneCorpus, load_corpus, load_scene
 from navi_env.trace import trace
+from navi_env.trace_ref import trace_ref
 
 THICKNESSES = (0.25, 0.5, 1.0, 1.5, 2.0)  # voxels
 
@@ -124,6 +125,27 @@ def test_rays_leaving_the_cube_miss_and_outside_origins_enter_it() -> None:
     assert depth[0, 2] == 50.0 and sem[0, 2] == 0  # points away from the cube
     assert depth[2, 2] == 50.0 and depth[2, 3] == 50.0  # leaves the cube: a miss, the horizon
     assert (sem[2, 2:] == 0).all()
+
+
+def test_a_far_step_across_the_scene_face_is_a_miss_at_that_step() -> None:
+    # The origin lies in the far-free cube [0, 16]^3 voxels at a corner of the scene; rays into the
+    # corner's octant leave that cube through faces of the scene's cube, so the one far step from the
+    # origin sample passes the slab exit t1 and ends the ray as a miss (the kernels test no cell
+    # across the exit face). The reference takes the same single step.
+    scene = AnalyticScene((Box((28.0, 28.0, 28.0), (36.0, 36.0, 36.0)),), resolution=64, voxel_size=1.0)
+    corpus = load_scene(scene.gmdag())
+    gen = torch.Generator().manual_seed(3)
+    dirs = -(0.1 + torch.rand(64, 3, generator=gen))  # (R, 3) every component negative
+    dirs = dirs / dirs.norm(dim=1, keepdim=True)
+    origins = torch.tensor([[2.0, 3.0, 2.5]])  # (1, 3)
+    ids = torch.zeros(1, dtype=torch.int64)
+    for tracer in (trace, trace_ref):
+        depth = torch.empty(1, 64)  # (1, R)
+        sem = torch.empty(1, 64, dtype=torch.int32)  # (1, R)
+        steps = torch.empty(1, 64, dtype=torch.int32)  # (1, R)
+        tracer(corpus, ids, origins, dirs, out_depth=depth, out_semantic=sem, out_steps=steps, horizon=50.0)
+        assert (depth == 50.0).all() and (sem == 0).all()
+        assert (steps == 1).all()
 
 
 def test_rays_along_a_lattice_plane_drifting_out_of_it_keep_going() -> None:

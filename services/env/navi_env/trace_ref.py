@@ -339,18 +339,10 @@ def trace_ref(
         if bool(far.any()):
             edge = torch.ones_like(f.shift) << f.shift  # (K,)
             te = [exit_time(ok[:, k], dk[:, k], inv[idx][:, k], f.corner[:, k], edge) for k in range(3)]
-            axis = torch.where(
-                (te[0] <= te[1]) & (te[0] <= te[2]), 0, torch.where(te[1] <= te[2], 1, 2)
-            )  # (K,)
-            t_exit = torch.where(axis == 0, te[0], torch.where(axis == 1, te[1], te[2]))  # (K,)
-            d_axis = dk.gather(1, axis[:, None]).squeeze(1)  # (K,)
-            cube_min = f.corner.gather(1, axis[:, None]).squeeze(1)  # (K,)
-            # the bound past the exit (max(d, eps): progress even where rounding keeps p in the cube)
+            t_exit = torch.minimum(torch.minimum(te[0], te[1]), te[2])  # (K,)
+            # the bound past the exit (max(d, eps): progress even where rounding keeps p in the cube);
+            # an exit through a face of the scene's cube is that axis' slab exit, so this passes t1
             nxt = torch.where(far, torch.maximum(t_exit, tk) + torch.maximum(f.dist, eps[idx]), nxt)
-            cell = torch.where(d_axis > 0, cube_min + edge, cube_min - 1)  # (K,) across the exit face
-            left = far & ((cell < 0) | (cell >= sk.resolution))  # (K,) left the cube: miss
-            active[idx[left]] = False
-            go = go & ~left
         gidx = idx[go]
         prev_t[gidx] = tk[go]
         prev_d[gidx] = f.dist[go]

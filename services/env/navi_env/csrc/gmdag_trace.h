@@ -955,10 +955,17 @@ NAVI_HD void clip_slab(float o, float d, float inv, float res, float& t0, float&
   }
 }
 
-// Ray time at which the ray leaves the cube [c, c + edge] along one axis (kBig when parallel).
+// Ray time at which the ray leaves the cube [c, c + edge] along one axis (kBig when parallel). The
+// face's coordinate, an integer in [0, R] (R <= 2^23), becomes a float through the bits of 2^23 + n on
+// the device (exact, no conversion instruction).
 NAVI_HD float exit_time(float o, float d, float inv, int c, int edge) {
   if (d == 0.0f) return kBig;
-  const float bound = static_cast<float>(d > 0.0f ? c + edge : c);
+  const int face = d > 0.0f ? c + edge : c;
+#ifdef __CUDA_ARCH__
+  const float bound = __int_as_float(kTwo23Bits + face) - kTwo23;
+#else
+  const float bound = static_cast<float>(face);
+#endif
   return (bound - o) * inv;
 }
 
@@ -1137,17 +1144,13 @@ NAVI_HD bool take_step(const TraceArgs& a, Ray& ray, const Walker& w, const Fiel
     // cube, the exit point included, is at least d from the surface (the far code's promise). A point
     // that rounding leaves in the cube (or an exit time that rounds below t) only repeats the skip
     // from t, which still moves the ray max(d, eps), so the walk cannot stall.
+    // Where the exit face is a face of the scene's cube, the exit time is that axis' slab exit, at
+    // least t1, so the step below passes t1: a miss (no test of the cell across the face needed).
     const int edge = 1 << w.leaf.shift;
     const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
     const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
     const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, w.leaf.cz, edge);
-    const int axis = (tx <= ty && tx <= tz) ? 0 : (ty <= tz ? 1 : 2);
-    const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
-    const float d_axis = axis == 0 ? ray.dx : (axis == 1 ? ray.dy : ray.dz);
-    const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
-    next = fmaxf(t_exit, t) + fmaxf(d, ray.eps);
-    const int beyond = d_axis > 0.0f ? cube_min + edge : cube_min - 1;  // the cell across the exit face
-    if (beyond < 0 || beyond >= ray.s.resolution) return true;  // left the cube: a miss
+    next = fmaxf(fminf(fminf(tx, ty), tz), t) + fmaxf(d, ray.eps);
   }
   prev_t = t;
   prev_d = d;
@@ -1207,20 +1210,13 @@ NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
       // cube, the exit point included, is at least d from the surface (the far code's promise). A point
       // that rounding leaves in the cube (or an exit time that rounds below t) only repeats the skip
       // from t, which still moves the ray max(d, eps), so the walk cannot stall.
+      // Where the exit face is a face of the scene's cube, the exit time is that axis' slab exit, at
+      // least t1, so the step below passes t1: a miss (no test of the cell across the face needed).
       const int edge = 1 << w.leaf.shift;
       const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
       const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
       const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, w.leaf.cz, edge);
-      const int axis = (tx <= ty && tx <= tz) ? 0 : (ty <= tz ? 1 : 2);
-      const float t_exit = axis == 0 ? tx : (axis == 1 ? ty : tz);
-      const float d_axis = axis == 0 ? ray.dx : (axis == 1 ? ray.dy : ray.dz);
-      const int cube_min = axis == 0 ? w.leaf.cx : (axis == 1 ? w.leaf.cy : w.leaf.cz);
-      next = fmaxf(t_exit, t) + fmaxf(d, ray.eps);
-      const int beyond = d_axis > 0.0f ? cube_min + edge : cube_min - 1;  // the cell across the exit face
-      if (beyond < 0 || beyond >= s.resolution) {  // left the cube: a miss
-        ray.done = true;
-        break;
-      }
+      next = fmaxf(fminf(fminf(tx, ty), tz), t) + fmaxf(d, ray.eps);
     }
     prev_t = t;
     prev_d = d;
