@@ -1116,12 +1116,27 @@ NAVI_HD void end_out_of_steps(const TraceArgs& a, Ray& ray) {
   ray.done = true;
 }
 
+// Where a ray at t whose sample lies in the far-free cube `leaf` (lower bound d) goes next: past the
+// whole cube and then d beyond its exit, since every point of the closed cube, the exit point
+// included, is at least d from the surface (the far code's promise). A point that rounding leaves in
+// the cube (or an exit time that rounds below t) only repeats the skip from t, which still moves the
+// ray max(d, eps), so the walk cannot stall. Where the exit face is a face of the scene's cube, the
+// exit time is that axis' slab exit, at least t1, so the step passes t1 and the ray ends as a miss (no
+// test of the cell across the face is needed).
+NAVI_HD float far_step(const Ray& ray, const Leaf& leaf, float t, float d) {
+  const int edge = 1 << leaf.shift;
+  const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, leaf.cx, edge);
+  const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, leaf.cy, edge);
+  const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, leaf.cz, edge);
+  return fmaxf(fminf(fminf(tx, ty), tz), t) + fmaxf(d, ray.eps);
+}
+
 // What one main-loop step does after its sample f (at t, in the walker's leaf w.leaf): the hit tests,
 // then the step. Returns true when the ray is done (a miss, kSurface or kCrossing); otherwise t, prev_t
-// and prev_d have moved on. first_step calls it; walk_ray's loop spells the same tests and step out
-// inline, because with the loop calling this function (and the first step peeled inside walk_ray) the
-// device code ran 0-4% slower on the 50 OpenArena maps instead of 2-5% faster (docs/PERFORMANCE.md,
-// stop 34). Tests trace with and without origin samples and demand the same outputs bit for bit,
+// and prev_d have moved on. first_step calls it; walk_ray's loop spells the same tests out inline (both
+// share far_step, which compiles to the same device code as the step written out), because with the
+// loop calling this function (and the first step peeled inside walk_ray) the device code ran 0-4%
+// slower on the 50 OpenArena maps instead of 2-5% faster (docs/PERFORMANCE.md, stop 34). Tests trace with and without origin samples and demand the same outputs bit for bit,
 // which holds the two copies together.
 NAVI_HD bool take_step(const TraceArgs& a, Ray& ray, const Walker& w, const FieldSample& f, float& t, float& prev_t,
                        float& prev_d) {
@@ -1139,19 +1154,7 @@ NAVI_HD bool take_step(const TraceArgs& a, Ray& ray, const Walker& w, const Fiel
     return true;
   }
   float next = t + fmaxf(d, ray.eps);
-  if (f.far_free) {
-    // Skip the whole far cube and then its lower bound d beyond the exit: every point of the closed
-    // cube, the exit point included, is at least d from the surface (the far code's promise). A point
-    // that rounding leaves in the cube (or an exit time that rounds below t) only repeats the skip
-    // from t, which still moves the ray max(d, eps), so the walk cannot stall.
-    // Where the exit face is a face of the scene's cube, the exit time is that axis' slab exit, at
-    // least t1, so the step below passes t1: a miss (no test of the cell across the face needed).
-    const int edge = 1 << w.leaf.shift;
-    const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
-    const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
-    const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, w.leaf.cz, edge);
-    next = fmaxf(fminf(fminf(tx, ty), tz), t) + fmaxf(d, ray.eps);
-  }
+  if (f.far_free) next = far_step(ray, w.leaf, t, d);
   prev_t = t;
   prev_d = d;
   t = next;
@@ -1205,19 +1208,7 @@ NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
       break;
     }
     float next = t + fmaxf(d, ray.eps);
-    if (f.far_free) {
-      // Skip the whole far cube and then its lower bound d beyond the exit: every point of the closed
-      // cube, the exit point included, is at least d from the surface (the far code's promise). A point
-      // that rounding leaves in the cube (or an exit time that rounds below t) only repeats the skip
-      // from t, which still moves the ray max(d, eps), so the walk cannot stall.
-      // Where the exit face is a face of the scene's cube, the exit time is that axis' slab exit, at
-      // least t1, so the step below passes t1: a miss (no test of the cell across the face needed).
-      const int edge = 1 << w.leaf.shift;
-      const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, w.leaf.cx, edge);
-      const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, w.leaf.cy, edge);
-      const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, w.leaf.cz, edge);
-      next = fmaxf(fminf(fminf(tx, ty), tz), t) + fmaxf(d, ray.eps);
-    }
+    if (f.far_free) next = far_step(ray, w.leaf, t, d);
     prev_t = t;
     prev_d = d;
     t = next;
