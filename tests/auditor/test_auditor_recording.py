@@ -110,6 +110,37 @@ def test_replay_keeps_relative_timing(tmp_path: Path) -> None:
         ]
 
 
+def test_every_committed_state_a_kill_can_leave_is_consistent(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each version of a topic's metadata the store ever holds (a kill can leave any one of them) has
+    `bytes` equal to the end of its last committed payload: the two counts are written together."""
+    import json
+
+    from zarr.storage import LocalStore
+
+    versions: list[dict[str, int]] = []
+    original = LocalStore.set
+
+    async def recording_set(self: LocalStore, key: str, value: object) -> None:
+        await original(self, key, value)  # type: ignore[arg-type]
+        attrs = json.loads(value.to_bytes())["attributes"] if key == "telemetry/zarr.json" else {}  # type: ignore[attr-defined]
+        if "rows" in attrs:  # (the group is created before its counts; readers skip it until then)
+            versions.append({"rows": int(attrs["rows"]), "bytes": int(attrs.get("bytes", -1))})
+
+    monkeypatch.setattr(LocalStore, "set", recording_set)
+    path = tmp_path / "s.zarr"
+    writer = SessionWriter(path, {"telemetry": "navi/telemetry"}, RecorderConfig(flush_rows=7, chunk_rows=16))
+    for i in range(60):
+        writer.append("telemetry", encode(telemetry("actor.training.sps", float(i), i)))
+    writer.close()
+    reader = SessionReader(path)
+    ends = np.concatenate([[0], np.cumsum(reader.column("telemetry", "length"))])  # (T + 1,) bytes
+    assert len(versions) >= 60 // 7 and versions[-1]["rows"] == 60
+    for v in versions:
+        assert v["bytes"] == ends[v["rows"]], v
+
+
 WRITER_SCRIPT = """
 import sys, time
 from pathlib import Path

@@ -11,9 +11,9 @@ The `episodes/` group indexes episode ends seen in telemetry (keys ending in `.e
     recorded before it), run_id (E,) str.
 
 Writes are buffered in memory and flushed every `flush_interval_s` (or `flush_rows` messages). A flush
-writes the new rows, then records the committed row count in the group's attributes (`rows`, `bytes`);
-zarr replaces each file atomically, so a recorder killed at any instant leaves every committed row
-readable, and readers never look past `rows`.
+writes the new rows, then records the committed counts in the group's attributes (`rows`, `bytes`) in
+one metadata write; zarr replaces each file atomically, so a recorder killed at any instant leaves every
+committed row readable, and readers never look past `rows`.
 """
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ class SessionWriter:
         self._write_lock = threading.Lock()
         self._start = time.monotonic()
         self._root = cast(Any, zarr.open_group(str(path), mode="w-", zarr_format=3))
-        self._root.attrs.update(
+        self._root.update_attributes(
             {
                 "format": FORMAT,
                 "format_version": FORMAT_VERSION,
@@ -106,7 +106,7 @@ class SessionWriter:
         rows, chunk = self.config.chunk_rows, self.config.chunk_bytes
         for name, key in topics.items():
             group = self._root.create_group(name)
-            group.attrs.update({"key": key, "rows": 0, "bytes": 0})
+            group.update_attributes({"key": key, "rows": 0, "bytes": 0})
             for column, dtype in INDEX_COLUMNS:
                 _create(group, column, dtype, rows)
             _create(group, "data", "uint8", chunk)
@@ -114,7 +114,7 @@ class SessionWriter:
                 for column, dtype in TELEMETRY_COLUMNS:
                     _create(group, column, dtype, rows)
         episodes = self._root.create_group(EPISODES)
-        episodes.attrs.update({"rows": 0})
+        episodes.update_attributes({"rows": 0})
         for column, dtype in EPISODE_COLUMNS:
             _create(episodes, column, dtype, rows)
         self._buffers: dict[str, _Buffer] = {name: _Buffer() for name in topics}
@@ -188,7 +188,9 @@ class SessionWriter:
             _trim_and_append(group["key"], rows, np.array([e.key for e in events], dtype=object))
             _trim_and_append(group["value"], rows, np.array([e.value for e in events], dtype=np.float64))
             _trim_and_append(group["step"], rows, np.array([e.step for e in events], dtype=np.int64))
-        group.attrs.update({"rows": rows + len(buffer.t), "bytes": nbytes + int(lengths.sum())})
+        # One metadata write for both counts (`attrs.update` would write once per key, and a recorder
+        # killed between the two left `rows` counting payloads past `bytes`).
+        group.update_attributes({"rows": rows + len(buffer.t), "bytes": nbytes + int(lengths.sum())})
         self.written += len(buffer.t)
 
     def _write_episodes(self, episodes: list[tuple[float, int, float, int, str]]) -> None:
@@ -200,7 +202,7 @@ class SessionWriter:
         _trim_and_append(group["value"], rows, np.asarray(value, dtype=np.float64))
         _trim_and_append(group["row"], rows, np.asarray(row, dtype=np.int64))
         _trim_and_append(group["run_id"], rows, np.array(run_id, dtype=object))
-        group.attrs.update({"rows": rows + len(episodes)})
+        group.update_attributes({"rows": rows + len(episodes)})
 
     def close(self) -> None:
         self.flush()
