@@ -7,10 +7,10 @@
 // persistent warps refilling lanes from a work counter). Warps that refill idle lanes from a chunk of
 // 256-3,072 of the actor's rays once 4-16 lanes are idle were 9-38% slower still (docs/PERFORMANCE.md,
 // stop 28): the refilled lanes no longer take the same branches (brick, far cube, leaf lookup)
-// together. At least 10 blocks per SM (48 registers, a 32-byte spill): since the leaner far step of
-// stop 35, 0.2-1.1% faster than 9 blocks (56 registers, no spill) on 49 of the 50 OpenArena maps and
-// 0.5% slower on one (it was 1.6% slower before that step), and 6% faster than 8 blocks (60
-// registers); outputs bit-identical (docs/PERFORMANCE.md). The grid is 2-d: x walks an actor's rays in
+// together. At least 10 blocks per SM (48 registers, a 24-byte spill, none of it in the main loop):
+// since the leaner far step of stop 35, 0.2-1.1% faster than 9 blocks (56 registers, no spill) on 49
+// of the 50 OpenArena maps and 0.5% slower on one (it was 1.6% slower before that step), and 6% faster
+// than 8 blocks (60 registers); outputs bit-identical (docs/PERFORMANCE.md). The grid is 2-d: x walks an actor's rays in
 // blocks of 128, y the actors (strided beyond 65,535), so no thread divides to find its actor.
 #include <cuda_runtime.h>
 
