@@ -186,7 +186,7 @@ NAVI_HD bool finite(float x) { return fabsf(x) <= 3.4028235e38f; }  // false for
 // shift instead of L, and no R - 1 as a float (cell_max, recomputed on the rare clamped path). With L
 // and R - 1 held, the device code spilled L and reloaded it from local memory on every leaf change,
 // ahead of the grid load; without them the main loop runs in 48 registers with no local memory
-// access (stop 36: +1.0-1.9% on all 50 OpenArena maps, bit-identical).
+// access (stop 36: +1.0-2.1% on all 50 OpenArena maps, bit-identical).
 struct Scene {
   uint32_t root, node_offset, brick_offset, grid_offset;
   int resolution;
