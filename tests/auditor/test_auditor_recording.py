@@ -117,14 +117,15 @@ def test_every_committed_state_a_kill_can_leave_is_consistent(
     `bytes` equal to the end of its last committed payload: the two counts are written together."""
     import json
 
+    from zarr.core.buffer import Buffer
     from zarr.storage import LocalStore
 
     versions: list[dict[str, int]] = []
     original = LocalStore.set
 
-    async def recording_set(self: LocalStore, key: str, value: object) -> None:
-        await original(self, key, value)  # type: ignore[arg-type]
-        attrs = json.loads(value.to_bytes())["attributes"] if key == "telemetry/zarr.json" else {}  # type: ignore[attr-defined]
+    async def recording_set(self: LocalStore, key: str, value: Buffer) -> None:
+        await original(self, key, value)
+        attrs = json.loads(value.to_bytes())["attributes"] if key == "telemetry/zarr.json" else {}
         if "rows" in attrs:  # (the group is created before its counts; readers skip it until then)
             versions.append({"rows": int(attrs["rows"]), "bytes": int(attrs.get("bytes", -1))})
 
