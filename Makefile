@@ -12,7 +12,7 @@ TORCH_SPEC ?= torch>=2.5
 PACKAGES := shared/contracts shared/mesh services/compiler services/env services/learner[plots,tensorboard] services/auditor
 PYTEST_ARGS ?=
 STAMP := $(VENV)/.navi-setup
-SOURCES := $(wildcard pyproject.toml requirements-dev.txt */*/pyproject.toml */*/setup.py */*/*/csrc/*)
+SOURCES := $(wildcard pyproject.toml requirements-dev.txt */*/pyproject.toml */*/setup.py */*/*/csrc/* */*/*/*/csrc/*)
 
 .PHONY: help setup run test check lint format typecheck clean
 

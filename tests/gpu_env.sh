@@ -1,4 +1,4 @@
-# Source this on a CUDA host without a package registry (our lent H100/H200 machines): builds Navi's
+# Source this on a CUDA host without a package registry (a benchmark host): builds Navi's
 # extensions in place, puts the packages on PYTHONPATH and defines a `navi` shell function.
 # Needs torch (CUDA), numpy, nvcc, pybind11, setuptools, typer; pytest may come from artifacts/pytest-vendor.
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)

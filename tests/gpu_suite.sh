@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The GPU checks and benchmarks in one go, for a CUDA host without a package registry (our lent
-# H100/H200 machines): builds the extensions in place, runs the gpu-marked tests, then the benchmarks.
+# The GPU checks and benchmarks in one go, for a CUDA host without a package registry (a
+# benchmark host): builds the extensions in place, runs the gpu-marked tests, then the benchmarks.
 #   tests/gpu_suite.sh tests CORPUS_DIR   # gpu tests only
 #   tests/gpu_suite.sh bench CORPUS_DIR   # navi bench trace / env / train (+ the learner anchor if present)
 #   tests/gpu_suite.sh all CORPUS_DIR     # both, in one job

@@ -1,20 +1,9 @@
-"""`navi` with the hot-path packages only (compiler, env, learner), for CUDA hosts without the service
-packages (our lent GPU machines): `python tests/navi_device.py bench learn ...`. tests/gpu_env.sh puts
-the packages on PYTHONPATH and defines `navi` as this script."""
+"""`navi` on a CUDA host whose Python has the hot-path packages on PYTHONPATH but no installed entry point
+(tests/gpu_env.sh defines `navi` as `python tests/navi_device.py`): the same command app as `navi`."""
 
 from __future__ import annotations
 
-import typer
-
-from navi_compiler.cli import register as register_compiler
-from navi_env.cli import register as register_env
-from navi_learner.cli import register as register_learner
-
-app = typer.Typer(no_args_is_help=True)
-bench = typer.Typer(no_args_is_help=True)
-for register in (register_compiler, register_env, register_learner):
-    register(app, bench)
-app.add_typer(bench, name="bench")
+from navi.cli import main
 
 if __name__ == "__main__":
-    app()
+    main()

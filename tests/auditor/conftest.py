@@ -53,8 +53,8 @@ def room_corpus() -> Any:
     """A real SceneCorpus: the free inside of a box room from (1, 1, 1) to (15, 15, 7) m."""
     import numpy as np
 
-    from navi_compiler.dag import build_gmdag
-    from navi_env.scene import load_corpus
+    from navi_compiler.dag.build import build_gmdag
+    from navi_env.tracer.scene import load_corpus
 
     i = np.arange(ROOM_RES + 1, dtype=np.float64) * ROOM_VOXEL
     p = np.stack(np.meshgrid(i, i, i, indexing="ij"), axis=-1)  # (R+1, R+1, R+1, 3) meters
@@ -76,8 +76,8 @@ def make_env() -> Callable[[], Any]:
     """A factory of one-actor SdfDagEnvs (32x8 rays) in the room, spawning at its centre."""
     import torch
 
-    from navi_env.config import EnvConfig
-    from navi_env.env import SdfDagEnv
+    from navi_env.sim.config import EnvConfig
+    from navi_env.sim.env import SdfDagEnv
 
     corpus = room_corpus()
     config = EnvConfig(azimuth_bins=32, elevation_bins=8)

@@ -17,12 +17,12 @@ import torch
 
 from navi_auditor.bc import BCConfig, action_error, run_bc, train_bc
 from navi_auditor.demos import DemoBuffer, load_demos
-from navi_learner.baselines import RandomPolicy, reactive_for_env
-from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.evaluate import CheckpointPolicy, evaluate
-from navi_learner.toy_env import ToyEnv
-from navi_learner.train import train
+from navi_learner.envs.toy import ToyEnv
+from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
+from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
+from navi_learner.ppo.train import train
+from navi_learner.serving.checkpoint import load_checkpoint
 
 ENGINE = EngineConfig.tiny(head_hidden=64)
 

@@ -9,16 +9,16 @@ import numpy as np
 import typer
 from typer.testing import CliRunner
 
-from navi_auditor.cli import register
+from navi.commands import auditor
 from navi_auditor.demos import DemoBuffer
-from navi_learner.checkpoint import load_checkpoint
+from navi_learner.serving.checkpoint import load_checkpoint
 
 runner = CliRunner()
 
 
 def app() -> typer.Typer:
     root = typer.Typer()
-    register(root, typer.Typer())
+    root.add_typer(auditor.app)
     return root
 
 

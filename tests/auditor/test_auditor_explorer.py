@@ -127,9 +127,9 @@ def test_explorer_shows_moving_obstacles(tmp_path: Path) -> None:
 
     import torch
 
-    from navi_env import obstacles as ob
-    from navi_env.config import EnvConfig, ObstacleConfig
-    from navi_env.env import SdfDagEnv
+    from navi_env.sim.config import EnvConfig, ObstacleConfig
+    from navi_env.sim.env import SdfDagEnv
+    from navi_env.tracer import primitives as ob
 
     from .conftest import room_corpus
 

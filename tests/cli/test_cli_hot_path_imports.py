@@ -8,10 +8,10 @@ import sys
 SERVICE_ONLY = ("pydantic", "pydantic_settings", "zenoh", "fastapi", "uvicorn", "zarr", "prometheus_client",
                 "trimesh", "msgpack", "typer")  # fmt: skip
 HOT_PATH = (
-    "navi_compiler.compile", "navi_compiler.gmdag", "navi_compiler.ingest", "navi_compiler.scenes",
-    "navi_env.env", "navi_env.trace", "navi_env.corpus", "navi_env.qualify",
-    "navi_learner.train", "navi_learner.policy", "navi_learner.evaluate", "navi_learner.checkpoint",
-    "navi_learner.registry", "navi_learner.main_job", "navi_learner.envs",
+    "navi_compiler.compile", "navi_compiler.gmdag", "navi_compiler.ingest", "navi_compiler.ingest.procedural",
+    "navi_env.sim.env", "navi_env.tracer.trace", "navi_env.corpus.folder", "navi_env.corpus.qualify",
+    "navi_learner.ppo.train", "navi_learner.engine.policy", "navi_learner.evaluation.evaluate", "navi_learner.serving.checkpoint",
+    "navi_learner.serving.registry", "navi_learner.evaluation.main_job", "navi_learner.envs.factory",
 )  # fmt: skip
 
 PROGRAM = f"""

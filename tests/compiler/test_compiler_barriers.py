@@ -9,7 +9,7 @@ import numpy as np
 
 from navi_compiler.compile import compile_scene
 from navi_compiler.gmdag import dense_lattice
-from navi_compiler.scenes import generate_scene
+from navi_compiler.ingest.procedural import generate_scene
 
 
 def test_open_scene_field_reaches_zero_at_its_lid() -> None:

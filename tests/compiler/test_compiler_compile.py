@@ -20,8 +20,8 @@ from navi_compiler.gmdag import (
     encode_gmdag,
     leaf_cubes,
 )
-from navi_compiler.grid import place, round_resolution
 from navi_compiler.scene import Scene
+from navi_compiler.sdf.grid import place, round_resolution
 
 
 def _mesh_scene(

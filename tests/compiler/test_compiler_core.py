@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from navi_compiler import _core  # type: ignore[attr-defined]
-from navi_compiler.dag import build_dag
-from navi_compiler.distance import make_triangles, nearest_triangles, nondegenerate, squared_distances
-from navi_compiler.farfield import NO_SITE, squared_edt
+from navi_compiler.dag.build import build_dag
+from navi_compiler.dag.murmur import murmur3_32
 from navi_compiler.gmdag import quant_step_for
-from navi_compiler.murmur import murmur3_32
+from navi_compiler.sdf.distance import make_triangles, nearest_triangles, nondegenerate, squared_distances
+from navi_compiler.sdf.farfield import NO_SITE, squared_edt
 
 
 def _random_triangles(rng: np.random.Generator, count: int, r: int) -> np.ndarray:

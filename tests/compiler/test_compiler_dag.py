@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from navi_compiler.dag import build_gmdag, dedup_rows, quantise
+from navi_compiler.dag.build import build_gmdag, dedup_rows, quantise
+from navi_compiler.dag.murmur import murmur3_32, murmur3_32_rows
 from navi_compiler.gmdag import (
     FAR_UNITS,
     PAYLOAD_MASK,
@@ -17,7 +18,6 @@ from navi_compiler.gmdag import (
     encode_gmdag,
     leaf_cubes,
 )
-from navi_compiler.murmur import murmur3_32, murmur3_32_rows
 
 
 def _grid(r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from navi_compiler.dag import build_gmdag
+from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import (
     HEADER_BYTES,
     TAG_FAR_FREE,

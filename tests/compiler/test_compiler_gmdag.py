@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from navi_compiler.dag import build_gmdag
+from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import (
     FLAG_INSIDE_SEEDS,
     HEADER_BYTES,

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from navi_compiler.ingest import IngestError, load_scene, sidecar_path
-from navi_compiler.scenes import generate_scene, write_scene_mesh
+from navi_compiler.ingest.procedural import generate_scene, write_scene_mesh
 
 
 def _unit_box() -> trimesh.Trimesh:

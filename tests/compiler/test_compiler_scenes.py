@@ -10,9 +10,9 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from navi_compiler.cli_scenes import register
+from navi.commands import scenes
 from navi_compiler.ingest import load_scene
-from navi_compiler.scenes import (
+from navi_compiler.ingest.procedural import (
     CLASS_NAMES,
     DRONE_RADIUS,
     FAMILIES,
@@ -193,7 +193,7 @@ def test_corpus_cycles_families_and_is_deterministic(tmp_path: Path) -> None:
 
 def test_scenes_generate_command(tmp_path: Path) -> None:
     app = typer.Typer()
-    register(app)
+    app.add_typer(scenes.app, name="scenes")
     runner = CliRunner()
     result = runner.invoke(
         app, ["scenes", "generate", "--out", str(tmp_path), "--count", "3", "--seed", "2", "--json"]

@@ -13,14 +13,14 @@ import torch
 from typer.testing import CliRunner
 
 from navi_compiler.compile import compile_scene
-from navi_compiler.dag import brick_reduce
-from navi_compiler.distance import make_triangles, nearest_triangles
-from navi_compiler.farfield import NO_SITE, squared_edt
+from navi_compiler.dag.build import brick_reduce
 from navi_compiler.gmdag import FLAG_INSIDE_SEEDS, FLAG_LEAK_FALLBACK, encode_gmdag
 from navi_compiler.scene import Scene
-from navi_compiler.sdf_torch import TorchConfig, brick_min_edt, make_tri, nearest_within
-from navi_compiler.sdf_torch import flood as flood_t
-from navi_compiler.sign import flood
+from navi_compiler.sdf.distance import make_triangles, nearest_triangles
+from navi_compiler.sdf.farfield import NO_SITE, squared_edt
+from navi_compiler.sdf.sign import flood
+from navi_compiler.sdf.torch_engine import TorchConfig, brick_min_edt, make_tri, nearest_within
+from navi_compiler.sdf.torch_engine import flood as flood_t
 
 CUDA = pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs a CUDA device (torch.cuda.is_available() is false)"

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from navi_env import obstacles as ob
-from navi_env.bench_trace import TraceBenchConfig, bench_trace
-from navi_env.bench_warp import obstacle_boxes
+from navi_env.tracer import primitives as ob
+from navi_env.tracer.bench import TraceBenchConfig, bench_trace
+from navi_env.tracer.bench_warp import obstacle_boxes
 
 
 def test_obstacle_boxes_wrap_every_primitive_with_outward_triangles() -> None:
@@ -42,9 +42,9 @@ def test_obstacle_boxes_wrap_every_primitive_with_outward_triangles() -> None:
 def test_warp_refit_anchor_casts_through_moving_boxes(tmp_path: Path) -> None:
     from navi_compiler.compile import compile_scene
     from navi_compiler.gmdag import write_gmdag
-    from navi_compiler.scenes import generate_scene
-    from navi_env.bench_warp import bench_warp
-    from navi_env.scene import load_scene
+    from navi_compiler.ingest.procedural import generate_scene
+    from navi_env.tracer.bench_warp import bench_warp
+    from navi_env.tracer.scene import load_scene
 
     scene = generate_scene("hall", 0)
     np.savez(
@@ -75,11 +75,11 @@ def test_compile_mesh_out_holds_the_surfaces_the_tracer_sees(tmp_path: Path) -> 
     from typer.testing import CliRunner
 
     from navi.cli import build_app
-    from navi_compiler.scenes import generate_scene, write_scene_mesh
-    from navi_env.accuracy import mesh_hits
-    from navi_env.bench_warp import load_mesh_npz
-    from navi_env.scene import load_scene
-    from navi_env.trace import trace
+    from navi_compiler.ingest.procedural import generate_scene, write_scene_mesh
+    from navi_env.tracer.accuracy import mesh_hits
+    from navi_env.tracer.bench_warp import load_mesh_npz
+    from navi_env.tracer.scene import load_scene
+    from navi_env.tracer.trace import trace
 
     scene = generate_scene("yard", 4)  # walls and crates under an undrawn lid
     src = write_scene_mesh(scene, tmp_path / "yard.obj")

@@ -11,12 +11,13 @@ import torch
 import typer
 from typer.testing import CliRunner
 
-from navi_compiler.dag import build_gmdag
+from navi.commands import bench as cli_bench
+from navi.commands import env as cli_env
+from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag, write_gmdag
-from navi_env import cli_env
-from navi_env.config import EnvConfig
-from navi_env.corpus import CorpusError, build_corpus, find_sources, load_corpus, read_manifest
-from navi_env.env import SdfDagEnv
+from navi_env.corpus.folder import CorpusError, build_corpus, find_sources, load_corpus, read_manifest
+from navi_env.sim.config import EnvConfig
+from navi_env.sim.env import SdfDagEnv
 
 RES, VOXEL = 32, 0.5
 
@@ -119,7 +120,7 @@ def test_a_failing_source_leaves_the_old_corpus_intact(sources: Path, tmp_path: 
 
 
 def test_mesh_sources_compile_into_a_corpus(tmp_path: Path) -> None:
-    from navi_compiler.scenes import generate_corpus
+    from navi_compiler.ingest.procedural import generate_corpus
 
     meshes = generate_corpus(tmp_path / "meshes", 2, seed=1, families=["rooms", "corridors"])
     manifest = build_corpus(meshes, tmp_path / "corpus", resolution=32)
@@ -132,10 +133,10 @@ def test_scenes_declare_moving_obstacles_through_sidecar_and_manifest(tmp_path: 
     and speeds, a scene that declares nothing keeps the env's default (none)."""
     import dataclasses
 
+    from navi_compiler.ingest.procedural import generate_corpus
     from navi_compiler.ingest.sidecar import read_sidecar, sidecar_path, write_sidecar
-    from navi_compiler.scenes import generate_corpus
-    from navi_env import obstacles as ob
-    from navi_learner.envs import make_env
+    from navi_env.tracer import primitives as ob
+    from navi_learner.envs.factory import make_env
 
     meshes = generate_corpus(tmp_path / "meshes", 2, seed=1, families=["hall", "hall"])
     side = sidecar_path(meshes[0])
@@ -167,9 +168,8 @@ def test_scenes_declare_moving_obstacles_through_sidecar_and_manifest(tmp_path: 
 
 def app() -> typer.Typer:
     root = typer.Typer(pretty_exceptions_enable=False)
-    bench = typer.Typer()
-    cli_env.register(root, bench)
-    root.add_typer(bench, name="bench")
+    root.add_typer(cli_env.app)
+    root.add_typer(cli_bench.app, name="bench")
     return root
 
 

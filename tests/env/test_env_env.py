@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from navi_compiler.dag import build_gmdag
+from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag
-from navi_env import env as env_module
-from navi_env.config import EnvConfig, ObstacleConfig, SensorConfig
-from navi_env.env import INFO_KEYS, SdfDagEnv
-from navi_env.rewards import TERMS
-from navi_env.scene import SceneCorpus, load_corpus
+from navi_env.sim import env as env_module
+from navi_env.sim.config import EnvConfig, ObstacleConfig, SensorConfig
+from navi_env.sim.env import INFO_KEYS, SdfDagEnv
+from navi_env.sim.rewards import TERMS
+from navi_env.tracer.scene import SceneCorpus, load_corpus
 
 RES, VOXEL = 32, 0.5  # a 16 m cube
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from navi_compiler.dag import build_gmdag
-from navi_env.config import EnvConfig, ObstacleConfig, SensorConfig
-from navi_env.env import SdfDagEnv
-from navi_env.observation import observe, observe_ref, semantic_table
-from navi_env.scene import load_corpus
+from navi_compiler.dag.build import build_gmdag
+from navi_env.sim.config import EnvConfig, ObstacleConfig, SensorConfig
+from navi_env.sim.env import SdfDagEnv
+from navi_env.sim.observation import observe, observe_ref, semantic_table
+from navi_env.tracer.scene import load_corpus
 
 pytestmark = pytest.mark.gpu
 needs_cuda = pytest.mark.skipif(

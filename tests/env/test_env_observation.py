@@ -6,8 +6,8 @@ import math
 
 import torch
 
-from navi_env.config import EnvConfig, SensorConfig
-from navi_env.observation import (
+from navi_env.sim.config import EnvConfig, SensorConfig
+from navi_env.sim.observation import (
     front_bin_count,
     is_front,
     observe,
@@ -19,8 +19,8 @@ from navi_env.observation import (
     view_stats,
     write_observation,
 )
-from navi_env.rays import spherical_directions
-from navi_env.sensor import apply_sensor, dome_lidar, ray_pattern
+from navi_env.sim.rays import spherical_directions
+from navi_env.sim.sensor import apply_sensor, dome_lidar, ray_pattern
 
 CFG = EnvConfig()
 

@@ -1,4 +1,4 @@
-"""Scripted moving obstacles in the drone env (navi_env.obstacle_motion, EnvConfig.obstacles).
+"""Scripted moving obstacles in the drone env (navi_env.sim.obstacles, EnvConfig.obstacles).
 
 The vectorised primitive distance matches its float64 twin; the sweep stops fast and thin obstacles
 at the drone and never lets them through (checked along every swept path); obstacles stay out of the
@@ -19,14 +19,14 @@ import torch
 from typer.testing import CliRunner
 
 from navi.cli import build_app
-from navi_compiler.dag import build_gmdag
+from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag, write_gmdag
-from navi_env import obstacle_motion as om
-from navi_env import obstacles as ob
-from navi_env.config import EnvConfig, ObstacleConfig
-from navi_env.env import SdfDagEnv
-from navi_env.scene import SceneCorpus, load_corpus
-from navi_env.trace import sample_distance
+from navi_env.sim import obstacles as om
+from navi_env.sim.config import EnvConfig, ObstacleConfig
+from navi_env.sim.env import SdfDagEnv
+from navi_env.tracer import primitives as ob
+from navi_env.tracer.scene import SceneCorpus, load_corpus
+from navi_env.tracer.trace import sample_distance
 
 RES, VOXEL = 32, 0.625  # a 20 m cube
 LO, HI = (1.0, 1.0, 1.0), (19.0, 19.0, 9.0)

@@ -1,4 +1,4 @@
-"""Dynamic primitives traced in the same pass as the static scene (navi_env.obstacles).
+"""Dynamic primitives traced in the same pass as the static scene (navi_env.tracer.primitives).
 
 The kernel's ray-primitive hits and distances match the float64 twins; the twins agree with each
 other (a hit lies on the surface the distance describes, and the ray is free before it); moving the
@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import torch
 
-from navi_env import obstacles as ob
-from navi_env import trace as navi_trace
-from navi_env.analytic_scenes import AnalyticScene, Box, demo_room, free_points, random_directions
-from navi_env.rays import spherical_directions, tiled_ray_order
-from navi_env.scene import SceneCorpus, load_corpus
-from navi_env.trace import sample_distance, trace
-from navi_env.trace_ref import sample_distance_ref, trace_ref
+from navi_env.sim.rays import spherical_directions, tiled_ray_order
+from navi_env.tracer import primitives as ob
+from navi_env.tracer import trace as navi_trace
+from navi_env.tracer.analytic_scenes import AnalyticScene, Box, demo_room, free_points, random_directions
+from navi_env.tracer.scene import SceneCorpus, load_corpus
+from navi_env.tracer.trace import sample_distance, trace
+from navi_env.tracer.trace_ref import sample_distance_ref, trace_ref
 
 gpu = pytest.mark.gpu  # skipped without CUDA by tests/conftest.py
 HORIZON = 30.0

@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from navi_compiler.dag import build_gmdag
+from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag
-from navi_env.qualify import (
+from navi_env.corpus.qualify import (
     QualifyConfig,
     candidate_grid,
     candidate_score,
     observation_profile,
     qualify_scene,
 )
-from navi_env.scene import load_corpus
+from navi_env.tracer.scene import load_corpus
 
 RES, VOXEL = 32, 0.5
 

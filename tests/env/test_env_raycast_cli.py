@@ -12,9 +12,9 @@ from typer.testing import CliRunner
 
 from navi.cli import build_app
 from navi_compiler.gmdag import write_gmdag
-from navi_env.analytic_scenes import demo_room, free_points, random_directions
-from navi_env.scene import load_scene
-from navi_env.trace import trace
+from navi_env.tracer.analytic_scenes import demo_room, free_points, random_directions
+from navi_env.tracer.scene import load_scene
+from navi_env.tracer.trace import trace
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +112,7 @@ def test_bench_trace_prints_one_json_object(scene_file: Path) -> None:
 
 
 def test_spherical_pattern_layout() -> None:
-    from navi_env.rays import spherical_directions
+    from navi_env.sim.rays import spherical_directions
 
     d = spherical_directions(8, 4).view(8, 4, 3)  # (Az, El, 3)
     assert torch.allclose(d.norm(dim=-1), torch.ones(8, 4))

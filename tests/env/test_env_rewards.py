@@ -7,8 +7,8 @@ from dataclasses import replace
 
 import torch
 
-from navi_env.config import EnvConfig
-from navi_env.rewards import (
+from navi_env.sim.config import EnvConfig
+from navi_env.sim.rewards import (
     SHAPING_TERMS,
     TERMS,
     RewardInputs,

@@ -2,7 +2,7 @@
 
 Thresholds (issue 4): median |error| <= 0.25 voxel and 95th percentile <= 1 voxel over rays whose
 exact first hit is a surface, hit/miss disagreement <= 0.5%. The OpenArena check at 256^3 is
-`data`-marked; 512^3 runs on the GPU host (python -m navi_env.device_check).
+`data`-marked; 512^3 runs on the GPU host (python -m navi_env.tracer.device_check).
 """
 
 from __future__ import annotations
@@ -14,9 +14,16 @@ import numpy as np
 import pytest
 import torch
 
-from navi_env.analytic_scenes import AnalyticScene, Box, Sphere, demo_room, free_points, random_directions
-from navi_env.scene import load_scene
-from navi_env.trace import trace
+from navi_env.tracer.analytic_scenes import (
+    AnalyticScene,
+    Box,
+    Sphere,
+    demo_room,
+    free_points,
+    random_directions,
+)
+from navi_env.tracer.scene import load_scene
+from navi_env.tracer.trace import trace
 
 HORIZON = 1000.0
 
@@ -142,7 +149,7 @@ def test_openarena_map_at_256_matches_mesh_ray_cast() -> None:
         pytest.skip(
             "OpenArena maps pk3 not found ($NAVI_OPENARENA_PK3 or artifacts/data/openarena/pak1-maps.pk3)"
         )
-    from navi_env.accuracy import openarena_accuracy
+    from navi_env.tracer.accuracy import openarena_accuracy
 
     report = openarena_accuracy(pk3, "oa_dm1", resolution=256, agents=8, rays_az=64, rays_el=32)
     assert report.hit_disagreement <= 0.005

@@ -9,10 +9,18 @@ import numpy as np
 import pytest
 import torch
 
-from navi_env.analytic_scenes import AnalyticScene, Box, Room, Slab, demo_room, random_directions, slab_scene
-from navi_env.scene import SceneCorpus, load_corpus, load_scene
-from navi_env.trace import trace
-from navi_env.trace_ref import trace_ref
+from navi_env.tracer.analytic_scenes import (
+    AnalyticScene,
+    Box,
+    Room,
+    Slab,
+    demo_room,
+    random_directions,
+    slab_scene,
+)
+from navi_env.tracer.scene import SceneCorpus, load_corpus, load_scene
+from navi_env.tracer.trace import trace
+from navi_env.tracer.trace_ref import trace_ref
 
 THICKNESSES = (0.25, 0.5, 1.0, 1.5, 2.0)  # voxels
 

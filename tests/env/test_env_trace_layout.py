@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-import navi_env.scene as scene_mod
+import navi_env.tracer.scene as scene_mod
 from navi_compiler.gmdag import PAYLOAD_MASK, TAG_BRICK, TAG_FAR_FREE, TAG_FAR_SOLID, TAG_NODE, Gmdag
-from navi_env.analytic_scenes import (
+from navi_env.tracer.analytic_scenes import (
     AnalyticScene,
     Box,
     demo_room,
@@ -20,7 +20,7 @@ from navi_env.analytic_scenes import (
     leaf_kind_scenes,
     random_directions,
 )
-from navi_env.scene import (
+from navi_env.tracer.scene import (
     BRICK_WORDS,
     atlas_shift,
     brick_atlas,
@@ -32,8 +32,8 @@ from navi_env.scene import (
     runtime_tree,
     scene_nbytes,
 )
-from navi_env.trace import sample_distance, trace
-from navi_env.trace_ref import brick_samples, trace_ref
+from navi_env.tracer.trace import sample_distance, trace
+from navi_env.tracer.trace_ref import brick_samples, trace_ref
 
 
 def _solid_block() -> AnalyticScene:

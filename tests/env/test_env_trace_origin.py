@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from navi_env import obstacles
-from navi_env.analytic_scenes import AnalyticScene, free_points, leaf_kind_scenes, random_directions
-from navi_env.rays import tiled_ray_order
-from navi_env.scene import SceneCorpus, load_corpus
-from navi_env.trace import ORIGIN_SAMPLE_BYTES, trace
-from navi_env.trace_ref import trace_ref
+from navi_env.sim.rays import tiled_ray_order
+from navi_env.tracer import primitives as obstacles
+from navi_env.tracer.analytic_scenes import AnalyticScene, free_points, leaf_kind_scenes, random_directions
+from navi_env.tracer.scene import SceneCorpus, load_corpus
+from navi_env.tracer.trace import ORIGIN_SAMPLE_BYTES, trace
+from navi_env.tracer.trace_ref import trace_ref
 
 R = 256  # rays per actor (a 16 x 16 pattern, so that tiled_ray_order applies)
 

@@ -9,11 +9,18 @@ import numpy as np
 import pytest
 import torch
 
-from navi_env.analytic_scenes import AnalyticScene, Box, Sphere, demo_room, free_points, random_directions
-from navi_env.rays import spherical_directions, tiled_ray_order
-from navi_env.scene import SceneCorpus, load_corpus
-from navi_env.trace import sample_distance, trace
-from navi_env.trace_ref import sample_distance_ref, trace_ref
+from navi_env.sim.rays import spherical_directions, tiled_ray_order
+from navi_env.tracer.analytic_scenes import (
+    AnalyticScene,
+    Box,
+    Sphere,
+    demo_room,
+    free_points,
+    random_directions,
+)
+from navi_env.tracer.scene import SceneCorpus, load_corpus
+from navi_env.tracer.trace import sample_distance, trace
+from navi_env.tracer.trace_ref import sample_distance_ref, trace_ref
 
 REL_TOL = 1e-4
 gpu = pytest.mark.gpu  # skipped without CUDA by tests/conftest.py

@@ -10,10 +10,10 @@ from pathlib import Path
 import torch
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.dist import Sync, setup, shutdown
-from navi_learner.policy import CognitiveMambaPolicy
-from navi_learner.rollout import RolloutStorage
-from navi_learner.train import update
+from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.ppo.dist import Sync, setup, shutdown
+from navi_learner.ppo.rollout import RolloutStorage
+from navi_learner.ppo.train import update
 
 ENGINE = EngineConfig.tiny()
 OBS = (3, 16, 8)

@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from navi_learner import checkpoint as ck
-from navi_learner.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint, save_checkpoint
 from navi_learner.config import EngineConfig, TrainConfig
-from navi_learner.policy import CognitiveMambaPolicy
+from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.serving import checkpoint as ck
+from navi_learner.serving.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint, save_checkpoint
 
 ENGINE = EngineConfig(
     embed_dim=16,

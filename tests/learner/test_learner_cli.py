@@ -147,9 +147,9 @@ def test_onnx_export_matches_pytorch_step(tmp_path: Path) -> None:
     import numpy as np
     import onnxruntime as ort
 
-    from navi_learner.checkpoint import load_checkpoint
     from navi_learner.config import EngineConfig
-    from navi_learner.policy import CognitiveMambaPolicy
+    from navi_learner.engine.policy import CognitiveMambaPolicy
+    from navi_learner.serving.checkpoint import load_checkpoint
 
     code, out, err = invoke(
         "train",

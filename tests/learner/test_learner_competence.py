@@ -18,15 +18,15 @@ import numpy as np
 import pytest
 import torch
 
-from navi_env.corpus import build_default_corpus
-from navi_learner.baselines import RandomPolicy
-from navi_learner.bench_learn import LearnConfig, bench_learn, run_devices, split_openarena
-from navi_learner.competence import CompetenceMonitor, EvalProtocol
+from navi_env.corpus.folder import build_default_corpus
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.envs import make_env, parse_reward_overrides
-from navi_learner.evaluate import EvalMetrics, competent, evaluate
-from navi_learner.toy_env import ToyEnv
-from navi_learner.train import train
+from navi_learner.envs.factory import make_env, parse_reward_overrides
+from navi_learner.envs.toy import ToyEnv
+from navi_learner.evaluation.baselines import RandomPolicy
+from navi_learner.evaluation.bench_learn import LearnConfig, bench_learn, run_devices, split_openarena
+from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol
+from navi_learner.evaluation.evaluate import EvalMetrics, competent, evaluate
+from navi_learner.ppo.train import train
 
 ENGINE = EngineConfig.tiny()
 
@@ -230,7 +230,7 @@ def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
 def test_obstacle_collisions_are_measured_and_counted_among_collisions(tmp_path: Path) -> None:
     """`make_env(obstacles=K)` gives every actor K moving obstacles; evaluation reports the contacts with
     them as obstacle_collisions_per_1k, a part of collisions_per_1k (0 when there are no obstacles)."""
-    from navi_learner.envs import EnvUnavailable
+    from navi_learner.envs.factory import EnvUnavailable
 
     corpus = tmp_path / "c"
     build_default_corpus(corpus, resolution=64, count=1, seed=0)
@@ -249,7 +249,7 @@ def test_obstacle_collisions_are_measured_and_counted_among_collisions(tmp_path:
 def test_training_stats_count_obstacle_collisions_among_collisions() -> None:
     from types import SimpleNamespace
 
-    from navi_learner.stats import EpisodeStats
+    from navi_learner.ppo.stats import EpisodeStats
 
     stats = EpisodeStats(4, torch.device("cpu"))
     for step in range(10):
@@ -269,8 +269,8 @@ def test_training_stats_count_obstacle_collisions_among_collisions() -> None:
 
 
 def test_procedural_share_repeats_the_procedural_train_scenes(tmp_path: Path) -> None:
-    from navi_env.corpus import read_manifest
-    from navi_learner.bench_learn import prepare_splits
+    from navi_env.corpus.folder import read_manifest
+    from navi_learner.evaluation.bench_learn import prepare_splits
 
     root = tmp_path / "corpora"
     build_default_corpus(root / "procedural-train-64", resolution=64, count=2, seed=0)

@@ -22,12 +22,12 @@ import torch
 import torch.distributed as tdist
 import typer
 
-from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.dist import Dist, setup, strip_option
-from navi_learner.ppo import normalize
-from navi_learner.toy_env import ToyEnv
-from navi_learner.train import train, update
+from navi_learner.envs.toy import ToyEnv
+from navi_learner.ppo.dist import Dist, setup, strip_option
+from navi_learner.ppo.loss import normalize
+from navi_learner.ppo.train import train, update
+from navi_learner.serving.checkpoint import load_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
 ACTORS, ROLLOUT = 4, 32  # per rank, in the CLI runs
@@ -267,7 +267,7 @@ def test_one_gpu_per_rank_is_checked_before_joining(monkeypatch: pytest.MonkeyPa
 
 
 def test_the_launchers_pass_the_command_on_without_nproc() -> None:
-    from navi_mesh.stack import StackConfig, service_specs
+    from navi.stack import StackConfig, service_specs
 
     argv = ["train", "--nproc", "2", "--env", "toy", "--nproc=3", "--actors", "4"]
     assert strip_option(argv, "--nproc") == ["train", "--env", "toy", "--actors", "4"]

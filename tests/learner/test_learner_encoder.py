@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from navi_learner.config import EngineConfig, TrainConfig
-from navi_learner.encoder import RayViTEncoder, patchify, spherical_positions
+from navi_learner.engine.encoder import RayViTEncoder, patchify, spherical_positions
 
 
 def test_canonical_shapes() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from navi_learner.gae import bootstrap_truncated, gae, gae_ref
+from navi_learner.ppo.gae import bootstrap_truncated, gae, gae_ref
 
 
 @pytest.mark.parametrize(

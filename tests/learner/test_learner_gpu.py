@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.temporal import make_core
-from navi_learner.toy_env import ToyEnv
-from navi_learner.train import train
+from navi_learner.engine.temporal import make_core
+from navi_learner.envs.toy import ToyEnv
+from navi_learner.ppo.train import train
 
 pytestmark = [
     pytest.mark.gpu,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from navi_learner.memory import EpisodicMemory, episodic_step_ref
+from navi_learner.engine.memory import EpisodicMemory, episodic_step_ref
 
 
 def test_matches_reference_under_random_resets() -> None:

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.policy import CognitiveMambaPolicy
-from navi_learner.ppo import ppo_loss
-from navi_learner.rollout import RolloutStorage
-from navi_learner.train import update
+from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.ppo.loss import ppo_loss
+from navi_learner.ppo.rollout import RolloutStorage
+from navi_learner.ppo.train import update
 
 
 def test_ppo_loss_hand_computed() -> None:

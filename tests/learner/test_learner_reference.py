@@ -15,15 +15,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from navi_env.corpus import build_default_corpus
-from navi_learner.baselines import RandomPolicy, reactive_for_env
-from navi_learner.bench_learn import LearnConfig
-from navi_learner.bench_learn import train_config as bench_train_config
-from navi_learner.checkpoint import load_checkpoint
-from navi_learner.competence import EvalProtocol
-from navi_learner.envs import make_env
-from navi_learner.evaluate import CheckpointPolicy, EvalMetrics, evaluate
-from navi_learner.main_job import (
+from navi_env.corpus.folder import build_default_corpus
+from navi_learner.envs.factory import make_env
+from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
+from navi_learner.evaluation.bench_learn import LearnConfig
+from navi_learner.evaluation.bench_learn import train_config as bench_train_config
+from navi_learner.evaluation.competence import EvalProtocol
+from navi_learner.evaluation.evaluate import CheckpointPolicy, EvalMetrics, evaluate
+from navi_learner.evaluation.main_job import (
     CORPUS_RESOLUTION,
     REFERENCE,
     UNSEEN_SCENES,
@@ -32,6 +31,7 @@ from navi_learner.main_job import (
     cuda_config,
     main_job,
 )
+from navi_learner.serving.checkpoint import load_checkpoint
 
 CPU = torch.device("cpu")
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from navi_learner.checkpoint import CheckpointMeta, load_checkpoint, save_checkpoint
-from navi_learner.registry import ModelRegistry, RegistryError
+from navi_learner.serving.checkpoint import CheckpointMeta, load_checkpoint, save_checkpoint
+from navi_learner.serving.registry import ModelRegistry, RegistryError
 
 
 def make_ckpt(folder: Path, name: str, reward: float, step: int) -> Path:

@@ -15,17 +15,17 @@ from dataclasses import replace
 import pytest
 import torch
 
-from navi_env.analytic_scenes import demo_room, free_points
-from navi_env.config import EnvConfig, SensorConfig
-from navi_env.env import SdfDagEnv
-from navi_env.scene import load_corpus
+from navi_env.sim.config import EnvConfig, SensorConfig
+from navi_env.sim.env import SdfDagEnv
+from navi_env.tracer.analytic_scenes import demo_room, free_points
+from navi_env.tracer.scene import load_corpus
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, compact_storage, obs_bytes, resolve
-from navi_learner.memory import EpisodicMemory
-from navi_learner.policy import ActOut, CognitiveMambaPolicy
-from navi_learner.rollout import RolloutStorage
-from navi_learner.stats import EpisodeStats
-from navi_learner.temporal import CoreState
-from navi_learner.train import StageTimers, collect
+from navi_learner.engine.memory import EpisodicMemory
+from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
+from navi_learner.engine.temporal import CoreState
+from navi_learner.ppo.rollout import RolloutStorage
+from navi_learner.ppo.stats import EpisodeStats
+from navi_learner.ppo.train import StageTimers, collect
 
 ACTORS, T_LEN, CHUNK = 6, 8, 4
 DEVICES = [

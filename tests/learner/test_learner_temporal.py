@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from navi_learner.config import EngineConfig
-from navi_learner.temporal import GRUCore, Mamba2Core, MambaPyCore, make_core
+from navi_learner.engine.temporal import GRUCore, Mamba2Core, MambaPyCore, make_core
 
 T, N, D = 45, 6, 32
 

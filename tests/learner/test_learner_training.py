@@ -10,14 +10,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from navi_learner.baselines import RandomPolicy, reactive_for_env
-from navi_learner.checkpoint import load_checkpoint
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.evaluate import CheckpointPolicy, evaluate
-from navi_learner.protocol import StepOut
-from navi_learner.registry import ModelRegistry
-from navi_learner.toy_env import ToyEnv
-from navi_learner.train import train
+from navi_learner.envs.protocol import StepOut
+from navi_learner.envs.toy import ToyEnv
+from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
+from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
+from navi_learner.ppo.train import train
+from navi_learner.serving.checkpoint import load_checkpoint
+from navi_learner.serving.registry import ModelRegistry
 
 ENGINE = EngineConfig.tiny()
 

@@ -14,9 +14,9 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from navi_contracts.models import ModelPromoted
-from navi_learner.checkpoint import CheckpointMeta, save_checkpoint
 from navi_learner.config import TrainConfig
-from navi_learner.control_plane import ControlPlaneConfig, ControlPlaneError, create_app
+from navi_learner.serving.checkpoint import CheckpointMeta, save_checkpoint
+from navi_learner.serving.control_plane import ControlPlaneConfig, ControlPlaneError, create_app
 
 TOKEN = "s3cret-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -47,9 +47,9 @@ from navi_contracts.topics import (
     STEP,
     TELEMETRY,
 )
-from navi_learner.checkpoint import CheckpointMeta, save_checkpoint
 from navi_learner.config import EngineConfig, TrainConfig
-from navi_learner.registry import LATEST, ModelRegistry, sha256_of
+from navi_learner.serving.checkpoint import CheckpointMeta, save_checkpoint
+from navi_learner.serving.registry import LATEST, ModelRegistry, sha256_of
 from navi_mesh.liveliness import live_tokens
 from navi_mesh.pubsub import request
 
@@ -70,7 +70,7 @@ def scrape(url: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
 
 
 def source_mesh(tmp: Path) -> Path:
-    from navi_compiler.scenes import generate_corpus
+    from navi_compiler.ingest.procedural import generate_corpus
 
     return generate_corpus(tmp / "sources", 1, 0)[0]
 
@@ -84,7 +84,7 @@ def test_compile_worker_killed_mid_job_is_retried_on_another_worker(
 ) -> None:
     from navi_compiler.gmdag import read_gmdag
     from navi_compiler.service import BUSY_PREFIX
-    from navi_mesh.corpus_jobs import CorpusBuildConfig, compile_with_retries
+    from navi_env.corpus.jobs import CorpusBuildConfig, compile_with_retries
 
     services.start("router", "serve", "router")
     workers = {
@@ -336,9 +336,9 @@ def garbage(seed: int) -> list[bytes]:
 def test_garbage_on_every_subscribed_topic_is_counted_and_nothing_crashes(
     services: Services, tmp_path: Path
 ) -> None:
-    from navi_env.corpus import build_corpus
-    from navi_learner.toy_env import ToyEnv
-    from navi_learner.train import train
+    from navi_env.corpus.folder import build_corpus
+    from navi_learner.envs.toy import ToyEnv
+    from navi_learner.ppo.train import train
 
     corpus = tmp_path / "corpus"
     build_corpus([source_mesh(tmp_path)], corpus, resolution=64)

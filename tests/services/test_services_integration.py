@@ -52,7 +52,7 @@ def alive(sess: zenoh.Session, service: str) -> list[str]:
 
 
 def source_mesh(tmp: Path) -> Path:
-    from navi_compiler.scenes import generate_corpus
+    from navi_compiler.ingest.procedural import generate_corpus
 
     return generate_corpus(tmp / "sources", 1, 0)[0]
 
@@ -174,8 +174,8 @@ def test_compiler_service(services: Services, tmp_path: Path) -> None:
 def test_learner_service_telemetry_control_plane_and_router_restart(
     services: Services, tmp_path: Path
 ) -> None:
-    from navi_learner.checkpoint import CheckpointMeta, save_checkpoint
     from navi_learner.config import TrainConfig
+    from navi_learner.serving.checkpoint import CheckpointMeta, save_checkpoint
 
     token = "integration-token"
     services.env["NAVI_API_TOKEN"] = token
@@ -310,7 +310,7 @@ def _up(port: int) -> bool:
 
 
 def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -> None:
-    from navi_env.corpus import build_corpus
+    from navi_env.corpus.folder import build_corpus
 
     corpus = tmp_path / "corpus"
     build_corpus([source_mesh(tmp_path)], corpus, resolution=64)
@@ -357,8 +357,8 @@ def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -
         step([7], np.zeros((1, 4)))
     # `navi infer --remote` flies the same drones with a checkpoint, through the same queryable.
     from navi_learner.config import EngineConfig, TrainConfig
-    from navi_learner.toy_env import ToyEnv
-    from navi_learner.train import train
+    from navi_learner.envs.toy import ToyEnv
+    from navi_learner.ppo.train import train
 
     cfg = TrainConfig(n_actors=2, rollout_length=8, total_steps=16, device="cpu", seed=0,
                       engine=EngineConfig(temporal_core="gru"))  # fmt: skip
@@ -388,8 +388,8 @@ def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -
 
 def test_inference_follows_promotions(services: Services, tmp_path: Path) -> None:
     from navi_learner.config import EngineConfig, TrainConfig
-    from navi_learner.toy_env import ToyEnv
-    from navi_learner.train import train
+    from navi_learner.envs.toy import ToyEnv
+    from navi_learner.ppo.train import train
 
     def trained(seed: int) -> Path:
         cfg = TrainConfig(

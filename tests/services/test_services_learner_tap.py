@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 import torch
 
+from navi_learner.envs.toy import ToyEnv
 from navi_learner.service import FrameRepeater, TelemetryTap, TrainingMetrics, telemetry_rows
-from navi_learner.toy_env import ToyEnv
 from navi_mesh import metrics
 
 
@@ -149,8 +149,8 @@ def test_floor_plan_is_the_clearance_slice_of_the_scene() -> None:
     the nearest wall (the floor and ceiling are 3 m away), positive inside, and it spans the room."""
     import numpy as np
 
-    from navi_compiler.dag import build_gmdag
-    from navi_env.scene import load_corpus
+    from navi_compiler.dag.build import build_gmdag
+    from navi_env.tracer.scene import load_corpus
     from navi_learner.service import floor_plan
 
     res, voxel = 32, 0.5

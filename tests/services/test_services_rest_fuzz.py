@@ -17,9 +17,9 @@ import pytest
 import torch
 from fastapi.testclient import TestClient
 
-from navi_learner.checkpoint import CheckpointMeta, save_checkpoint
 from navi_learner.config import TrainConfig
-from navi_learner.control_plane import MAX_BODY_BYTES, ControlPlaneConfig, create_app
+from navi_learner.serving.checkpoint import CheckpointMeta, save_checkpoint
+from navi_learner.serving.control_plane import MAX_BODY_BYTES, ControlPlaneConfig, create_app
 
 TOKEN = "fuzz-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -23,7 +23,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 from services_testlib import NAVI, free_port, wait_for
 
-from navi_mesh.stack import (
+from navi.stack import (
     StackConfig,
     StackError,
     has_auditor,

@@ -21,8 +21,8 @@ import torch
 
 from navi_auditor.demos import Demo
 from navi_learner.config import EngineConfig
-from navi_learner.policy import CognitiveMambaPolicy
-from navi_learner.temporal import CoreState
+from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.engine.temporal import CoreState
 
 
 @dataclass(frozen=True)
@@ -175,9 +175,9 @@ def save_bc_checkpoint(
     reward_ema the demonstrations' mean reward per step, no optimizer state (the RL fine-tune starts its
     own optimizer). `navi train --checkpoint OUT` resumes from it and records it as its parent.
     """
-    from navi_learner.checkpoint import CheckpointMeta, save_checkpoint
     from navi_learner.config import TrainConfig
-    from navi_learner.runs import new_run_id
+    from navi_learner.ppo.runs import new_run_id
+    from navi_learner.serving.checkpoint import CheckpointMeta, save_checkpoint
 
     rewards = np.concatenate([d.rewards for d in demos])  # (T,) float32
     meta = CheckpointMeta(

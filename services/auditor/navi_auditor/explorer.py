@@ -59,7 +59,7 @@ def keys_to_action(pressed: frozenset[str]) -> np.ndarray:
 
 
 class ExplorerEnv(Protocol):
-    """What the explorer needs of navi_env.env.SdfDagEnv with one actor."""
+    """What the explorer needs of navi_env.sim.env.SdfDagEnv with one actor."""
 
     position: torch.Tensor  # (1, 3)
     yaw: torch.Tensor  # (1,)
@@ -271,8 +271,8 @@ def obstacle_view(flight: Flight) -> dict[str, Any] | None:
     state = getattr(env, "obstacles", None)
     if state is None:
         return None
-    from navi_env import obstacles as ob
-    from navi_env.obstacle_motion import obstacle_distance
+    from navi_env.sim.obstacles import obstacle_distance
+    from navi_env.tracer import primitives as ob
 
     code = env.config.obstacles.semantic_class + 1
     az, el = flight.obs.shape[1], flight.obs.shape[2]
@@ -292,9 +292,9 @@ def scene_env(path: Path, device: str, obstacles: int = 0) -> Callable[[], Explo
     `obstacles` scripted moving obstacles."""
 
     def make() -> ExplorerEnv:
-        from navi_env.config import EnvConfig, ObstacleConfig
-        from navi_env.env import SdfDagEnv
-        from navi_env.scene import load_scene
+        from navi_env.sim.config import EnvConfig, ObstacleConfig
+        from navi_env.sim.env import SdfDagEnv
+        from navi_env.tracer.scene import load_scene
 
         config = EnvConfig(obstacles=ObstacleConfig(count=obstacles))
         return SdfDagEnv(load_scene(path, device), 1, device, config)

@@ -16,11 +16,11 @@ from typing import Literal
 
 import numpy as np
 
-from navi_compiler.dag import DagArrays, build_dag, make_gmdag
+from navi_compiler.dag.build import DagArrays, build_dag, make_gmdag
 from navi_compiler.gmdag import FLAG_LEAK_FALLBACK, Gmdag, encode_gmdag, payload_bytes, quant_step_for
-from navi_compiler.grid import place, to_voxels
 from navi_compiler.scene import Scene
-from navi_compiler.sdf import SdfInput, SdfResult, signed_field_ref
+from navi_compiler.sdf.grid import place, to_voxels
+from navi_compiler.sdf.reference import SdfInput, SdfResult, signed_field_ref
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ def _dag_cpp(sdf: SdfResult, band: float, threads: int) -> DagArrays:
 
 def _compile_torch(inp: SdfInput, device: str) -> tuple[SdfResult, DagArrays]:
     """The torch engine runs the DAG's device half too; its lattice is not kept (an empty array)."""
-    from navi_compiler.sdf_torch import TorchConfig, compile_torch
+    from navi_compiler.sdf.torch_engine import TorchConfig, compile_torch
 
     out = compile_torch(inp, TorchConfig(device=device))
     empty = np.zeros((0, 0, 0), np.float32)  # (0, 0, 0) float32
@@ -99,7 +99,7 @@ def _compile_torch(inp: SdfInput, device: str) -> tuple[SdfResult, DagArrays]:
 
 EXACT_DISTANCE_M = 0.5
 """Meters from every surface within which a compiled field is exact by default: the drone physics must
-tell a 0.3 m contact apart and certify a full-speed 0.5 m step (navi_env.physics), which a far cube's
+tell a 0.3 m contact apart and certify a full-speed 0.5 m step (navi_env.sim.physics), which a far cube's
 bound can do only if it is at least 0.4 m."""
 
 

@@ -12,7 +12,7 @@ The loop is the learner's own (`train.train` or the inference loop below); this 
   navi/models/promoted, and inference reloads the model when its followed alias moves.
 - Bring-up: the control plane and the liveliness token come first (seconds after the start), then the
   corpus: when the sdfdag corpus folder has no manifest, the procedural default corpus is built over
-  compile jobs on the compiler workers (navi_mesh.corpus_jobs; `corpus_build="local"` compiles in
+  compile jobs on the compiler workers (navi_env.corpus.jobs; `corpus_build="local"` compiles in
   this process instead). Its progress is in /healthz (`phase`, `corpus`), in the navi_corpus_* gauges
   and in `corpus.*` telemetry; training starts when it is ready.
 - A heartbeat publishes `actor.training.actors` (or `actor.inference.actors`) once a second while the
@@ -23,7 +23,7 @@ The loop is the learner's own (`train.train` or the inference loop below); this 
   side) when the scene changes and every 5 s, computed on its own thread.
 SIGTERM or Ctrl+C ends training through its KeyboardInterrupt path (a checkpoint is saved first).
 
-Several GPUs (`navi serve learner --nproc N`, run through torchrun; navi_learner/dist.py): rank 0 is
+Several GPUs (`navi serve learner --nproc N`, run through torchrun; navi_learner/ppo/dist.py): rank 0 is
 the service above (control plane, mesh, telemetry, corpus build) and trains its share; every other
 rank waits for the corpus, trains its own actors on its own GPU and publishes nothing. A signal sets
 the stop event, which ends training after the update in progress on every rank (one checkpoint).
@@ -55,14 +55,14 @@ from navi_contracts.models import (
     TelemetryEvent,
 )
 from navi_contracts.topics import ACTIONS, FLOOR_PLAN, MODEL_PROMOTED, OBSERVATIONS, POSES, TELEMETRY
+from navi_env.corpus.jobs import BuildProgress, CorpusBuildConfig, build_corpus_over_jobs
 from navi_learner.config import TrainConfig, default_actors
-from navi_learner.control_plane import ControlPlaneConfig, create_app
-from navi_learner.dist import Dist
-from navi_learner.envs import EnvKind, corpus_summary, make_env
-from navi_learner.protocol import BatchedEnv, StepLike
-from navi_learner.registry import ModelRegistry, RegistryError
+from navi_learner.envs.factory import EnvKind, corpus_summary, make_env
+from navi_learner.envs.protocol import BatchedEnv, StepLike
+from navi_learner.ppo.dist import Dist
+from navi_learner.serving.control_plane import ControlPlaneConfig, create_app
+from navi_learner.serving.registry import ModelRegistry, RegistryError
 from navi_mesh import metrics
-from navi_mesh.corpus_jobs import BuildProgress, CorpusBuildConfig, build_corpus_over_jobs
 from navi_mesh.liveliness import declare_alive
 from navi_mesh.messages import action_message, distance_matrix, telemetry
 from navi_mesh.pubsub import Publisher, QueuedPublisher, subscribe
@@ -273,7 +273,7 @@ PLAN_PERIOD_S = 5.0
 def floor_plan(corpus: Any, scene: int, z: float, cells: int = PLAN_CELLS, run_id: str = "") -> FloorPlan:
     """The clearance on the horizontal slice at height z of one scene of a SceneCorpus, over its
     geometry's x-y bounds, `cells` cells on the long side."""
-    from navi_env.trace import sample_distance
+    from navi_env.tracer.trace import sample_distance
 
     info = corpus.infos[scene]
     lo, hi = np.asarray(info.bounds_min, np.float64), np.asarray(info.bounds_max, np.float64)  # (3,) m
@@ -472,7 +472,7 @@ def prepare_corpus(
     (over compile jobs, or in this process with corpus_build="local")."""
     if cfg.env_kind != "sdfdag":
         return
-    from navi_env.corpus import MANIFEST, CorpusError, build_default_corpus, read_manifest
+    from navi_env.corpus.folder import MANIFEST, CorpusError, build_default_corpus, read_manifest
 
     if not (cfg.corpus / MANIFEST).is_file():
         reporter.status.update(phase="corpus")
@@ -541,8 +541,8 @@ def run_training(
 ) -> dict[str, Any]:
     """`train` with the tap and the metrics callback; returns the run summary. Rank 0 of a
     data-parallel learner passes its Dist and the stop event (signals end training through it)."""
-    from navi_learner.runs import new_run_id
-    from navi_learner.train import train
+    from navi_learner.ppo.runs import new_run_id
+    from navi_learner.ppo.train import train
 
     d = dist or Dist()
     run_id = new_run_id()
@@ -599,7 +599,7 @@ def run_inference(
     """Fly the model until stopped (or infer_steps), reloading it when the followed alias moves. The
     phase turns to "inference" once the promotion subscriber is declared and the model is loaded, so a
     client that waits for it in /healthz knows its promotions are heard."""
-    from navi_learner.evaluate import CheckpointPolicy
+    from navi_learner.evaluation.evaluate import CheckpointPolicy
 
     registry = ModelRegistry(cfg.models_dir)
     device = env.device
@@ -687,12 +687,12 @@ def start_control_plane(
 def train_rank(cfg: LearnerServiceConfig, stop: threading.Event, d: Dist) -> dict[str, Any]:
     """A rank other than 0 of a data-parallel learner: no control plane, mesh or telemetry. Waits for the
     corpus (rank 0 builds it when missing), then trains its own actors on its share of the scenes."""
-    from navi_learner.train import train
+    from navi_learner.ppo.train import train
 
     if cfg.mode != "train":
         raise ValueError("only training runs on several ranks (--nproc); inference is one process")
     if cfg.env_kind == "sdfdag":
-        from navi_env.corpus import MANIFEST
+        from navi_env.corpus.folder import MANIFEST
 
         while not (cfg.corpus / MANIFEST).is_file():
             if stop.wait(1.0):

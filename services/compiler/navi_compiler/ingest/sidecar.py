@@ -32,7 +32,7 @@ SIDECAR_FORMAT = "navi-scene"
 SIDECAR_VERSION = 1
 SIDECAR_SUFFIX = ".scene.json"
 OBSTACLE_KEYS = ("count", "size_min", "size_max", "speed_min", "speed_max", "reach_min", "reach_max")
-"""Moving-obstacle settings a scene may declare (the env's navi_env.obstacle_motion.SCENE_KEYS)."""
+"""Moving-obstacle settings a scene may declare (the env's navi_env.sim.obstacles.SCENE_KEYS)."""
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class Sidecar:
     barrier_vertices: np.ndarray  # (Vb, 3) float64
     barrier_faces: np.ndarray  # (Fb, 3) int64 into barrier_vertices
     obstacles: dict[str, float] = field(default_factory=dict)
-    """Moving obstacles the scene declares (navi_env.obstacle_motion.SCENE_KEYS -> number; meters,
+    """Moving obstacles the scene declares (navi_env.sim.obstacles.SCENE_KEYS -> number; meters,
     m/s); the corpus manifest carries them to the env. Empty: the env's defaults."""
 
 

@@ -1,0 +1,473 @@
+"""`navi bench compile|trace|env|train|learn`: each measures one stage (or learning itself) and prints its
+result; `--json` prints one JSON object and `--record DIR` appends it to DIR/DATE-GPU.jsonl
+(docs/PERFORMANCE.md). Targets are benchmarks, never timed tests."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from navi.commands.common import (
+    CoreOpt,
+    CorpusOpt,
+    DeviceOpt,
+    EnvOpt,
+    fail,
+    pick_device,
+)
+from navi.commands.compiler import EngineChoice, _check_device, _load, _summary, max_source_bytes
+from navi.commands.learner import (
+    MaxMinibatchOpt,
+    ObsStorageOpt,
+    ObstaclesOpt,
+    SquadOpt,
+    build_env,
+    train_config,
+)
+from navi_env.sim.config import EnvConfig
+
+app = typer.Typer(
+    help="Benchmarks; each prints its result (--json: one JSON object; --record DIR: appended to "
+    "DIR/DATE-GPU.jsonl, docs/PERFORMANCE.md).",
+    no_args_is_help=True,
+)
+
+
+@app.command("compile")
+def bench_compile(
+    src: Annotated[str, typer.Argument(help="Scene source (as for `navi compile`).")],
+    resolution: Annotated[int, typer.Option(help="Cells per cube edge.")] = 512,
+    map_name: Annotated[str | None, typer.Option("--map", help="Map name inside a .pk3.")] = None,
+    scale: Annotated[float | None, typer.Option(help="Meters per source unit.")] = None,
+    engine: Annotated[EngineChoice, typer.Option(help="cpp, ref or torch.")] = EngineChoice.cpp,
+    threads: Annotated[int, typer.Option(help="C++ worker threads (0: all cores).", min=0)] = 0,
+    device: Annotated[str, typer.Option(help="Torch device for --engine torch (cpu, cuda).")] = "cpu",
+    json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object (always on).")] = True,
+) -> None:
+    """Time one compile (nothing written) and print the stats as one JSON object. With --engine
+    torch a first (warm-up) compile runs before the timed one; its time is `warmup_seconds`."""
+    import os
+
+    from navi_compiler.compile import compile_scene
+
+    _check_device(engine, device)
+    t0 = time.perf_counter()
+    scene = _load(src, map_name, scale, False, None, max_source_bytes(None))
+    load_seconds = time.perf_counter() - t0
+    warmup: float | None = None
+    try:
+        if engine == EngineChoice.torch:
+            t1 = time.perf_counter()
+            compile_scene(scene, resolution=resolution, engine="torch", device=device)
+            warmup = time.perf_counter() - t1
+        _, stats = compile_scene(
+            scene, resolution=resolution, engine=engine.value, threads=threads, device=device
+        )
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    except MemoryError:
+        raise fail(
+            f"not enough memory for resolution {resolution} (about 20 bytes per lattice point)"
+        ) from None
+    result = _summary(asdict(stats), None, load_seconds)
+    result.update(
+        {
+            "source": src,
+            "map": map_name,
+            "cpu_count": os.cpu_count(),
+            "json": json_out,
+            "device": device if engine == EngineChoice.torch else "cpu",
+            "warmup_seconds": warmup,
+        }
+    )
+    typer.echo(json.dumps(result))
+
+
+@app.command("trace", rich_help_panel="Tracer")
+def bench_trace_cmd(
+    gmdag: Annotated[Path | None, typer.Option("--gmdag", help="Scene file (.gmdag).")] = None,
+    corpus_dir: Annotated[
+        Path | None,
+        typer.Option(
+            "--corpus",
+            help="Instead of --gmdag: measure every .gmdag of this folder, one at a time, and summarise "
+            "(min / median / max rate, steps and bytes; maps below 10 G rays/s and below 100x dense).",
+        ),
+    ] = None,
+    agents: Annotated[int, typer.Option(help="Agents (batch), each casting the full pattern.")] = 4096,
+    device: Annotated[str, typer.Option(help="cpu, cuda or cuda:N.")] = "cuda",
+    steps: Annotated[int, typer.Option("--steps", help="Timed launches (after warm-up).")] = 20,
+    azimuth: Annotated[int, typer.Option(help="Azimuth bins of the spherical pattern.")] = 256,
+    elevation: Annotated[int, typer.Option(help="Elevation bins of the spherical pattern.")] = 48,
+    max_steps: Annotated[int, typer.Option(help="Sphere-tracing steps per ray.")] = 256,
+    hit_slope: Annotated[
+        float,
+        typer.Option(
+            help="Growth of the hit threshold with distance, 0.1 voxel + slope * t; the default is "
+            "the env's (EnvConfig.hit_slope), 0 a fixed threshold.",
+        ),
+    ] = EnvConfig.hit_slope,
+    tiled: Annotated[
+        bool,
+        typer.Option("--tiled/--no-tiled", help="Schedule rays in 16x2 direction tiles (coherent warps)."),
+    ] = True,
+    vs_warp: Annotated[
+        bool, typer.Option("--vs-warp", help="Also cast the same rays with a Warp mesh BVH.")
+    ] = False,
+    mesh: Annotated[
+        Path | None,
+        typer.Option(help="Source mesh for --vs-warp: .npz with vertices (V,3), triangles (F,3)."),
+    ] = None,
+    obstacles: Annotated[
+        int,
+        typer.Option(
+            "--obstacles",
+            min=0,
+            help="Dynamic primitives per agent (spheres, capsules, boxes, oriented boxes 1-8 m away), "
+            "moved before every launch and traced in the same pass.",
+        ),
+    ] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+) -> None:
+    """G rays/s and observations/s of the tracer with the 256x48 spherical pattern."""
+    from navi_compiler.gmdag import GmdagError
+    from navi_env.tracer.bench import TraceBenchConfig, bench_trace, bench_trace_maps
+    from navi_env.tracer.scene import load_scene
+
+    if agents < 1 or steps < 1:
+        raise fail("--agents and --steps must be at least 1")
+    if not 0.0 <= hit_slope < 1.0:
+        raise fail(f"--hit-slope must be in [0, 1), got {hit_slope}")
+    if (gmdag is None) == (corpus_dir is None):
+        raise fail("give one of --gmdag FILE or --corpus DIR")
+    if vs_warp and mesh is None:
+        raise fail("--vs-warp needs --mesh FILE.npz (vertices, triangles) of the scene's source mesh")
+    cfg = TraceBenchConfig(
+        agents=agents, device=device, launches=steps, azimuth_bins=azimuth, elevation_bins=elevation,
+        max_steps=max_steps, tiled_order=tiled, obstacles=obstacles, hit_slope=hit_slope,
+    )  # fmt: skip
+    if corpus_dir is not None:
+        if vs_warp:
+            raise fail("--vs-warp needs one scene (--gmdag)")
+        paths = sorted(corpus_dir.glob("*.gmdag")) if corpus_dir.is_dir() else []
+        if not paths:
+            raise fail(f"{corpus_dir} holds no .gmdag files")
+        try:
+            report = bench_trace_maps(paths, cfg, lambda line: typer.echo(line, err=True))
+        except (OSError, GmdagError, ValueError, RuntimeError) as exc:
+            raise fail(str(exc)) from None
+        if as_json:
+            sys.stdout.write(json.dumps(report) + "\n")
+        else:
+            for key, value in report["summary"].items():  # type: ignore[attr-defined]
+                typer.echo(f"{key:>26}: {value}")
+        return
+    assert gmdag is not None
+    try:
+        corpus = load_scene(gmdag, device)
+        measured = bench_trace(corpus, cfg)
+        result: dict[str, object] = dataclasses.asdict(measured)
+        if vs_warp and mesh is not None:
+            from navi_env.tracer.bench_warp import WarpUnavailable, bench_warp
+
+            try:
+                result["warp"] = bench_warp(corpus, cfg, mesh, measured.ms_per_launch)
+            except WarpUnavailable as exc:
+                result["warp"] = {"error": str(exc)}
+                typer.echo(f"--vs-warp skipped: {exc}", err=True)
+    except (OSError, GmdagError, ValueError, RuntimeError) as exc:
+        raise fail(str(exc)) from None
+    if as_json:
+        sys.stdout.write(json.dumps(result) + "\n")
+        return
+    for key, value in result.items():
+        typer.echo(f"{key:>20}: {value}")
+
+
+@app.command("env")
+def bench_env_cmd(
+    gmdag: Annotated[Path | None, typer.Option(help="One .gmdag scene.")] = None,
+    corpus: Annotated[Path | None, typer.Option(help="A corpus folder.")] = None,
+    actors: Annotated[int, typer.Option(help="Actors stepped together.", min=1)] = 4,
+    steps: Annotated[int, typer.Option(help="Timed steps (after 5 warm-up steps).", min=1)] = 50,
+    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
+    azimuth: Annotated[int, typer.Option(help="Azimuth bins.")] = 256,
+    elevation: Annotated[int, typer.Option(help="Elevation bins.")] = 48,
+    seed: Annotated[int, typer.Option(help="Seed of the environment and the random actions.")] = 0,
+    threads: Annotated[
+        int, typer.Option(help="CPU threads for torch and the CPU tracer (0: torch's default).", min=0)
+    ] = 0,
+    obstacles: Annotated[
+        int,
+        typer.Option(
+            "--obstacles",
+            min=0,
+            max=64,
+            help="K scripted moving obstacles per actor (EnvConfig.obstacles; traced, felt by physics).",
+        ),
+    ] = 0,
+    squad: Annotated[
+        int,
+        typer.Option(
+            "--squad", min=0, max=64, help="Squads of this many actors see and collide with each other."
+        ),
+    ] = 0,
+    json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+) -> None:
+    """Env-steps per second of SdfDagEnv with random actions, and milliseconds per stage."""
+    from navi_env.sim.bench import bench_env
+
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+    if (gmdag is None) == (corpus is None):
+        raise fail("give exactly one of --gmdag FILE or --corpus DIR")
+    try:
+        result = bench_env(gmdag, corpus, actors, steps, device, azimuth, elevation, seed, obstacles, squad)
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise fail(str(exc)) from exc
+    if json_out:
+        typer.echo(json.dumps(result))
+    else:
+        for key, value in result.items():
+            typer.echo(f"{key:>22}: {value}")
+
+
+@app.command(name="learn")
+def bench_learn_cmd(
+    seeds: Annotated[
+        int, typer.Option("--seeds", min=1, help="Training seeds per core (FIRST, FIRST+1, ...).")
+    ] = 3,
+    first_seed: Annotated[
+        int,
+        typer.Option("--first-seed", min=0, help="First training seed (spread one study over several jobs)."),
+    ] = 0,
+    temporal_core: Annotated[
+        str, typer.Option("--temporal-core", help="Comma-separated cores to compare: mamba2,gru,mambapy.")
+    ] = "mamba2",
+    budget: Annotated[
+        float,
+        typer.Option("--budget-s", min=1.0, help="Training seconds per run (evaluations excluded)."),
+    ] = 600.0,
+    eval_every: Annotated[
+        float,
+        typer.Option("--eval-every-s", min=1.0, help="Training seconds between unseen evaluations."),
+    ] = 30.0,
+    full_budget: Annotated[
+        bool,
+        typer.Option("--full-budget", help="Keep training after competence (whole learning curves)."),
+    ] = False,
+    actors: Annotated[int, typer.Option("--actors", help="Actors per run (0: 2,048 on CUDA, 8 on CPU).")] = 0,
+    rollout_length: Annotated[
+        int, typer.Option("--rollout-length", help="Steps per rollout (0: 64 on CUDA, 32 on CPU).")
+    ] = 0,
+    ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", min=1, help="PPO epochs per rollout.")] = 2,
+    lr: Annotated[float, typer.Option("--lr", help="Learning rate.")] = 3e-4,
+    max_minibatch: Annotated[
+        int,
+        typer.Option(
+            "--max-minibatch",
+            min=256,
+            help="Most samples per PPO minibatch (GPU memory; lower it for --parallel).",
+        ),
+    ] = 16_384,
+    eval_actors: Annotated[
+        int, typer.Option("--eval-actors", help="Actors per evaluation (0: protocol default).")
+    ] = 0,
+    eval_steps: Annotated[
+        int, typer.Option("--eval-steps", help="Steps per evaluation (0: protocol default).")
+    ] = 0,
+    episode_steps: Annotated[
+        int,
+        typer.Option("--eval-episode-steps", help="Episode length in evaluations (0: protocol default)."),
+    ] = 0,
+    parallel: Annotated[
+        int,
+        typer.Option("--parallel", min=1, help="Runs at once, sharing the device (wall times overlap)."),
+    ] = 1,
+    gpus: Annotated[
+        int,
+        typer.Option(
+            "--gpus",
+            min=0,
+            help="Spread the runs over this many GPUs (cuda:0..), round-robin; with --parallel equal to it, "
+            "each GPU trains one run at a time.",
+        ),
+    ] = 0,
+    resolution: Annotated[
+        int, typer.Option("--resolution", help="Cells per cube edge of every scene.")
+    ] = 512,
+    corpus_root: Annotated[
+        Path,
+        typer.Option("--corpus-root", help="Where the split corpora are built (reused when present)."),
+    ] = Path("artifacts/corpus/bench-learn"),
+    openarena: Annotated[
+        Path,
+        typer.Option("--openarena", help="openarena-081-maps pak1-maps.pk3 (left out when missing)."),
+    ] = Path("artifacts/data/openarena/pak1-maps.pk3"),
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Result folder (default artifacts/bench/learn/<time>).")
+    ] = None,
+    compile_encoder: Annotated[
+        bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
+    ] = True,
+    reward: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--reward",
+            help="KEY=NUMBER: replace a RewardConfig weight in every env of the job (repeatable), "
+            "e.g. --reward exploration_weight=0.2.",
+        ),
+    ] = None,
+    obstacles: ObstaclesOpt = 0,
+    squad: SquadOpt = 0,
+    procedural_share: Annotated[
+        float,
+        typer.Option(
+            "--procedural-share",
+            min=0.0,
+            max=0.95,
+            help="Repeat the procedural train scenes until about this share of the train corpus is "
+            "procedural (0: as built, 16 procedural + 40 OpenArena).",
+        ),
+    ] = 0.0,
+    device: DeviceOpt = "auto",
+    as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False,
+) -> None:
+    """Train from scratch on a train split, evaluate on unseen scenes during training; time to competence
+    (half the reactive baseline's collisions, 1.5x its coverage), learning curves (JSON + PNG)."""
+    import time
+    from dataclasses import replace
+
+    import torch
+
+    from navi_learner.envs.factory import parse_reward_overrides
+    from navi_learner.evaluation.bench_learn import LearnConfig, bench_learn
+    from navi_learner.evaluation.competence import EvalProtocol
+    from navi_learner.evaluation.evaluate import jsonable
+
+    try:
+        overrides = parse_reward_overrides(reward or [])
+    except ValueError as err:
+        raise fail(str(err)) from err
+
+    dev = pick_device(device)
+    cores = tuple(c.strip() for c in temporal_core.split(",") if c.strip())
+    protocol = EvalProtocol.for_device(torch.device(dev))
+    protocol = replace(
+        protocol,
+        actors=eval_actors or protocol.actors,
+        steps=eval_steps or protocol.steps,
+        episode_steps=episode_steps or protocol.episode_steps,
+    )
+    cfg = LearnConfig(
+        seeds=tuple(range(first_seed, first_seed + seeds)),
+        temporal_cores=cores,
+        time_budget_s=budget,
+        eval_every_s=eval_every,
+        stop_at_competence=not full_budget,
+        actors=actors,
+        rollout_length=rollout_length,
+        ppo_epochs=ppo_epochs,
+        lr=lr,
+        max_minibatch=max_minibatch,
+        compile=compile_encoder,
+        parallel=parallel,
+        gpus=gpus,
+        protocol=protocol,
+        reward=tuple(overrides.items()),
+        obstacles=obstacles,
+        squad=squad,
+        procedural_share=procedural_share,
+    )
+    folder = out or Path("artifacts/bench/learn") / time.strftime("%Y%m%d-%H%M%S")
+    try:
+        result = bench_learn(
+            cfg, folder, dev, resolution, corpus_root, openarena, say=lambda m: typer.echo(m, err=True)
+        )
+    except ValueError as err:
+        raise fail(str(err)) from err
+    if as_json:
+        typer.echo(json.dumps(jsonable({"out": str(folder), "summary": result["summary"]})))
+    else:
+        typer.echo((folder / "report.md").read_text())
+        typer.echo(f"results: {folder}")
+
+
+@app.command(name="train")
+def bench_train_cmd(
+    actors: Annotated[int, typer.Option("--actors", help="Parallel actors (0: device default).")] = 0,
+    temporal_core: CoreOpt = "mamba2",
+    device: DeviceOpt = "auto",
+    corpus: CorpusOpt = None,
+    env: EnvOpt = "sdfdag",
+    updates: Annotated[int, typer.Option("--updates", help="Measured PPO updates (after 2 warm-up).")] = 5,
+    rollout_length: Annotated[
+        int, typer.Option("--rollout-length", help="Steps per rollout (0: default).")
+    ] = 0,
+    compile_encoder: Annotated[
+        bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
+    ] = True,
+    obs_storage: ObsStorageOpt = "auto",
+    max_minibatch: MaxMinibatchOpt = 8_192,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    nproc: Annotated[
+        int,
+        typer.Option(
+            "--nproc",
+            min=1,
+            help="Also measure N data-parallel ranks (torchrun, one per GPU, --actors each) after one "
+            "process: per-rank and total SPS, scaling efficiency SPS(N) / (N x SPS(1)).",
+        ),
+    ] = 1,
+    result_file: Annotated[
+        Path | None, typer.Option("--result-file", hidden=True, help="Write the JSON here instead.")
+    ] = None,
+) -> None:
+    """Env only / env + inference / env + training SPS and ms per stage."""
+    from dataclasses import replace
+
+    import torch
+
+    from navi_learner.config import StorageError, default_actors
+    from navi_learner.evaluation.bench_train import bench_train, bench_train_scaling
+    from navi_learner.ppo import dist
+
+    if nproc > 1 and not dist.launched():
+        args = dist.strip_option(dist.strip_option(sys.argv[1:], "--nproc"), "--result-file")
+        try:
+            result = bench_train_scaling(nproc, args)
+        except RuntimeError as err:
+            raise fail(str(err)) from err
+    else:
+        try:
+            d, dev = dist.setup(pick_device(device))
+        except ValueError as err:
+            raise fail(str(err)) from err
+        try:
+            cfg = train_config(
+                actors, temporal_core, rollout_length, 1, 5e-4, 0, 10**12, dev, 0, obs_storage,
+                max_minibatch, compile_encoder,
+            )  # fmt: skip
+            n = actors or default_actors(torch.device(dev))
+            environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)
+            result = bench_train(environment, replace(cfg, n_actors=n), updates=updates, dist=d)
+        except (dist.DistError, StorageError) as err:
+            raise fail(str(err)) from err
+        finally:
+            dist.shutdown(d)
+        if result_file is not None:
+            if d.main:
+                result_file.write_text(json.dumps(result))
+            dist.leave(d)
+            return
+    typer.echo(json.dumps(result) if as_json else "\n".join(f"{k}: {v}" for k, v in result.items()))
+    sys.stdout.flush()

@@ -1,0 +1,107 @@
+"""What every command group shares: one-line errors, device and choice checks, the options several groups
+take, and the benchmark output (`--json`, `--record DIR`). Module-level imports: typer and the standard
+library only, so `navi --help` stays fast."""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+MODELS_DIR = Path("artifacts/models")
+RUNS_DIR = Path("artifacts/runs")
+DEFAULT_CORPUS = Path("artifacts/corpus/default")
+UNSEEN_CORPUS = Path("artifacts/corpus/unseen")
+
+EnvOpt = Annotated[str, typer.Option("--env", help="Environment: sdfdag (the drone env) or toy (tests).")]
+CorpusOpt = Annotated[Path | None, typer.Option("--corpus", help="Corpus folder of .gmdag scenes.")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="Torch device: auto, cpu, cuda, cuda:N.")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Seed for torch and the environment.")]
+CoreOpt = Annotated[str, typer.Option("--temporal-core", help="Temporal core: mamba2, gru or mambapy.")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object.")]
+RecordOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--record",
+        help="Also append the result as one JSON line to DIR/DATE-GPU.jsonl (with the date, the device, "
+        "the git commit and the command line), e.g. --record benchmarks/results.",
+    ),
+]
+
+
+def fail(message: str) -> typer.Exit:
+    """Print a one-line error to stderr; the caller raises the returned Exit(2)."""
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(2)
+
+
+def pick_device(device: str) -> str:
+    """'auto' -> cuda when available, else cpu; anything else is checked."""
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise fail(f"device {device} requested but CUDA is not available")
+    if not (device == "cpu" or device.startswith("cuda")):
+        raise fail(f"unknown device {device!r}; use auto, cpu, cuda or cuda:N")
+    return device
+
+
+def check_choice(value: str, choices: tuple[str, ...], what: str) -> str:
+    """Validate an enumerated option."""
+    if value not in choices:
+        raise typer.BadParameter(f"{what} must be one of {', '.join(choices)}, got {value!r}")
+    return value
+
+
+def device_name(device: str) -> str:
+    """A short name for the machine a benchmark ran on: the GPU's marketing name's model (H100, H200, ...)
+    for a CUDA device, else `cpu-<N>cores`."""
+    if device.startswith("cuda"):
+        import torch
+
+        name = torch.cuda.get_device_name(torch.device(device))
+        for word in name.replace("-", " ").split():
+            if any(c.isdigit() for c in word) and word[0].isalpha():
+                return word
+        return name.replace(" ", "_")
+    import os
+
+    return f"cpu-{os.cpu_count()}cores"
+
+
+def record_result(result: dict[str, Any], bench: str, device: str, folder: Path) -> Path:
+    """Append `result` to folder/DATE-DEVICE.jsonl as one line, with what it takes to reproduce it."""
+    from navi import __version__, git_commit
+
+    day = time.strftime("%Y-%m-%d")
+    machine = device_name(device)
+    row = {
+        "date": day,
+        "gpu": machine,
+        "bench": bench,
+        "command": "navi " + " ".join(sys.argv[1:]),
+        "commit": git_commit(),
+        "navi": __version__,
+        "python": platform.python_version(),
+        **result,
+    }
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{day}-{machine}.jsonl"
+    with path.open("a", encoding="utf-8") as out:
+        out.write(json.dumps(row, default=str) + "\n")
+    return path
+
+
+def emit_result(result: dict[str, Any], as_json: bool, bench: str, device: str, record: Path | None) -> None:
+    """Print a benchmark's result (one JSON object, or `key: value` lines) and record it when asked."""
+    typer.echo(json.dumps(result) if as_json else "\n".join(f"{k}: {v}" for k, v in result.items()))
+    sys.stdout.flush()
+    if record is not None:
+        typer.echo(f"recorded in {record_result(result, bench, device, record)}", err=True)

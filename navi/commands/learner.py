@@ -1,0 +1,476 @@
+"""Learner commands: `navi train`, `infer`, `evaluate`, `compare`, `export` and `run`, and the helpers the
+`models` and `bench` groups share with them (the env and the TrainConfig a command builds).
+Module-level imports: typer and the standard library only."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+import typer
+
+from navi.commands.common import (
+    DEFAULT_CORPUS,
+    MODELS_DIR,
+    UNSEEN_CORPUS,
+    CoreOpt,
+    CorpusOpt,
+    DeviceOpt,
+    EnvOpt,
+    JsonOpt,
+    SeedOpt,
+    check_choice,
+    fail,
+    pick_device,
+)
+
+if TYPE_CHECKING:
+    from navi_learner.config import TrainConfig
+    from navi_learner.evaluation.baselines import EvalPolicy
+    from navi_learner.evaluation.evaluate import EvalMetrics
+
+ObsStorageOpt = Annotated[
+    str,
+    typer.Option(
+        "--obs-storage",
+        help="Rollout observations: compact (3 bytes per ray, the drone env's DistanceMatrix v2), float32 "
+        "(12 bytes, any env) or auto (compact where the env allows).",
+    ),
+]
+MaxMinibatchOpt = Annotated[
+    int, typer.Option("--max-minibatch", min=1, help="Most samples per PPO minibatch (GPU memory).")
+]
+
+
+NprocOpt = Annotated[
+    int,
+    typer.Option(
+        "--nproc",
+        min=1,
+        help="Data-parallel ranks on this machine, one per GPU (runs the command again through torchrun "
+        "--standalone --nproc-per-node N; ignored inside torchrun).",
+    ),
+]
+
+
+ObstaclesOpt = Annotated[
+    int,
+    typer.Option(
+        "--obstacles",
+        min=0,
+        max=64,
+        help="Scripted moving obstacles per actor (drone env; traced, felt by physics, their collisions "
+        "counted).",
+    ),
+]
+
+
+SquadOpt = Annotated[
+    int,
+    typer.Option(
+        "--squad",
+        min=0,
+        max=64,
+        help="Other drones as obstacles: squads of this many actors share a scene, see and collide with "
+        "each other (0: off; must divide the actors).",
+    ),
+]
+
+
+def build_env(
+    env_kind: str,
+    corpus: Path | None,
+    n_actors: int,
+    device: str,
+    seed: int,
+    rank: int = 0,
+    world: int = 1,
+    obstacles: int = 0,
+    squad: int = 0,
+) -> Any:
+    """The environment for a command (a data-parallel rank: its share of the scenes), or exit 2."""
+    from navi_learner.envs.factory import EnvUnavailable, make_env
+
+    kind: Literal["sdfdag", "toy"] = (
+        "toy" if check_choice(env_kind, ("sdfdag", "toy"), "--env") == "toy" else "sdfdag"
+    )
+    try:
+        return make_env(
+            corpus if corpus is not None or kind == "toy" else DEFAULT_CORPUS,
+            n_actors,
+            device,
+            seed,
+            kind,
+            rank=rank,
+            world=world,
+            obstacles=obstacles,
+            squad=squad,
+        )
+    except (EnvUnavailable, ValueError) as err:
+        raise fail(str(err)) from err
+
+
+def train_config(
+    actors: int,
+    core: str,
+    rollout: int,
+    epochs: int,
+    lr: float,
+    total: int,
+    every: int,
+    device: str,
+    seed: int,
+    obs_storage: str = "auto",
+    max_minibatch: int = 8_192,
+    compile_encoder: bool = True,
+) -> TrainConfig:
+    """TrainConfig from CLI options (0 keeps a default)."""
+    from navi_learner.config import OBS_STORAGE, TEMPORAL_CORES, EngineConfig, PPOConfig, TrainConfig
+
+    name = check_choice(core, TEMPORAL_CORES, "--temporal-core")
+    check_choice(obs_storage, OBS_STORAGE, "--obs-storage")
+    engine = EngineConfig(
+        temporal_core="gru" if name == "gru" else "mambapy" if name == "mambapy" else "mamba2"
+    )
+    return TrainConfig(
+        n_actors=actors,
+        rollout_length=rollout,
+        total_steps=total,
+        checkpoint_every=every,
+        device=device,
+        seed=seed,
+        compile=compile_encoder,
+        obs_dtype=obs_storage,
+        engine=engine,
+        ppo=PPOConfig(lr=lr, ppo_epochs=epochs, max_minibatch=max_minibatch),
+    )
+
+
+def resume_choice(checkpoint: Path | None, fresh: bool, cfg: TrainConfig) -> tuple[Path | None, TrainConfig]:
+    """Explicit --checkpoint, else artifacts/models/latest.pt when compatible; the engine comes from it."""
+    from dataclasses import replace
+
+    from navi_learner.config import EngineConfig
+    from navi_learner.serving.checkpoint import CheckpointError, read_meta
+
+    path = checkpoint if checkpoint is not None else (None if fresh else MODELS_DIR / "latest.pt")
+    if path is None or (checkpoint is None and not path.is_file()):
+        return None, cfg
+    try:
+        meta = read_meta(path)
+    except CheckpointError as err:
+        raise fail(str(err)) from err
+    if meta.temporal_core != cfg.engine.temporal_core:
+        if checkpoint is not None:
+            raise fail(f"{path} was trained with --temporal-core {meta.temporal_core}")
+        typer.echo(
+            f"note: {path} uses {meta.temporal_core}; starting a fresh {cfg.engine.temporal_core} run",
+            err=True,
+        )
+        return None, cfg
+    typer.echo(f"resuming from {path} (step {meta.step_id:,})", err=True)
+    return path, replace(cfg, engine=EngineConfig.from_dict(meta.config["engine"]))
+
+
+def print_metrics(rows: list[EvalMetrics], as_json: bool) -> None:
+    """One JSON object, or a markdown table."""
+    from navi_learner.evaluation.evaluate import comparison_table, jsonable
+
+    if as_json:
+        typer.echo(json.dumps({"results": jsonable([asdict(r) for r in rows])}))
+    else:
+        typer.echo(comparison_table(rows))
+
+
+def eval_policy(spec: str, device: str, seed: int, deterministic: bool, env: object = None) -> EvalPolicy:
+    """'random', 'reactive' (tuned to env's horizon and ray pattern), or a checkpoint path / registry version."""
+    import torch
+
+    from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
+    from navi_learner.evaluation.evaluate import CheckpointPolicy
+    from navi_learner.serving.checkpoint import CheckpointError
+    from navi_learner.serving.registry import ModelRegistry, RegistryError
+
+    if spec == "random":
+        return RandomPolicy(seed)
+    if spec == "reactive":
+        return reactive_for_env(env)
+    path = Path(spec)
+    if not path.is_file():
+        try:
+            path = ModelRegistry(MODELS_DIR).path(spec)
+        except RegistryError as err:
+            raise fail(
+                f"{spec} is neither random, reactive, a checkpoint file nor a registry version"
+            ) from err
+    try:
+        return CheckpointPolicy(path, torch.device(device), deterministic)
+    except CheckpointError as err:
+        raise fail(str(err)) from err
+
+
+PANEL = "Learner"
+app = typer.Typer()
+"""Merged into the root: its commands are `navi train`, `navi run`, ..."""
+
+
+@app.command(rich_help_panel=PANEL)
+def train(
+    corpus: CorpusOpt = None,
+    actors: Annotated[int, typer.Option("--actors", help="Parallel actors (0: 4 on CPU, 4096 on CUDA).")] = 0,
+    temporal_core: CoreOpt = "mamba2",
+    rollout_length: Annotated[
+        int, typer.Option("--rollout-length", help="Steps per rollout (0: 512, capped by memory).")
+    ] = 0,
+    ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", help="PPO epochs per rollout.")] = 1,
+    lr: Annotated[float, typer.Option("--lr", help="Learning rate.")] = 5e-4,
+    total_steps: Annotated[int, typer.Option("--total-steps", help="Env-step budget.")] = 1_000_000,
+    time_limit: Annotated[
+        float, typer.Option("--time-limit-s", min=0.0, help="Training-seconds budget (0: none).")
+    ] = 0.0,
+    checkpoint_every: Annotated[
+        int, typer.Option("--checkpoint-every", help="Env steps between checkpoints.")
+    ] = 25_000,
+    checkpoint: Annotated[
+        Path | None, typer.Option("--checkpoint", help="Resume from this checkpoint.")
+    ] = None,
+    fresh: Annotated[
+        bool, typer.Option("--fresh", help="Do not resume from artifacts/models/latest.pt.")
+    ] = False,
+    device: DeviceOpt = "auto",
+    seed: SeedOpt = 0,
+    env: EnvOpt = "sdfdag",
+    compile_encoder: Annotated[
+        bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
+    ] = True,
+    nproc: NprocOpt = 1,
+    obstacles: ObstaclesOpt = 0,
+    squad: SquadOpt = 0,
+    obs_storage: ObsStorageOpt = "auto",
+    max_minibatch: MaxMinibatchOpt = 8_192,
+) -> None:
+    """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first. Under torchrun
+    (or with --nproc N) every rank trains its own actors on its own device with synchronous
+    data-parallel PPO; --actors is per rank."""
+    from dataclasses import replace
+
+    import torch
+
+    from navi_learner.config import StorageError, default_actors
+    from navi_learner.envs.factory import corpus_summary
+    from navi_learner.ppo import dist
+    from navi_learner.ppo.train import train as run_train
+    from navi_learner.serving.registry import ModelRegistry
+
+    if nproc > 1 and not dist.launched():
+        raise typer.Exit(dist.relaunch(nproc, dist.strip_option(sys.argv[1:], "--nproc")))
+    try:
+        d, dev = dist.setup(pick_device(device))
+    except ValueError as err:
+        raise fail(str(err)) from err
+    signals = dist.StopSignals().install() if d.active else None
+    try:
+        cfg = train_config(
+            actors,
+            temporal_core,
+            rollout_length,
+            ppo_epochs,
+            lr,
+            total_steps,
+            checkpoint_every,
+            dev,
+            seed,
+            obs_storage,
+            max_minibatch,
+            compile_encoder,
+        )
+        resume, cfg = resume_choice(checkpoint, fresh, replace(cfg, time_limit_s=time_limit))
+        n = cfg.n_actors or default_actors(torch.device(dev))
+        environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles, squad)
+        summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
+        result = run_train(
+            environment,
+            cfg,
+            resume_from=resume,
+            registry=ModelRegistry(MODELS_DIR) if d.main else None,
+            corpus_summary=summary,
+            dist=d,
+            should_stop=None if signals is None else signals.requested,
+        )
+    except (dist.DistError, StorageError) as err:
+        raise fail(str(err)) from err
+    finally:
+        dist.shutdown(d)
+    if not d.main:
+        dist.leave(d)  # rank 0 reports (and exits 130 when interrupted)
+        return
+    typer.echo(
+        json.dumps(
+            {
+                "run_id": result.run_id,
+                "checkpoint": str(result.final_checkpoint),
+                "report": str(result.report),
+                "steps": result.step_id,
+                "reward_ema": result.reward_ema,
+                "sps": round(result.sps, 1),
+                "promoted": result.promoted,
+                "interrupted": result.interrupted,
+            }
+        )
+    )
+    dist.leave(d, 130 if result.interrupted else 0)
+    if result.interrupted:
+        raise typer.Exit(130)
+
+
+@app.command(rich_help_panel=PANEL)
+def infer(
+    checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Checkpoint to run.")],
+    deterministic: Annotated[bool, typer.Option("--deterministic", help="Use the mean action.")] = False,
+    total_steps: Annotated[int, typer.Option("--total-steps", help="Batched steps to run.")] = 1000,
+    corpus: CorpusOpt = None,
+    actors: Annotated[int, typer.Option("--actors", help="Parallel actors.")] = 4,
+    device: DeviceOpt = "auto",
+    seed: SeedOpt = 0,
+    env: EnvOpt = "sdfdag",
+    as_json: JsonOpt = False,
+    remote: Annotated[
+        bool,
+        typer.Option(
+            "--remote",
+            help="Fly the drones of a `navi serve env` over Zenoh (NAVI_ZENOH_CONNECT) instead of an "
+            "in-process env; --actors of its drones are driven.",
+        ),
+    ] = False,
+) -> None:
+    """Run a checkpoint (no PPO) in-process, or against a remote env service, and report its metrics."""
+    from navi_learner.evaluation.evaluate import evaluate
+
+    dev = pick_device(device)
+    if remote:
+        from navi_learner.envs.remote import RemoteEnv, RemoteEnvError
+
+        policy = eval_policy(str(checkpoint), dev, seed, deterministic)
+        try:
+            metrics = evaluate(RemoteEnv(actors, dev), policy, total_steps, seed, progress=True)
+        except RemoteEnvError as err:
+            raise fail(str(err)) from err
+        print_metrics([metrics], as_json)
+        return
+    environment = build_env(env, corpus, actors, dev, seed)
+    policy = eval_policy(str(checkpoint), dev, seed, deterministic, environment)
+    print_metrics([evaluate(environment, policy, total_steps, seed, progress=True)], as_json)
+
+
+@app.command(name="evaluate", rich_help_panel=PANEL)
+def evaluate_cmd(
+    checkpoint: Annotated[str | None, typer.Argument(help="Checkpoint file or registry version.")] = None,
+    policy: Annotated[
+        str | None, typer.Option("--policy", help="Baseline instead: random or reactive.")
+    ] = None,
+    corpus: CorpusOpt = None,
+    steps: Annotated[int, typer.Option("--steps", help="Batched steps.")] = 1000,
+    actors: Annotated[int, typer.Option("--actors", help="Parallel actors.")] = 4,
+    device: DeviceOpt = "auto",
+    seed: SeedOpt = 0,
+    env: EnvOpt = "sdfdag",
+    obstacles: ObstaclesOpt = 0,
+    squad: SquadOpt = 0,
+    as_json: JsonOpt = False,
+) -> None:
+    """Evaluate a checkpoint or a baseline: return, collisions (with moving obstacles among them),
+    clearance, coverage, distance, starvation."""
+    from navi_learner.evaluation.evaluate import evaluate
+
+    if (checkpoint is None) == (policy is None):
+        raise typer.BadParameter("give exactly one of CHECKPOINT or --policy random|reactive")
+    if policy is not None:
+        check_choice(policy, ("random", "reactive"), "--policy")
+    dev = pick_device(device)
+    environment = build_env(env, corpus, actors, dev, seed, obstacles=obstacles, squad=squad)
+    chosen = eval_policy(policy or str(checkpoint), dev, seed, True, environment)
+    print_metrics([evaluate(environment, chosen, steps, seed, progress=True)], as_json)
+
+
+@app.command(rich_help_panel=PANEL)
+def compare(
+    policies: Annotated[
+        list[str], typer.Argument(help="Checkpoints, registry versions, random or reactive.")
+    ],
+    corpus: CorpusOpt = None,
+    steps: Annotated[int, typer.Option("--steps", help="Batched steps per policy.")] = 1000,
+    actors: Annotated[int, typer.Option("--actors", help="Parallel actors.")] = 4,
+    device: DeviceOpt = "auto",
+    seed: SeedOpt = 0,
+    env: EnvOpt = "sdfdag",
+    as_json: JsonOpt = False,
+) -> None:
+    """Evaluate several policies on the same scenes, spawns and seeds."""
+    from navi_learner.evaluation.evaluate import evaluate
+
+    dev = pick_device(device)
+    rows = []
+    for spec in policies:
+        environment = build_env(env, corpus, actors, dev, seed)
+        chosen = eval_policy(spec, dev, seed, True, environment)
+        rows.append(evaluate(environment, chosen, steps, seed, progress=True))
+    print_metrics(rows, as_json)
+
+
+@app.command(rich_help_panel=PANEL)
+def export(
+    checkpoint: Annotated[Path, typer.Argument(help="Checkpoint to export.")],
+    onnx: Annotated[Path, typer.Option("--onnx", help="Output .onnx file.")],
+) -> None:
+    """Export the step-mode policy (obs + recurrent state in; action, value, state out) to ONNX."""
+    from navi_learner.serving.checkpoint import CheckpointError
+    from navi_learner.serving.export import ExportUnavailable, export_onnx
+
+    try:
+        typer.echo(str(export_onnx(checkpoint, onnx)))
+    except (ExportUnavailable, CheckpointError) as err:
+        raise fail(str(err)) from err
+
+
+@app.command(name="run", rich_help_panel=PANEL)
+def run_cmd(
+    corpus: Annotated[
+        Path, typer.Option("--corpus", help="Training corpus (procedural seed 0, built when missing).")
+    ] = DEFAULT_CORPUS,
+    unseen: Annotated[
+        Path,
+        typer.Option(
+            "--unseen", help="Unseen corpus for evaluation (procedural seed 1000, built when missing)."
+        ),
+    ] = UNSEEN_CORPUS,
+    budget: Annotated[
+        float,
+        typer.Option(
+            "--budget-s", min=1.0, help="CUDA: training seconds at most (stops earlier at competence)."
+        ),
+    ] = 600.0,
+    eval_every: Annotated[
+        float,
+        typer.Option("--eval-every-s", min=1.0, help="CUDA: training seconds between unseen evaluations."),
+    ] = 30.0,
+    cpu_steps: Annotated[
+        int,
+        typer.Option("--cpu-steps", min=0, help="CPU: env steps of fine-tuning the reference checkpoint."),
+    ] = 2048,
+    device: DeviceOpt = "auto",
+    seed: SeedOpt = 0,
+) -> None:
+    """The main job: build the corpora, train (CUDA: until competent on unseen scenes or the budget; CPU:
+    fine-tune the shipped reference checkpoint), promote, evaluate against random and reactive on unseen scenes."""
+    from navi_learner.evaluation.main_job import MainJobConfig, MainJobError, main_job
+
+    dev = pick_device(device)
+    job = MainJobConfig(corpus, unseen, MODELS_DIR, dev, seed, budget, eval_every, cpu_steps)
+    try:
+        report = main_job(job)
+    except MainJobError as err:
+        raise fail(str(err)) from err
+    typer.echo(f"report: {report}")

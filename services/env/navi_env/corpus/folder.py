@@ -1,0 +1,358 @@
+"""Training corpora: a folder of .gmdag scenes with a manifest, built transactionally.
+
+Layout of a corpus folder:
+  manifest.json    {"format": "navi-corpus", "version": 1, "created_at", "resolution", "scenes": [...],
+                    "rejected": [...]}; each scene: name, file, source, resolution, voxel_size, bytes,
+                    qualification (navi_env.corpus.qualify.Qualification as JSON, with the viable spawns),
+                    obstacles (moving obstacles it declares, from a mesh's sidecar or edited in; may be
+                    absent)
+  <name>.gmdag     one file per scene that passed qualification
+
+`build_corpus` compiles (navi_compiler), checks (reads every written file back through the validating
+reader) and qualifies every source into a temporary folder beside the target, and swaps it in only
+when every source compiled and at least one scene qualified. Anything else leaves the old corpus as
+it was. A scene that fails qualification is left out and listed under "rejected" with the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import torch
+
+from navi_env.corpus.qualify import Qualification, QualifyConfig, qualify_scene
+from navi_env.tracer.scene import SceneCorpus
+from navi_env.tracer.scene import load_corpus as load_scenes
+
+MANIFEST = "manifest.json"
+FORMAT = "navi-corpus"
+VERSION = 1
+DEFAULT_CORPUS = Path("artifacts/corpus/default")
+"""Where `navi corpus build --default` and the trainer look by default."""
+MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl")
+MAP_SUFFIXES = (".bsp", ".pk3")
+
+Progress = Callable[[str], None]
+
+
+class CorpusError(RuntimeError):
+    """A corpus could not be built or read; the message says which source or file and why."""
+
+
+@dataclass(frozen=True)
+class SceneEntry:
+    """One qualified scene of a corpus."""
+
+    name: str  # unique within the corpus
+    file: str  # file name inside the corpus folder
+    source: str  # where it came from (path, or archive.pk3:maps/x.bsp)
+    resolution: int  # cells per cube edge
+    voxel_size: float  # meters
+    bytes: int  # size of the .gmdag file
+    qualification: dict[str, object]  # Qualification.to_json()
+    obstacles: dict[str, float] = field(default_factory=dict)  # declared moving obstacles (SCENE_KEYS)
+
+    def spawns(self) -> torch.Tensor:
+        """Viable spawn positions (K, 3) float32 meters, best first."""
+        points = self.qualification.get("spawns", [])
+        return torch.tensor(points, dtype=torch.float32).reshape(-1, 3)  # (K, 3)
+
+
+@dataclass(frozen=True)
+class CorpusManifest:
+    """The manifest of a corpus folder."""
+
+    created_at: str
+    resolution: int
+    scenes: tuple[SceneEntry, ...]
+    rejected: tuple[dict[str, str], ...] = field(default_factory=tuple)  # {"source", "reason"}
+
+    def to_json(self) -> dict[str, object]:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "created_at": self.created_at,
+            "resolution": self.resolution,
+            "scenes": [asdict(s) for s in self.scenes],
+            "rejected": list(self.rejected),
+        }
+
+    def spawn_tensors(self) -> list[torch.Tensor]:
+        """Per scene (K_s, 3) spawns, in scene order: the `spawns` argument of SdfDagEnv."""
+        return [s.spawns() for s in self.scenes]
+
+    def obstacle_settings(self) -> list[dict[str, float]]:
+        """Per scene, the moving obstacles it declares (empty: none): SdfDagEnv's `scene_obstacles`."""
+        return [dict(s.obstacles) for s in self.scenes]
+
+    def summary(self) -> dict[str, object]:
+        """Small JSON summary (for checkpoints and logs)."""
+        return {
+            "scenes": len(self.scenes),
+            "rejected": len(self.rejected),
+            "resolution": self.resolution,
+            "bytes": sum(s.bytes for s in self.scenes),
+            "names": [s.name for s in self.scenes],
+        }
+
+
+def read_manifest(corpus_dir: str | os.PathLike[str]) -> CorpusManifest:
+    """Read and check `corpus_dir/manifest.json`."""
+    path = Path(corpus_dir) / MANIFEST
+    if not path.is_file():
+        raise CorpusError(f"{corpus_dir} is not a corpus: {MANIFEST} is missing")
+    try:
+        raw = json.loads(path.read_text())
+        if raw.get("format") != FORMAT or raw.get("version") != VERSION:
+            raise CorpusError(f"{path}: not a {FORMAT} manifest of version {VERSION}")
+        scenes = tuple(SceneEntry(**s) for s in raw["scenes"])
+        return CorpusManifest(
+            created_at=str(raw["created_at"]),
+            resolution=int(raw["resolution"]),
+            scenes=scenes,
+            rejected=tuple(raw.get("rejected", [])),
+        )
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise CorpusError(f"{path}: malformed manifest ({exc})") from exc
+
+
+def load_corpus(
+    corpus_dir: str | os.PathLike[str], device: torch.device | str = "cpu", rank: int = 0, world: int = 1
+) -> tuple[SceneCorpus, CorpusManifest]:
+    """Load the scenes of a corpus onto `device`, in manifest order, with its manifest.
+
+    With world > 1 (data-parallel training) only this rank's share, scenes[rank::world], is loaded and
+    the returned manifest lists just those. Use `manifest.spawn_tensors()` as SdfDagEnv's `spawns`.
+    """
+    root = Path(corpus_dir)
+    manifest = read_manifest(root)
+    if not manifest.scenes:
+        raise CorpusError(f"{root}: the corpus holds no scene")
+    if world > 1:
+        if len(manifest.scenes) < world:
+            raise CorpusError(
+                f"{root}: {len(manifest.scenes)} scenes cannot be shared by {world} ranks (one scene each at least)"
+            )
+        manifest = replace(manifest, scenes=manifest.scenes[rank::world])
+    files = []
+    for s in manifest.scenes:
+        path = root / s.file
+        if not path.is_file() or path.stat().st_size != s.bytes:
+            raise CorpusError(f"{path}: missing or not the size the manifest records ({s.bytes} bytes)")
+        files.append(path)
+    return load_scenes(files, device), manifest
+
+
+def find_sources(src_dir: str | os.PathLike[str]) -> list[str]:
+    """Scene sources under src_dir (recursive, sorted): meshes, .bsp, each map of a .pk3, and .gmdag."""
+    from navi_compiler.ingest.pk3 import list_pk3_maps
+
+    root = Path(src_dir)
+    if not root.is_dir():
+        raise CorpusError(f"source folder not found: {root}")
+    out: list[str] = []
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        suffix = path.suffix.lower()
+        if suffix == ".pk3":
+            out += [f"{path}:{member}" for member in list_pk3_maps(path)]
+        elif suffix in MESH_SUFFIXES or suffix in (".bsp", ".gmdag"):
+            out.append(str(path))
+    return out
+
+
+def _scene_name(source: str, taken: set[str]) -> str:
+    base = Path(source.split(":")[-1]).stem if ":" in source else Path(source).stem
+    name, k = base, 2
+    while name in taken:
+        name, k = f"{base}_{k}", k + 1
+    taken.add(name)
+    return name
+
+
+def _compile_one(source: str, out_path: Path, resolution: int) -> None:
+    """Compile (or copy) one source to out_path, then read it back through the validating reader."""
+    from navi_compiler.compile import compile_scene
+    from navi_compiler.gmdag import read_gmdag, write_gmdag
+    from navi_compiler.ingest import load_scene
+
+    if source.lower().endswith(".gmdag"):
+        write_gmdag(read_gmdag(source), out_path)
+    else:
+        gmdag, _ = compile_scene(load_scene(source), resolution=resolution)
+        write_gmdag(gmdag, out_path)
+    read_gmdag(out_path)
+
+
+def _declared_obstacles(source: str) -> dict[str, float]:
+    """The moving obstacles a mesh source's `.scene.json` sidecar declares (empty for other sources)."""
+    path = Path(source)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        return {}
+    from navi_compiler.ingest.sidecar import read_sidecar, sidecar_path
+
+    side = sidecar_path(path)
+    return dict(read_sidecar(side).obstacles) if side.is_file() else {}
+
+
+def _build_into(
+    work: Path,
+    sources: Sequence[str],
+    resolution: int,
+    device: torch.device | str,
+    qualify: QualifyConfig,
+    say: Progress,
+) -> CorpusManifest:
+    scenes: list[SceneEntry] = []
+    rejected: list[dict[str, str]] = []
+    taken: set[str] = set()
+    for i, source in enumerate(sources, 1):
+        name = _scene_name(source, taken)
+        path = work / f"{name}.gmdag"
+        say(f"[{i}/{len(sources)}] {name}: compiling {source}")
+        try:
+            _compile_one(source, path, resolution)
+        except (OSError, ValueError, RuntimeError) as exc:
+            raise CorpusError(f"{source}: {exc}") from exc
+        corpus = load_scenes([path], device)
+        verdict: Qualification = qualify_scene(corpus, 0, qualify)
+        say(f"[{i}/{len(sources)}] {name}: {verdict.verdict} ({verdict.reason})")
+        if not verdict.passed:
+            rejected.append({"source": source, "reason": verdict.reason})
+            path.unlink()
+            continue
+        info = corpus.infos[0]
+        scenes.append(
+            SceneEntry(
+                name=name,
+                file=path.name,
+                source=source,
+                resolution=info.resolution,
+                voxel_size=info.voxel_size,
+                bytes=path.stat().st_size,
+                qualification=verdict.to_json(),
+                obstacles=_declared_obstacles(source),
+            )
+        )
+    if not scenes:
+        raise CorpusError(f"no scene qualified ({len(rejected)} rejected); the corpus would be empty")
+    return CorpusManifest(
+        created_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        resolution=resolution,
+        scenes=tuple(scenes),
+        rejected=tuple(rejected),
+    )
+
+
+def _write_manifest(work: Path, manifest: CorpusManifest) -> None:
+    path = work / MANIFEST
+    with open(path, "w") as f:
+        json.dump(manifest.to_json(), f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def replace_directory(new: Path, out: Path) -> None:
+    """Put the complete folder `new` at `out`; the previous `out` is removed only after the swap."""
+    old = out.with_name(f".{out.name}.old-{os.getpid()}-{time.monotonic_ns()}")
+    if out.exists():
+        os.replace(out, old)
+    try:
+        os.replace(new, out)
+    except OSError:
+        if old.exists():
+            os.replace(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+@contextmanager
+def _transaction(out: str | os.PathLike[str], kind: str) -> Iterator[Path]:
+    """A work folder beside `out`; when the block succeeds it replaces `out`, otherwise `out` is left
+    untouched. The work folder is always removed."""
+    target = Path(out)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{target.name}.{kind}-", dir=target.parent))
+    try:
+        yield work
+        replace_directory(work, target)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def build_corpus(
+    sources: Sequence[str | os.PathLike[str]],
+    out: str | os.PathLike[str],
+    resolution: int = 512,
+    device: torch.device | str = "cpu",
+    qualify: QualifyConfig | None = None,
+    progress: Progress | None = None,
+) -> CorpusManifest:
+    """Compile, check and qualify every source into the corpus folder `out`, transactionally."""
+    if not sources:
+        raise CorpusError("no scene sources given")
+    with _transaction(out, "build") as work:
+        manifest = _build_into(
+            work,
+            [str(s) for s in sources],
+            resolution,
+            device,
+            qualify or QualifyConfig(),
+            progress or (lambda line: None),
+        )
+        _write_manifest(work, manifest)
+    return manifest
+
+
+def merge_corpora(parts: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str]) -> CorpusManifest:
+    """One corpus folder `out` holding every scene of the corpus folders `parts` (copied, in order;
+    a repeated name gets a suffix), transactionally like build_corpus. The resolution recorded is the
+    first part's; scenes keep their own."""
+    if not parts:
+        raise CorpusError("no corpus to merge")
+    with _transaction(out, "merge") as work:
+        scenes: list[SceneEntry] = []
+        rejected: list[dict[str, str]] = []
+        taken: set[str] = set()
+        resolution = 0
+        for part in parts:
+            manifest = read_manifest(part)
+            resolution = resolution or manifest.resolution
+            rejected += manifest.rejected
+            for scene in manifest.scenes:
+                name = _scene_name(scene.name, taken)
+                shutil.copyfile(Path(part) / scene.file, work / f"{name}.gmdag")
+                scenes.append(replace(scene, name=name, file=f"{name}.gmdag"))
+        merged = CorpusManifest(
+            created_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            resolution=resolution,
+            scenes=tuple(scenes),
+            rejected=tuple(rejected),
+        )
+        _write_manifest(work, merged)
+    return merged
+
+
+def build_default_corpus(
+    out: str | os.PathLike[str],
+    resolution: int = 512,
+    count: int = 16,
+    seed: int = 0,
+    device: torch.device | str = "cpu",
+    progress: Progress | None = None,
+) -> CorpusManifest:
+    """Generate `count` procedural scenes (navi_compiler.ingest.procedural) and build them into the corpus `out`."""
+    from navi_compiler.ingest.procedural import generate_corpus
+
+    target = Path(out)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{target.name}.sources-", dir=target.parent) as tmp:
+        meshes = generate_corpus(tmp, count, seed)
+        return build_corpus(meshes, target, resolution, device, progress=progress)

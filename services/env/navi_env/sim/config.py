@@ -1,0 +1,269 @@
+"""Every knob of the drone environment in one typed dataclass (docs/SIMULATION.md explains each).
+
+Units: meters, seconds, radians. World frame: right-handed, +Z up. Body frame: +X forward, +Y left,
++Z up; yaw turns the body about +Z (counter-clockwise seen from above is positive).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+RESOLUTIONS: tuple[tuple[int, int], ...] = ((256, 48), (384, 72), (512, 96), (768, 144))
+"""Observation resolutions (Az, El) the environment accepts."""
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Optional sensor model; with the defaults the observation is the exact traced depth."""
+
+    range_noise_std: float = 0.0
+    """Standard deviation of additive Gaussian range noise, meters (0 = off)."""
+    range_noise_relative: float = 0.0
+    """Extra noise standard deviation per meter of range (0 = off): std = abs + relative * depth."""
+    dropout: float = 0.0
+    """Probability that a ray returns nothing (reported as a miss at the horizon), per ray and step."""
+    elevation_min_deg: float = -90.0
+    """Lowest elevation of the ray pattern, degrees (-90 = straight down)."""
+    elevation_max_deg: float = 90.0
+    """Highest elevation of the ray pattern, degrees (+90 = straight up)."""
+
+    @property
+    def enabled(self) -> bool:
+        """True when noise or dropout changes the observation."""
+        return self.range_noise_std > 0.0 or self.range_noise_relative > 0.0 or self.dropout > 0.0
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Weights and shapes of every reward term; the reward is the sum of the weighted terms.
+
+    Terms that reward a change of state are potential-based (Ng, Harada & Russell 1999):
+    F = shaping_gamma * Phi(s') - Phi(s), so no closed loop of states earns net shaping reward.
+    docs/SIMULATION.md gives every term's formula and its bound per step.
+    """
+
+    collision_weight: float = 1.0
+    """Weight of the collision penalty: -(collision_base + speed / max_speed) on a contact step."""
+    collision_base: float = 0.5
+    """Part of the collision penalty paid even at zero speed (grazing)."""
+    proximity_weight: float = 0.2
+    """Proximity cost of the state after the move: -(1 - clearance / proximity_distance)^2 inside it."""
+    proximity_distance: float = 2.0
+    """Clearance (m) under which the proximity cost and the escape potential vary."""
+    escape_weight: float = 0.5
+    """Escape potential: weight * min(clearance, proximity_distance) / (max_speed * dt); its shaping
+    pays for clearance gained near geometry and charges the same amount for clearance lost."""
+    exploration_weight: float = 0.1
+    """Bonus for entering a cell not visited this episode (1 per novel cell)."""
+    exploration_min_clearance: float = 1.0
+    """A novel cell pays only when the clearance there is at least this (m): wall hugging earns nothing."""
+    exploration_cell: float = 1.0
+    """Edge of an exploration cell, meters."""
+    exploration_table_bits: int = 15
+    """log2 of the visited-cell bitmap size per actor (2^15 bits = 4 KiB)."""
+    blind_weight: float = 0.05
+    """Information foraging: -(void fraction above blind_threshold, rescaled to [0, 1])."""
+    blind_threshold: float = 0.5
+    """Fraction of horizon-saturated rays tolerated before the blind penalty starts."""
+    near_weight: float = 0.05
+    """Information foraging: -(fraction of rays closer than near_distance) (near-field wall hugging)."""
+    near_distance: float = 1.0
+    """Range (m) under which a ray counts as near field."""
+    structure_weight: float = 0.05
+    """Structure potential: weight * fraction of the view's rays in the mid-range band."""
+    structure_front_weight: float = 0.05
+    """Structure potential: weight * mid-range fraction of the front half of the view (turning toward
+    structure raises it)."""
+    mid_range_min: float = 2.0
+    """Lower edge (m) of the mid-range band of structure seeking."""
+    mid_range_max: float = 20.0
+    """Upper edge (m) of the mid-range band of structure seeking."""
+    existential_tax: float = -0.02
+    """Constant reward every step (negative: idling costs)."""
+    shaping_gamma: float = 0.99
+    """Discount of the potential-based terms; set it to the learner's gamma (PPOConfig.gamma)."""
+
+
+OBSTACLE_SHAPES: tuple[str, ...] = ("sphere", "capsule", "box", "obb")
+"""Primitive shapes a scripted obstacle can take (navi_env.tracer.primitives: sphere, capsule, axis-aligned box,
+oriented box)."""
+OBSTACLE_MOTIONS: tuple[str, ...] = ("linear", "circular", "random_walk")
+"""Scripted motions: back and forth along a segment, round a horizontal circle, a random walk on a leash."""
+
+
+@dataclass(frozen=True)
+class ObstacleConfig:
+    """Scripted moving obstacles, `count` per actor's world, traced and felt without any rebuild of the
+    scene (docs/SIMULATION.md, "Moving obstacles"). Off by default (count 0)."""
+
+    count: int = 0
+    """K: obstacles per actor (slots fixed at env creation; the tracer tests every one on every ray)."""
+    shapes: tuple[str, ...] = OBSTACLE_SHAPES
+    """Shapes given to the slots in turn (slot k gets shapes[k % len])."""
+    motions: tuple[str, ...] = OBSTACLE_MOTIONS
+    """Motions given to the slots in turn (slot k gets motions[k % len])."""
+    size_min: float = 0.3
+    """Smallest radius / half extent, meters."""
+    size_max: float = 0.8
+    """Largest radius / half extent, meters."""
+    speed_min: float = 0.5
+    """Slowest obstacle, m/s."""
+    speed_max: float = 3.0
+    """Fastest obstacle, m/s (may exceed the drone's speed: the sweep test stops it at the drone)."""
+    reach_min: float = 1.0
+    """Shortest half segment (linear), circle radius (circular) or leash (random walk), meters."""
+    reach_max: float = 4.0
+    """Longest half segment, circle radius or leash, meters."""
+    place_min: float = 2.0
+    """An obstacle starts at least this far from its actor's spawn, meters."""
+    place_max: float = 15.0
+    """and at most this far (spawn points of the scene farther away are not used)."""
+    place_tries: int = 8
+    """Spawn points tried per obstacle at placement; with none valid the slot stays empty that episode."""
+    walk_turn: float = 0.3
+    """Random walk: standard deviation of the heading change per step (unit heading + this * noise)."""
+    wall_iterations: int = 3
+    """Steps of the march that stops an obstacle at the static geometry (static samples per step)."""
+    sweep_iterations: int = 16
+    """Steps of the conservative march that stops an obstacle at a drone (never through it)."""
+    semantic_class: int = 8
+    """Class of an obstacle hit (semantic 1 + class in the observation)."""
+    squad: int = 0
+    """Other drones as obstacles: squads of this many consecutive actors share a scene (always) and see
+    and collide with each other, each drone a sphere of drone_radius (0 or 1: off)."""
+    drone_class: int = 9
+    """Class of a hit on another drone (semantic 1 + class)."""
+
+    def __post_init__(self) -> None:
+        if self.count < 0 or self.count > 64:
+            raise ValueError("obstacles.count must be in [0, 64]")
+        if not self.shapes or any(s not in OBSTACLE_SHAPES for s in self.shapes):
+            raise ValueError(f"obstacles.shapes must be a non-empty subset of {OBSTACLE_SHAPES}")
+        if not self.motions or any(m not in OBSTACLE_MOTIONS for m in self.motions):
+            raise ValueError(f"obstacles.motions must be a non-empty subset of {OBSTACLE_MOTIONS}")
+        if not 0.0 < self.size_min <= self.size_max:
+            raise ValueError("obstacles need 0 < size_min <= size_max")
+        if not 0.0 <= self.speed_min <= self.speed_max:
+            raise ValueError("obstacles need 0 <= speed_min <= speed_max")
+        if not 0.0 < self.reach_min <= self.reach_max:
+            raise ValueError("obstacles need 0 < reach_min <= reach_max")
+        if not 0.0 <= self.place_min < self.place_max:
+            raise ValueError("obstacles need 0 <= place_min < place_max")
+        if self.place_tries < 1 or self.sweep_iterations < 1 or self.wall_iterations < 1:
+            raise ValueError("obstacles need place_tries, sweep_iterations and wall_iterations >= 1")
+        if not 0 <= self.semantic_class <= 253 or not 0 <= self.drone_class <= 253:
+            raise ValueError("obstacles.semantic_class and drone_class must be in [0, 253]")
+        if not 0 <= self.squad <= 64:
+            raise ValueError("obstacles.squad must be in [0, 64]")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """The drone environment: kinematics, observation, episodes and rewards."""
+
+    azimuth_bins: int = 256
+    """Az: azimuth bins over 360 degrees; bin 0 is straight ahead."""
+    elevation_bins: int = 48
+    """El: elevation bins from the pattern's lowest to its highest elevation."""
+    horizon: float = 100.0
+    """Ray range (m); a miss reads as the horizon and depth is normalised by it."""
+    trace_max_steps: int = 256
+    """Sphere-tracing iteration cap per ray."""
+    hit_epsilon: float = 0.01
+    """Sphere-tracing hit threshold near the drone, meters."""
+    hit_slope: float = 0.005
+    """Growth of the hit threshold with distance: a ray stops within hit_epsilon + hit_slope * t of
+    a surface t meters away and reports where the line through its last two samples meets it. 0.005 is
+    a fifth of the default pattern's azimuth spacing (2 pi / 256): a ray passing that close to an edge
+    reads as a hit, and shallow rays on floors and walls stop in fewer steps (docs/SDFDAG_RUNTIME.md)."""
+    dt: float = 0.1
+    """Seconds of simulated time per step."""
+    max_speed: float = 5.0
+    """Cap on the translational speed (m/s), applied to the norm of the velocity vector."""
+    max_vertical_speed: float = 2.0
+    """Vertical speed at action[1] = +-1, m/s."""
+    max_lateral_speed: float = 3.0
+    """Lateral speed at action[2] = +-1, m/s (positive: to the left)."""
+    max_yaw_rate: float = 1.5
+    """Yaw rate at action[3] = +-1, rad/s (positive: counter-clockwise seen from above)."""
+    clearance_range: float = 10.0
+    """The view clearance (the shortest depth of the view, read by the rewards and the speed limiter) is
+    capped at this (m): farther away the ray spacing (1.4 x 3.75 degrees at 256x48) can miss features a
+    voxel wide, so beyond it the clearance only says "open"."""
+    drone_radius: float = 0.3
+    """Contact when the clearance at the commanded position is below this, meters."""
+    limiter_distance: float = 3.0
+    """The proximity speed limiter starts slowing the drone below this clearance, meters."""
+    limiter_min_fraction: float = 0.2
+    """Speed fraction that the limiter always leaves, so a drone can fly away from a wall."""
+    path_clearance_fraction: float = 0.5
+    """Along a move the certified clearance may dip to this fraction of the radius (never to 0)."""
+    collision_iterations: int = 8
+    """Bisection steps that find the farthest safe point of a blocked move."""
+    bounds_margin: float = 0.5
+    """The drone is kept inside the scene's geometry bounds grown by this margin, meters."""
+    max_steps_per_episode: int = 2000
+    """Hard truncation: an episode ends after this many steps."""
+    episodes_per_scene: int = 16
+    """An actor flies this many episodes in a scene, then moves to another scene."""
+    void_grace_steps: int = 10
+    """Starvation truncation is suppressed for this many steps after a reset."""
+    starvation_threshold: float = 0.9
+    """A view is starving when at least this fraction of its rays miss (see the horizon)."""
+    cuda_graph: bool = True
+    """On CUDA, record one step as a CUDA graph after two eager steps and replay it (same results,
+    far less launch overhead). Steps with a StageTimer attached always run eagerly."""
+    fused_observation: bool = True
+    """On CUDA, compute the observation and the view statistics in one torch.compile'd pass
+    (navi_env.sim.observation.observe; bit-identical to the eager kernels, compiled by the first `reset`
+    or `step`, before the CUDA graph is recorded). False, and always on CPU: the eager kernels."""
+    fused_obstacles: bool = True
+    """On CUDA, run the elementwise parts of the moving obstacles' step (placement, script, move, nearest
+    obstacle) as torch.compile'd passes (navi_env.sim.obstacles; compiled by the first `reset` or
+    `step`, before the CUDA graph is recorded): a few kernels instead of about 430 per step. False, and
+    always on CPU: the eager kernels."""
+    fused_step: bool = True
+    """On CUDA, compile the elementwise work of the physics, episode and reward stages (the commanded
+    move, the contact-safe move's bisection around its distance samples, the exploration cells, spawns,
+    scene hops and reward terms) with torch.compile (`navi_env.sim.env.fused`; compiled by the first steps,
+    before the CUDA graph is recorded; bit-identical to the eager kernels): a whole step launches about
+    150 kernels instead of about 640. False, and always on CPU: the eager kernels."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    """Optional noise, dropout and ray pattern; off by default."""
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    """Reward weights."""
+    obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
+    """Scripted moving obstacles; none by default."""
+
+    def __post_init__(self) -> None:
+        if self.azimuth_bins < 4 or self.elevation_bins < 2:
+            raise ValueError("need at least 4 azimuth and 2 elevation bins")
+        if self.horizon <= 0 or self.dt <= 0 or self.max_speed <= 0 or self.drone_radius <= 0:
+            raise ValueError("horizon, dt, max_speed and drone_radius must be positive")
+        if not (self.hit_epsilon > 0 and 0.0 <= self.hit_slope < 1.0):
+            raise ValueError("hit_epsilon must be positive and hit_slope in [0, 1)")
+        if not 0.0 <= self.limiter_min_fraction <= 1.0:
+            raise ValueError("limiter_min_fraction must be in [0, 1]")
+        if not 0.0 < self.path_clearance_fraction <= 1.0:
+            raise ValueError("path_clearance_fraction must be in (0, 1]")
+        if not self.limiter_distance < self.clearance_range <= self.horizon:
+            raise ValueError("clearance_range must lie between limiter_distance and the horizon")
+        if self.limiter_distance <= self.drone_radius:
+            raise ValueError("limiter_distance must exceed drone_radius")
+        if self.max_steps_per_episode < 1 or self.episodes_per_scene < 1 or self.void_grace_steps < 0:
+            raise ValueError("episode limits must be positive")
+        if not 0.0 < self.starvation_threshold <= 1.0:
+            raise ValueError("starvation_threshold must be in (0, 1]")
+        if not 0.0 <= self.sensor.dropout < 1.0:
+            raise ValueError("sensor dropout must be in [0, 1)")
+        if self.reward.mid_range_max >= self.horizon or self.reward.near_distance >= self.horizon:
+            raise ValueError("the near and mid-range bands must end before the horizon")
+        if not 0.0 < self.reward.shaping_gamma <= 1.0:
+            raise ValueError("shaping_gamma must be in (0, 1]")
+        if not 4 <= self.reward.exploration_table_bits <= 24:
+            raise ValueError("exploration_table_bits must be in [4, 24]")
+
+    @property
+    def rays(self) -> int:
+        """R = Az * El rays per actor."""
+        return self.azimuth_bins * self.elevation_bins

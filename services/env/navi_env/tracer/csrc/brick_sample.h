@@ -1,0 +1,164 @@
+// The field at a voxel-space point: trilinear in a brick (corner words on the host, the brick atlas
+// texture on the device), the lower bound of a far cube (FieldSample), and walk_sample, which samples
+// through a ray's cached leaf (Walker) and looks the leaf up only when the point leaves it.
+#pragma once
+
+#include "trace_common.h"
+#include "scene_record.h"
+
+namespace navi {
+
+constexpr float kSampleBias = 8388736.0f;      // 2^23 + 128: corner bytes hold sample + 128
+
+// 2^23 + (corner byte k of a corner word): the byte holds sample + 128, so subtracting kSampleBias
+// gives the sample exactly, and the difference of two such values is the difference of the samples.
+NAVI_HD float corner(uint32_t word, int k) {
+#ifdef __CUDA_ARCH__
+  return __int_as_float(static_cast<int>(__byte_perm(word, 0x4B000000u, 0x7440u + static_cast<unsigned>(k))));
+#else
+  return bits_float(kTwo23Bits | static_cast<int32_t>((word >> (8 * k)) & 0xFFu));
+#endif
+}
+
+// Trilinear interpolation inside a brick from the cell's corner words w[0], w[1], fractions in
+// [0, 1]. Corner word (i, j, k) of a brick (index (8i + j) * 9 + k) holds the samples (i, j, k),
+// (i+1, j, k), (i, j+1, k), (i+1, j+1, k) in bytes 0..3, so a cell is two adjacent words.
+NAVI_HD float brick_distance(const uint32_t* w, float quant, float fx, float fy, float fz) {
+  const uint32_t lo = load_ro(w), hi = load_ro(w + 1);
+  const float a0 = corner(lo, 0), a1 = corner(lo, 1), a2 = corner(lo, 2), a3 = corner(lo, 3);
+  const float b0 = corner(hi, 0), b1 = corner(hi, 1), b2 = corner(hi, 2), b3 = corner(hi, 3);
+  // The same operations as on the samples c000..c111 themselves: c000 + fx * (c100 - c000), ...
+  const float x00 = (a0 - kSampleBias) + fx * (a1 - a0);
+  const float x10 = (a2 - kSampleBias) + fx * (a3 - a2);
+  const float x01 = (b0 - kSampleBias) + fx * (b1 - b0);
+  const float x11 = (b2 - kSampleBias) + fx * (b3 - b2);
+  const float y0 = x00 + fy * (x10 - x00);
+  const float y1 = x01 + fy * (x11 - x01);
+  return (y0 + fz * (y1 - y0)) * quant;
+}
+
+NAVI_HD float unit_clamp(float x) { return fminf(fmaxf(x, 0.0f), 1.0f); }
+
+// The fraction of p along one axis of its cell (p minus the cell's corner), clamped to [0, 1] for
+// points on the cube's faces or just outside them (cell_of clamps the cell into the cube).
+NAVI_HD float cell_fraction(float p, float corner) { return unit_clamp(p - corner); }
+
+constexpr uint32_t kNoBrick = 0xFFFFFFFFu;
+
+// Where a launch reads brick samples. The CPU build reads the corner words; the CUDA build reads the
+// brick atlas, a 3-d texture of the int8 samples (each brick once, a 9 x 9 x 9 tile) that the texture
+// unit interpolates trilinearly in one fetch (scene.py `brick_atlas`).
+struct BrickStore {
+  const uint32_t* words;  // corner words, or null
+  uint64_t atlas;         // cudaTextureObject_t, or 0
+  int32_t shift;          // log2 of the bricks per atlas row and per column
+};
+
+NAVI_HD BrickStore brick_store(const uint32_t* words, uint64_t atlas, int32_t shift) {
+  BrickStore b;
+  b.words = words;
+  b.atlas = atlas;
+  b.shift = shift;
+  return b;
+}
+
+#ifdef __CUDA_ARCH__
+// The field in cell (li, lj, lk) of brick b at fractions ux, uy, uz, from the atlas: brick b's tile
+// starts at texel 9 (b mod 2^p, (b >> p) mod 2^p, b >> 2p), and texel (x, y, z) of a tile holds sample
+// (x, y, z) as a signed normalised byte (sample / 127). With linear filtering and unnormalised
+// coordinates the unit interpolates the 8 texels around (x - 0.5, y - 0.5, z - 0.5), so the sample
+// point is the cell's texel plus the fraction plus 0.5. Its weights are 8-bit fixed point (CUDA C++
+// Programming Guide, "Linear Filtering"): the field differs from the exact trilinear of the CPU build
+// by at most about 1/256 of the samples' spread across the cell (docs/SDFDAG_RUNTIME.md).
+__device__ __forceinline__ float atlas_distance(const BrickStore& bs, uint32_t b, int li, int lj, int lk,
+                                                float quant, float ux, float uy, float uz) {
+  const uint32_t mask = (1u << bs.shift) - 1u;
+  const int tx = static_cast<int>((b & mask) * 9u) + li;
+  const int ty = static_cast<int>(((b >> bs.shift) & mask) * 9u) + lj;
+  const int tz = static_cast<int>((b >> (2 * bs.shift)) * 9u) + lk;
+  // small non-negative ints to float exactly without a conversion instruction (bits of 2^23 + n)
+  const float x = (__int_as_float(kTwo23Bits + tx) - kTwo23) + (ux + 0.5f);
+  const float y = (__int_as_float(kTwo23Bits + ty) - kTwo23) + (uy + 0.5f);
+  const float z = (__int_as_float(kTwo23Bits + tz) - kTwo23) + (uz + 0.5f);
+  return tex3D<float>(static_cast<cudaTextureObject_t>(bs.atlas), x, y, z) * (127.0f * quant);
+}
+#endif
+
+// The field at a voxel-space point p inside the cube whose cell (ix, iy, iz) lies in `leaf`.
+// Far codes give their lower bound (negative for solid); `solid` marks a far-solid cube.
+struct FieldSample {
+  float dist;     // voxels
+  bool solid;     // inside a far-solid cube
+  bool far_free;  // inside a far-free cube (dist is its lower bound)
+};
+
+// The field in cell c of `leaf` at fractions ux, uy, uz of the cell (cell_fraction).
+NAVI_HD FieldSample leaf_field(const BrickStore& bricks, const Scene& s, const Leaf& leaf, const Cell& c, float ux,
+                               float uy, float uz) {
+  FieldSample f;
+  f.solid = leaf.tag == kTagFarSolid;
+  f.far_free = leaf.tag != kTagBrick && leaf.tag != kTagFarSolid;
+  if (leaf.tag == kTagBrick) {
+    // The cell lies in this brick, so its local index is in [0, 7] and its corner words are
+    // leaf.words + corner_offset(ix, iy, iz) (the brick corner's offset cancels mod 2^32).
+#ifdef __CUDA_ARCH__
+    f.dist = atlas_distance(bricks, s.brick_offset + leaf.payload, c.ix - leaf.cx, c.iy - leaf.cy, c.iz - leaf.cz,
+                            s.quant, ux, uy, uz);
+#else
+    f.dist = brick_distance(bricks.words + (leaf.words + corner_offset(c.ix, c.iy, c.iz)), s.quant, ux, uy, uz);
+#endif
+  } else if (leaf.tag == kTagFarSolid) {
+    f.dist = -(static_cast<float>(leaf.payload) * kFarUnit);
+  } else {
+    // Far free; an internal node below the brick level cannot occur in a validated file.
+    f.dist = leaf.tag == kTagFarFree ? static_cast<float>(leaf.payload) * kFarUnit : 0.0f;
+  }
+  return f;
+}
+
+// A leaf corner that no cell index reaches, in the cube or out of it (walker_init).
+constexpr int kNoCorner = 0x40000000;
+
+// Per-ray state for the walk: the cached leaf (the macro-cell void cache) and the last brick sampled.
+struct Walker {
+  Leaf leaf;            // starts with corner kNoCorner, which contains no cell
+  uint32_t last_brick;  // corpus index of the last brick sampled (the class of a hit), or kNoBrick
+};
+
+NAVI_HD void walker_init(Walker& w) {
+  w.leaf.cx = w.leaf.cy = w.leaf.cz = kNoCorner;
+  w.leaf.shift = kBrickShift;
+  w.leaf.tag = kTagFarFree;
+  w.leaf.payload = 0;
+  w.leaf.words = 0;
+  w.last_brick = kNoBrick;
+}
+
+// Samples the field at voxel-space p, reusing the cached leaf when p's cell lies in it.
+NAVI_HD FieldSample walk_sample(const uint32_t* grid, const uint32_t* nodes, const BrickStore& bricks, const Scene& s,
+                                Walker& w, float px, float py, float pz) {
+  // The cell without the clamp into the cube: the walk's points lie in the cube but for rounding at
+  // its faces, and a point outside it cannot lie in the cached leaf, so the clamp waits for the lookup.
+  const float res = static_cast<float>(s.resolution);
+  Cell c;
+  cell_axis_unclamped(px, res, c.ix, c.fx);
+  cell_axis_unclamped(py, res, c.iy, c.fy);
+  cell_axis_unclamped(pz, res, c.iz, c.fz);
+  // The fractions before the leaf lookup: then p need not live across it (on an H100 the device code
+  // recomputed p after the lookup instead, and ran 5-10% slower).
+  float ux = cell_fraction(px, c.fx), uy = cell_fraction(py, c.fy), uz = cell_fraction(pz, c.fz);
+  if (!leaf_contains(w.leaf, c.ix, c.iy, c.iz)) {
+    if (!cell_in_cube(c, s.resolution)) {  // on a face or just past it: the nearest cell of the cube
+      c = cell_of(px, py, pz, cell_max(s));
+      ux = cell_fraction(px, c.fx);
+      uy = cell_fraction(py, c.fy);
+      uz = cell_fraction(pz, c.fz);
+    }
+    w.leaf = find_leaf(grid, nodes, s, c.ix, c.iy, c.iz);
+    // Samples in the cached leaf are in the same brick, so the last brick sampled changes only here.
+    if (w.leaf.tag == kTagBrick) w.last_brick = s.brick_offset + w.leaf.payload;
+  }
+  return leaf_field(bricks, s, w.leaf, c, ux, uy, uz);
+}
+
+}  // namespace navi

@@ -1,0 +1,411 @@
+// One ray through the static scene: the actor's origin sample (OriginSample), start_ray (primitives
+// first, then the slab clip to the cube and horizon), the walk loop with its far step (walk_ray,
+// take_step, far_step), settle_hit (the secant and bisection refinement of a hit) and finish_ray.
+#pragma once
+
+#include "trace_common.h"
+#include "launch_args.h"
+#include "scene_record.h"
+#include "brick_sample.h"
+#include "primitives.h"
+
+namespace navi {
+
+// Hit epsilon in voxels when the caller passes hit_epsilon <= 0; also the minimum step.
+constexpr float kDefaultHitEpsilonVoxels = 0.1f;
+constexpr int kRefineIterations = 6;    // bisection halvings after a sign change, then one secant
+constexpr float kSecantReach = 16.0f;   // a stop within the threshold reports the secant's zero, at most this many d ahead
+
+// ---------------------------------------------------------------------------------------------
+// The origin sample. Every ray of an actor whose origin lies in its scene's cube starts at t = 0, so
+// its first sample is at the origin itself (o + 0 d = o exactly, fused or not): the same field, leaf
+// and brick for all R rays. A launch with origin_scratch takes that sample once per actor before the
+// rays (one thread per actor), and each ray's first step starts from the record (first_step): one
+// sample and leaf lookup less per ray, bit-identical to sampling the origin itself.
+constexpr int32_t kOriginValid = 1;     // the record holds the sample (origin finite and in the cube)
+constexpr int32_t kOriginSolid = 2;     // FieldSample.solid
+constexpr int32_t kOriginFarFree = 4;   // FieldSample.far_free
+
+struct alignas(16) OriginSample {
+  Leaf leaf;            // the walker's leaf after the sample
+  uint32_t last_brick;  // the walker's last brick after the sample
+  float dist;           // FieldSample.dist, voxels
+  int32_t flags;        // kOriginValid | kOriginSolid | kOriginFarFree
+};
+
+static_assert(sizeof(OriginSample) == 48, "mirrored by navi_env.tracer.trace.ORIGIN_SAMPLE_BYTES");
+
+// Actor b's origin sample (flags 0 where its rays cannot use one: bad scene id, non-finite origin, an
+// origin outside the cube, whose rays start at their own entry times).
+NAVI_HD OriginSample origin_sample(const TraceArgs& a, int64_t b) {
+  Walker w;
+  walker_init(w);
+  OriginSample o;
+  o.leaf = w.leaf;
+  o.last_brick = w.last_brick;
+  o.dist = 0.0f;
+  o.flags = 0;
+  const int64_t sid = load_scene_id(a.scene_ids, a.scene_id_bytes, b);
+  if (sid < 0 || sid >= a.num_scenes) return o;
+  const Scene s = load_scene(a.scenes, sid);
+  const float ox = (load_ro(a.origins + b * 3) - s.ox) * s.inv_voxel;
+  const float oy = (load_ro(a.origins + b * 3 + 1) - s.oy) * s.inv_voxel;
+  const float oz = (load_ro(a.origins + b * 3 + 2) - s.oz) * s.inv_voxel;
+  const float res = static_cast<float>(s.resolution);
+  // inside the closed cube (false for NaN): every ray's slab clip then starts at t = 0
+  if (!(ox >= 0.0f && ox <= res && oy >= 0.0f && oy <= res && oz >= 0.0f && oz <= res)) return o;
+  const FieldSample f = walk_sample(a.grid, a.nodes, brick_store(a.bricks, a.brick_atlas, a.atlas_shift), s, w,
+                                    ox, oy, oz);
+  o.leaf = w.leaf;
+  o.last_brick = w.last_brick;
+  o.dist = f.dist;
+  o.flags = kOriginValid | (f.solid ? kOriginSolid : 0) | (f.far_free ? kOriginFarFree : 0);
+  return o;
+}
+
+// Record b of origin_scratch (16-byte loads on the device).
+NAVI_HD OriginSample load_origin(const TraceArgs& a, int64_t b) {
+  const OriginSample* p = static_cast<const OriginSample*>(a.origin_scratch) + b;
+#ifdef __CUDA_ARCH__
+  OriginSample o;
+  const int4* src = reinterpret_cast<const int4*>(p);
+  int4* dst = reinterpret_cast<int4*>(&o);
+  for (int k = 0; k < static_cast<int>(sizeof(OriginSample) / 16); ++k) dst[k] = __ldg(src + k);
+  return o;
+#else
+  return *p;
+#endif
+}
+
+// ---------------------------------------------------------------------------------------------
+// One ray.
+
+// Narrows [t0, t1] to the ray's part inside the slab [0, res] along one axis (inv = 1 / d).
+NAVI_HD void clip_slab(float o, float d, float inv, float res, float& t0, float& t1) {
+  if (d != 0.0f) {
+    const float ta = (0.0f - o) * inv;
+    const float tb = (res - o) * inv;
+    t0 = fmaxf(t0, fminf(ta, tb));
+    t1 = fminf(t1, fmaxf(ta, tb));
+  } else if (o < 0.0f || o > res) {
+    t1 = -1.0f;
+  }
+}
+
+// Ray time at which the ray leaves the cube [c, c + edge] along one axis (kBig when parallel). The
+// face's coordinate, an integer in [0, R] (R <= 2^23), becomes a float through the bits of 2^23 + n on
+// the device (exact, no conversion instruction).
+NAVI_HD float exit_time(float o, float d, float inv, int c, int edge) {
+  if (d == 0.0f) return kBig;
+  const int face = d > 0.0f ? c + edge : c;
+#ifdef __CUDA_ARCH__
+  const float bound = __int_as_float(kTwo23Bits + face) - kTwo23;
+#else
+  const float bound = static_cast<float>(face);
+#endif
+  return (bound - o) * inv;
+}
+
+struct RayResult {
+  float depth;   // meters
+  int32_t semantic;  // 0 miss, 1 + class id on a hit
+  int32_t steps;
+};
+
+NAVI_HD int32_t class_semantic(const uint8_t* brick_class, uint32_t brick) {
+  return brick != kNoBrick ? 1 + static_cast<int32_t>(load_ro(brick_class + brick)) : 1;
+}
+
+// One ray in flight: everything the main loop carries from one step to the next.
+struct Ray {
+  Scene s;
+  float ox, oy, oz;          // origin, voxel space
+  float dx, dy, dz;          // unit direction
+  float inv_x, inv_y, inv_z; // 1 / direction (kBig where 0)
+  float eps;                 // hit epsilon, voxels
+  float t, t1;               // current time and the clip end (cube exit or horizon), voxels
+  float prev_t, prev_d;      // previous sample
+  float end_d;               // the field at the last sample (the one that ended the walk: kSurface, kCrossing)
+  int64_t out;               // output element b * R + r
+  Walker w;
+  RayResult res;             // semantic < 0 while walking: kOutOfSteps, kPrimStashed, kSurface, kCrossing
+  bool done;
+};
+
+// res.semantic of a ray that ran out of steps or had no finite input: it reports the distance reached
+// (or the horizon), written out with semantic 0, and never a primitive.
+constexpr int32_t kOutOfSteps = -1;
+// res.semantic of a ray whose first primitive hit lies within the horizon: its depth and semantic are
+// already in the outputs (written before the walk, which ends at it), and stay there unless the walk
+// hits the static scene first. Nothing about the primitive is carried through the walk.
+constexpr int32_t kPrimStashed = -2;
+// res.semantic of a ray whose walk ended on the static surface: kSurface at a free sample within the
+// hit threshold, kCrossing at a sample inside solid (depth and class set after the walk by settle_hit).
+constexpr int32_t kSurface = -3;
+constexpr int32_t kCrossing = -4;
+
+// Writes one element of the depth and semantic outputs.
+NAVI_HD void write_hit(const TraceArgs& a, int64_t out, float depth, int32_t semantic) {
+  a.out_depth[out] = depth;
+  if (a.semantic_bytes == 4) {
+    static_cast<int32_t*>(a.out_semantic)[out] = semantic;
+  } else if (a.semantic_bytes == 1) {
+    static_cast<uint8_t*>(a.out_semantic)[out] = static_cast<uint8_t>(semantic < 255 ? semantic : 255);
+  }
+}
+
+// The mask word of work item j of actor b (PrimTables.masks; null masks: none, every primitive tested).
+NAVI_HD uint64_t item_mask(const TraceArgs& a, const PrimTables& t, int64_t b, int64_t j) {
+  return t.masks != nullptr ? load_ro(t.masks + b * ray_groups(a.num_rays) + j / kRayGroup) : 0;
+}
+
+// The first primitive hit (meters, kBig if none) and its semantic along a ray of actor b from world
+// point o in direction d, testing the primitives of `mask` (item_mask) when the launch has masks.
+NAVI_HD float actor_prim_hit(const TraceArgs& a, const PrimTables& t, int64_t b, uint64_t mask, Vec3 o, Vec3 d,
+                             int32_t& semantic) {
+  const int64_t wid = a.prim_world != nullptr ? static_cast<int64_t>(load_ro(a.prim_world + b)) : b;
+  if (wid < 0 || wid >= a.num_worlds) return kBig;
+  return first_prim_hit(a.prims + wid * a.prims_per_world * kPrimWords, t.table + b * a.prims_per_world,
+                        a.prims_per_world, t.masks != nullptr, mask, o, d, semantic);
+}
+
+// Sets up work item j (ray r) of actor b (writing to element b * R + r); rays that are decided before
+// the first sample (bad scene id, non-finite input, missing the cube) come back done. kPrims: the
+// launch has primitives (a separate instantiation, so a launch without them runs the plain walk:
+// measured 6-8% slower on an H100 when one kernel served both); `t`: its tables (prim_tables).
+template <bool kPrims>
+NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const PrimTables& t) {
+  Ray ray;
+  ray.out = b * a.num_rays + r;
+  ray.res.depth = a.horizon;
+  ray.res.semantic = 0;
+  ray.res.steps = 0;
+  ray.done = true;
+  const int64_t sid = load_scene_id(a.scene_ids, a.scene_id_bytes, b);
+  if (sid < 0 || sid >= a.num_scenes) {
+    ray.res.depth = kNaN();
+    return ray;
+  }
+  const float* dir = a.directions + (a.directions_shared ? r : b * a.num_rays + r) * 3;
+  float dx = load_ro(dir), dy = load_ro(dir + 1);
+  const float dz = load_ro(dir + 2);
+  if (a.yaw != nullptr) rotate_yaw(load_ro(a.yaw + b), dx, dy);
+  const Vec3 world = v3(load_ro(a.origins + b * 3), load_ro(a.origins + b * 3 + 1), load_ro(a.origins + b * 3 + 2));
+  if (!(finite(world.x) && finite(world.y) && finite(world.z) && finite(dx) && finite(dy) && finite(dz))) {
+    ray.res.semantic = kOutOfSteps;
+    return ray;
+  }
+  // The primitives first, before the scene record is loaded: little is live here, so their code does
+  // not crowd the registers the walk keeps (with it after the load, ptxas spilled walk state).
+  float reach = a.horizon;  // meters: the horizon, or the first primitive hit before it
+  const uint64_t mask = kPrims ? item_mask(a, t, b, j) : 0;
+  if (kPrims && (mask != 0 || t.masks == nullptr)) {  // most groups: no primitive near their cone
+    int32_t semantic = 0;
+    const float prim_t = actor_prim_hit(a, t, b, mask, world, v3(dx, dy, dz), semantic);
+    if (prim_t <= a.horizon) {
+      reach = prim_t;
+      write_hit(a, ray.out, prim_t, semantic);
+      ray.res.semantic = kPrimStashed;
+    }
+  }
+  const Scene s = load_scene(a.scenes, sid);
+  ray.s = s;
+  const float ox = (world.x - s.ox) * s.inv_voxel;
+  const float oy = (world.y - s.oy) * s.inv_voxel;
+  const float oz = (world.z - s.oz) * s.inv_voxel;
+  if (!(finite(ox) && finite(oy) && finite(oz))) {
+    ray.res.semantic = kOutOfSteps;
+    return ray;
+  }
+  const float res = static_cast<float>(s.resolution);
+  ray.eps = a.hit_epsilon > 0.0f ? a.hit_epsilon * s.inv_voxel : kDefaultHitEpsilonVoxels;
+
+  // Clip the ray to the cube and the horizon (slab test); a ray that misses the cube is a miss.
+  ray.inv_x = dx != 0.0f ? 1.0f / dx : kBig;
+  ray.inv_y = dy != 0.0f ? 1.0f / dy : kBig;
+  ray.inv_z = dz != 0.0f ? 1.0f / dz : kBig;
+  float t0 = 0.0f, t1 = reach * s.inv_voxel;
+  clip_slab(ox, dx, ray.inv_x, res, t0, t1);
+  clip_slab(oy, dy, ray.inv_y, res, t0, t1);
+  clip_slab(oz, dz, ray.inv_z, res, t0, t1);
+  if (t0 > t1) return ray;
+  ray.ox = ox;
+  ray.oy = oy;
+  ray.oz = oz;
+  ray.dx = dx;
+  ray.dy = dy;
+  ray.dz = dz;
+  ray.t = t0;
+  ray.t1 = t1;
+  ray.prev_t = t0;
+  ray.prev_d = -1.0f;  // below any free sample: no surface stop at the first sample
+  ray.end_d = 0.0f;
+  walker_init(ray.w);
+  ray.done = false;
+  return ray;
+}
+
+// A ray still walking after max_steps samples reports the distance reached (or the horizon) with
+// semantic 0.
+NAVI_HD void end_out_of_steps(const TraceArgs& a, Ray& ray) {
+  ray.res.depth = fminf(ray.t * ray.s.voxel, a.horizon);
+  ray.res.semantic = kOutOfSteps;
+  ray.done = true;
+}
+
+// Where a ray at t whose sample lies in the far-free cube `leaf` (lower bound d) goes next: past the
+// whole cube and then d beyond its exit, since every point of the closed cube, the exit point
+// included, is at least d from the surface (the far code's promise). A point that rounding leaves in
+// the cube (or an exit time that rounds below t) only repeats the skip from t, which still moves the
+// ray max(d, eps), so the walk cannot stall. Where the exit face is a face of the scene's cube, the
+// exit time is that axis' slab exit, at least t1, so the step passes t1 and the ray ends as a miss (no
+// test of the cell across the face is needed).
+NAVI_HD float far_step(const Ray& ray, const Leaf& leaf, float t, float d) {
+  const int edge = 1 << leaf.shift;
+  const float tx = exit_time(ray.ox, ray.dx, ray.inv_x, leaf.cx, edge);
+  const float ty = exit_time(ray.oy, ray.dy, ray.inv_y, leaf.cy, edge);
+  const float tz = exit_time(ray.oz, ray.dz, ray.inv_z, leaf.cz, edge);
+  return fmaxf(fminf(fminf(tx, ty), tz), t) + fmaxf(d, ray.eps);
+}
+
+// What one main-loop step does after its sample f (at t, in the walker's leaf w.leaf): the hit tests,
+// then the step. Returns true when the ray is done (a miss, kSurface or kCrossing); otherwise t, prev_t
+// and prev_d have moved on. first_step calls it; walk_ray's loop spells the same tests out inline (both
+// share far_step, which compiles to the same device code as the step written out), because with the
+// loop calling this function (and the first step peeled inside walk_ray) the device code ran 0-4%
+// slower on the 50 OpenArena maps instead of 2-5% faster (docs/PERFORMANCE.md). Tests trace with and
+// without origin samples and demand the same outputs bit for bit, which holds the two copies together.
+NAVI_HD bool take_step(const TraceArgs& a, Ray& ray, const Walker& w, const FieldSample& f, float& t, float& prev_t,
+                       float& prev_d) {
+  const float d = f.dist;
+  if (f.solid || d < 0.0f) {  // inside: refined after the walk (settle_hit), out of the loop
+    ray.res.semantic = kCrossing;
+    return true;
+  }
+  // Within the threshold of a surface while not moving away from it: a ray leaving the surface it
+  // starts on is not stopped by it, and none is at its first sample (prev_d starts at -1). The
+  // threshold grows with the distance travelled, so that a ray stops once the surface lies within
+  // a fixed fraction of its angular footprint.
+  if (!f.far_free && d < ray.eps + a.hit_slope * t && d <= prev_d) {
+    ray.res.semantic = kSurface;
+    return true;
+  }
+  float next = t + fmaxf(d, ray.eps);
+  if (f.far_free) next = far_step(ray, w.leaf, t, d);
+  prev_t = t;
+  prev_d = d;
+  t = next;
+  return next > ray.t1;  // past the cube or the horizon: a miss
+}
+
+// The first step of a ray that starts at its actor's origin (t = 0), taken from the actor's origin
+// sample instead of sampling the field; rays that start elsewhere (an origin outside the cube) and
+// launches without origin samples leave it to walk_ray.
+NAVI_HD void first_step(const TraceArgs& a, Ray& ray, const OriginSample& origin) {
+  if ((origin.flags & kOriginValid) == 0 || ray.t != 0.0f || ray.res.steps != 0 || a.max_steps <= 0) return;
+  ray.res.steps = 1;
+  ray.w.leaf = origin.leaf;
+  ray.w.last_brick = origin.last_brick;
+  FieldSample f;
+  f.dist = origin.dist;
+  f.solid = (origin.flags & kOriginSolid) != 0;
+  f.far_free = (origin.flags & kOriginFarFree) != 0;
+  ray.end_d = f.dist;
+  ray.done = take_step(a, ray, ray.w, f, ray.t, ray.prev_t, ray.prev_d);
+}
+
+// The main loop of sphere tracing (see docs/SDFDAG_RUNTIME.md): sample, hit tests, step, for at most
+// max_steps samples. A ray that ends here is done (a miss, kSurface or kCrossing); one that runs out of
+// samples is not (end_out_of_steps). The loop keeps its state in locals (the last sample's field in
+// d, written out once after the loop) and leaves by `break`: the device compiler turns that into fewer
+// moves per step than a done flag, and the exits into predicated branches.
+NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
+  const Scene& s = ray.s;
+  Walker& w = ray.w;
+  const BrickStore bricks = brick_store(a.bricks, a.brick_atlas, a.atlas_shift);
+  float t = ray.t, prev_t = ray.prev_t, prev_d = ray.prev_d, d = ray.end_d;
+  int steps = ray.res.steps;
+  while (steps < a.max_steps) {
+    ++steps;
+    const float px = ray.ox + t * ray.dx, py = ray.oy + t * ray.dy, pz = ray.oz + t * ray.dz;
+    const FieldSample f = walk_sample(a.grid, a.nodes, bricks, s, w, px, py, pz);
+    d = f.dist;
+    if (f.solid || d < 0.0f) {  // inside: refined after the walk (settle_hit), out of the loop
+      ray.res.semantic = kCrossing;
+      ray.done = true;
+      break;
+    }
+    // Within the threshold of a surface while not moving away from it: a ray leaving the surface it
+    // starts on is not stopped by it, and none is at its first sample (prev_d starts at -1). The
+    // threshold grows with the distance travelled, so that a ray stops once the surface lies within
+    // a fixed fraction of its angular footprint.
+    if (!f.far_free && d < ray.eps + a.hit_slope * t && d <= prev_d) {
+      ray.res.semantic = kSurface;
+      ray.done = true;
+      break;
+    }
+    float next = t + fmaxf(d, ray.eps);
+    if (f.far_free) next = far_step(ray, w.leaf, t, d);
+    prev_t = t;
+    prev_d = d;
+    t = next;
+    if (next > ray.t1) {  // past the cube or the horizon: a miss
+      ray.done = true;
+      break;
+    }
+  }
+  ray.t = t;
+  ray.prev_t = prev_t;
+  ray.prev_d = prev_d;
+  ray.end_d = d;
+  ray.res.steps = steps;
+}
+
+// The depth and class of a ray whose walk ended on the static surface (kSurface, kCrossing), after
+// the main loop so that the rare refinement and the class lookup stay out of it.
+// - kSurface (a free sample within the threshold, approaching): where the line through the last two
+//   samples meets zero, t + d (t - t_prev) / (d_prev - d), at most kSecantReach d ahead and not past
+//   the walk's end t1; t itself when the field did not fall. On a plane this is the exact crossing,
+//   however shallow the ray, so a larger threshold costs little depth accuracy.
+// - kCrossing: at the first sample, a hit there (an origin inside solid reports depth 0); later, the
+//   surface lies between the previous (free) sample and this one: 6 bisection halvings, then one
+//   secant step.
+// The class is that of the last brick sampled, refinement samples included.
+NAVI_HD void settle_hit(const TraceArgs& a, Ray& ray) {
+  const BrickStore bricks = brick_store(a.bricks, a.brick_atlas, a.atlas_shift);
+  float hit = ray.t;
+  if (ray.res.semantic == kSurface) {
+    const float d = ray.end_d;
+    if (d < ray.prev_d) hit = ray.t + fminf(d * (ray.t - ray.prev_t) / (ray.prev_d - d), kSecantReach * d);
+    hit = fminf(hit, ray.t1);
+  } else if (ray.res.steps > 1) {
+    float lo = ray.prev_t, hi = ray.t, flo = ray.prev_d, fhi = ray.end_d;
+    for (int k = 0; k < kRefineIterations; ++k) {
+      const float mid = 0.5f * (lo + hi);
+      const FieldSample m = walk_sample(a.grid, a.nodes, bricks, ray.s, ray.w, ray.ox + mid * ray.dx,
+                                        ray.oy + mid * ray.dy, ray.oz + mid * ray.dz);
+      if (m.solid || m.dist < 0.0f) {
+        hi = mid;
+        fhi = m.dist;
+      } else {
+        lo = mid;
+        flo = m.dist;
+      }
+    }
+    const float denom = flo - fhi;
+    hit = denom > 0.0f ? lo + (hi - lo) * (flo / denom) : lo;
+  }
+  ray.res.depth = hit * ray.s.voxel;
+  ray.res.semantic = class_semantic(a.brick_class, ray.w.last_brick);
+}
+
+// Writes a finished ray's outputs. A ray whose walk ended without a hit keeps the primitive hit
+// written before its walk (kPrimStashed), if any.
+template <bool kPrims>
+NAVI_HD void finish_ray(const TraceArgs& a, Ray& ray) {
+  if (a.out_steps != nullptr) a.out_steps[ray.out] = ray.res.steps;
+  if (kPrims && ray.res.semantic == kPrimStashed) return;
+  write_hit(a, ray.out, ray.res.depth, ray.res.semantic > 0 ? ray.res.semantic : 0);
+}
+
+}  // namespace navi

@@ -1,0 +1,1 @@
+"""navi_learner.engine."""

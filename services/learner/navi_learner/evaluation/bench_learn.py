@@ -1,0 +1,429 @@
+"""`navi bench learn`: does the engine learn to fly scenes it never saw, and how fast?
+
+Protocol (docs/TRAINING.md, "The learning benchmark"):
+- Splits: train = procedural scenes of seed 0 + the OpenArena maps not held out; unseen = procedural
+  scenes of seed 1000 + every fifth OpenArena map (sorted by name, starting with the first). The
+  split, with every scene name, is written into the result. Without the OpenArena package the
+  OpenArena parts are left out and the result says why.
+- For every temporal core and seed: train from scratch on the train split; every `eval_every_s`
+  seconds of training evaluate the live policy deterministically on the unseen split (EvalProtocol)
+  and record a curve point; stop at competence (at most half the reactive baseline's collisions per
+  1,000 steps and at least 1.5x its coverage) or at the time budget.
+- Report per run the training time and env steps to competence (null if never), the final metrics
+  per unseen part with 95% bootstrap intervals, and per core the median over seeds.
+Output folder: result.json, curves.json, learning_curves.png, report.md.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import statistics
+import time
+import zipfile
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from navi_learner.config import TEMPORAL_CORES, EngineConfig, PPOConfig, TrainConfig
+from navi_learner.envs.factory import corpus_summary, make_env, reward_config
+from navi_learner.evaluation.competence import (
+    CompetenceMonitor,
+    EvalProtocol,
+    evaluate_baselines,
+    plot_curves,
+)
+from navi_learner.evaluation.evaluate import EvalMetrics, comparison_table, jsonable
+
+Say = Callable[[str], None]
+
+HELD_OUT_EVERY = 5
+"""Every fifth OpenArena map (sorted by name, from the first) is held out of training."""
+
+
+@dataclass(frozen=True)
+class Splits:
+    """Corpus folders of the benchmark and what is in them."""
+
+    train: Path
+    unseen: Path
+    unseen_parts: dict[str, Path]
+    scenes: dict[str, list[str]]
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class LearnConfig:
+    """One `navi bench learn` job."""
+
+    seeds: tuple[int, ...] = (0, 1, 2)
+    temporal_cores: tuple[str, ...] = ("mamba2",)
+    time_budget_s: float = 600.0
+    """Training seconds per run (evaluations excluded)."""
+    eval_every_s: float = 30.0
+    """Training seconds between two evaluations on the unseen split."""
+    stop_at_competence: bool = True
+    actors: int = 0
+    """0: 2,048 on CUDA, 8 on CPU."""
+    rollout_length: int = 0
+    """0: 64 on CUDA, 32 on CPU."""
+    ppo_epochs: int = 2
+    lr: float = 3e-4
+    max_minibatch: int = 16_384
+    """Most samples per PPO minibatch (about 25 GB of activations at 16,384 with the default engine)."""
+    total_steps: int = 10**12
+    """Step cap per run (the time budget normally ends a run first)."""
+    compile: bool = True
+    parallel: int = 1
+    """Runs at once (processes sharing the device); their wall times then overlap."""
+    gpus: int = 0
+    """> 0: spread the runs round-robin over cuda:0 .. cuda:gpus-1, one process per run and at most
+    `parallel` at once (so gpus = parallel = number of runs gives every run a GPU of its own)."""
+    protocol: EvalProtocol = field(default_factory=EvalProtocol)
+    reward: tuple[tuple[str, float], ...] = ()
+    """RewardConfig fields replaced in every env of the job (training, evaluation, baselines)."""
+    procedural_share: float = 0.0
+    """Share of the train corpus's scenes that are procedural (0: as built, 16 of 56); see prepare_splits."""
+    obstacles: int = 0
+    """Scripted moving obstacles per actor in every env of the job (EnvConfig.obstacles)."""
+    squad: int = 0
+    """Squads of this many actors that see and collide with each other, in every env (0: off)."""
+
+
+def openarena_maps(pk3: Path) -> list[str]:
+    """Members maps/*.bsp of the package, sorted."""
+    with zipfile.ZipFile(pk3) as z:
+        return sorted(n for n in z.namelist() if n.lower().endswith(".bsp"))
+
+
+def split_openarena(maps: list[str]) -> tuple[list[str], list[str]]:
+    """(train, held out): every HELD_OUT_EVERY-th map from the first is held out."""
+    held = maps[::HELD_OUT_EVERY]
+    return [m for m in maps if m not in held], held
+
+
+def prepare_splits(
+    root: Path,
+    resolution: int,
+    device: str,
+    pk3: Path | None,
+    procedural_train: int = 16,
+    procedural_unseen: int = 8,
+    say: Say = print,
+    procedural_share: float = 0.0,
+) -> Splits:
+    """Build (or reuse) the corpus parts under `root` and merge them into the train and unseen corpora.
+    With `procedural_share` in (0, 1) and both parts present, the procedural train scenes are repeated in
+    the train corpus until about that share of its scenes (so of the actors' time) is procedural."""
+    if not 0.0 <= procedural_share < 1.0:
+        raise ValueError(f"procedural_share must be in [0, 1), got {procedural_share}")
+    from navi_env.corpus.folder import build_corpus, build_default_corpus, merge_corpora, read_manifest
+
+    def part(name: str, build: Callable[[Path], object]) -> Path:
+        folder = root / f"{name}-{resolution}"
+        if not (folder / "manifest.json").is_file():
+            say(f"[bench learn] building {folder}")
+            build(folder)
+        return folder
+
+    def progress(line: str) -> None:
+        say(f"[bench learn]   {line}")
+
+    train_parts = {
+        "procedural": part(
+            "procedural-train",
+            lambda f: build_default_corpus(f, resolution, procedural_train, 0, device, progress),
+        )
+    }
+    unseen_parts = {
+        "procedural": part(
+            "procedural-unseen",
+            lambda f: build_default_corpus(f, resolution, procedural_unseen, 1000, device, progress),
+        )
+    }
+    notes = []
+    built = all(
+        (root / f"openarena-{k}-{resolution}" / "manifest.json").is_file() for k in ("train", "unseen")
+    )
+    if built or (pk3 is not None and pk3.is_file()):
+        maps = openarena_maps(pk3) if pk3 is not None and pk3.is_file() else []
+        train_maps, held = split_openarena(maps)
+        train_parts["openarena"] = part(
+            "openarena-train",
+            lambda f: build_corpus(
+                [f"{pk3}:{m}" for m in train_maps], f, resolution, device, progress=progress
+            ),
+        )
+        unseen_parts["openarena"] = part(
+            "openarena-unseen",
+            lambda f: build_corpus([f"{pk3}:{m}" for m in held], f, resolution, device, progress=progress),
+        )
+    else:
+        notes.append(f"OpenArena maps not found at {pk3}: the splits hold procedural scenes only")
+    train = root / f"train-{resolution}"
+    unseen = root / f"unseen-{resolution}"
+    repeats = 1
+    if procedural_share > 0.0 and "openarena" in train_parts:
+        n_p = len(read_manifest(train_parts["procedural"]).scenes)
+        n_o = len(read_manifest(train_parts["openarena"]).scenes)
+        repeats = max(1, round(procedural_share * n_o / ((1.0 - procedural_share) * n_p)))
+        share = repeats * n_p / (repeats * n_p + n_o)
+        notes.append(f"train corpus: the {n_p} procedural scenes {repeats} times, {share:.0%} of its scenes")
+    merge_corpora(
+        [train_parts["procedural"]] * repeats + [v for k, v in train_parts.items() if k != "procedural"],
+        train,
+    )
+    merge_corpora(list(unseen_parts.values()), unseen)
+    scenes = {f"train/{k}": [s.name for s in read_manifest(v).scenes] for k, v in train_parts.items()}
+    scenes |= {f"unseen/{k}": [s.name for s in read_manifest(v).scenes] for k, v in unseen_parts.items()}
+    return Splits(train, unseen, unseen_parts, scenes, notes)
+
+
+def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -> TrainConfig:
+    """The TrainConfig of one run of the benchmark (the default engine with `core`)."""
+    cuda = device.type == "cuda"
+    engine = EngineConfig(
+        temporal_core="gru" if core == "gru" else "mambapy" if core == "mambapy" else "mamba2"
+    )
+    return TrainConfig(
+        n_actors=cfg.actors or (2048 if cuda else 8),
+        rollout_length=cfg.rollout_length or (64 if cuda else 32),
+        total_steps=cfg.total_steps,
+        time_limit_s=cfg.time_budget_s,
+        checkpoint_every=10**12,
+        seed=seed,
+        device=str(device),
+        compile=cfg.compile,
+        engine=engine,
+        ppo=PPOConfig(lr=cfg.lr, ppo_epochs=cfg.ppo_epochs, max_minibatch=cfg.max_minibatch),
+    )
+
+
+def run_one(
+    splits: Splits,
+    cfg: LearnConfig,
+    core: str,
+    seed: int,
+    device: str,
+    run_dir: Path,
+    baselines: dict[str, EvalMetrics],
+    say: Say = print,
+) -> dict[str, Any]:
+    """Train one (core, seed) from scratch with the competence monitor; returns its result dict."""
+    from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
+    from navi_learner.ppo.train import train
+
+    dev = torch.device(device)
+    tcfg = train_config(cfg, core, seed, dev)
+    reward = dict(cfg.reward)
+    env = make_env(
+        splits.train, tcfg.n_actors, device, seed, reward=reward, obstacles=cfg.obstacles, squad=cfg.squad
+    )
+    unseen = eval_env(splits.unseen, cfg, device)
+    monitor = CompetenceMonitor(
+        unseen,
+        cfg.protocol,
+        cfg.eval_every_s,
+        cfg.stop_at_competence,
+        say=lambda line: say(f"[{core} seed {seed}] {line}"),
+        baselines=baselines,
+    )
+    started = time.perf_counter()
+    result = train(
+        env,
+        tcfg,
+        run_dir=run_dir,
+        corpus_summary=corpus_summary(splits.train, "sdfdag"),
+        progress=False,
+        monitor=monitor,
+    )
+    trained = CheckpointPolicy(result.final_checkpoint, dev)
+    if (
+        not monitor.curve or monitor.curve[-1]["step"] != result.step_id
+    ):  # the budget ended between evaluations
+        monitor.record(trained.policy, result.step_id, float(result.last_metrics.get("train_s", 0.0)))
+    final = {}
+    for name, path in splits.unseen_parts.items():
+        part = eval_env(path, cfg, device)
+        final[name] = asdict(evaluate(part, trained, cfg.protocol.steps, cfg.protocol.seed))
+        final[name]["policy"] = f"trained ({core}, seed {seed})"
+    return {
+        "temporal_core": core,
+        "seed": seed,
+        "run_id": result.run_id,
+        "checkpoint": str(result.final_checkpoint),
+        "steps": result.step_id,
+        "train_s": float(result.last_metrics.get("train_s", 0.0)),
+        "wall_s": time.perf_counter() - started,
+        "sps": result.sps,
+        "competence": monitor.competence,
+        "curve": monitor.curve,
+        "final_by_split": final,
+        "train_config": tcfg.to_dict(),
+    }
+
+
+def eval_env(corpus: Path, cfg: LearnConfig, device: str) -> Any:
+    """An evaluation env of the job's protocol over `corpus` (its actors, seed, episode length, reward
+    overrides, obstacles and squads)."""
+    p = cfg.protocol
+    return make_env(
+        corpus,
+        p.actors,
+        device,
+        p.seed,
+        episode_steps=p.episode_steps,
+        reward=dict(cfg.reward),
+        obstacles=cfg.obstacles,
+        squad=cfg.squad,
+    )
+
+
+def baselines_by_split(splits: Splits, cfg: LearnConfig, device: str) -> dict[str, dict[str, EvalMetrics]]:
+    """random and reactive on the whole unseen split ("all") and on each of its parts."""
+    out = {"all": evaluate_baselines(eval_env(splits.unseen, cfg, device), cfg.protocol)}
+    for name, path in splits.unseen_parts.items():
+        out[name] = evaluate_baselines(eval_env(path, cfg, device), cfg.protocol)
+    return out
+
+
+def run_devices(device: str, gpus: int, runs: int) -> list[str]:
+    """The device of each run: `device` for all, or cuda:0 .. cuda:gpus-1 round-robin when gpus > 0."""
+    if gpus <= 0:
+        return [device] * runs
+    if not device.startswith("cuda"):
+        raise ValueError("--gpus needs a CUDA device")
+    return [f"cuda:{i % gpus}" for i in range(runs)]
+
+
+def _child(args: tuple[Splits, LearnConfig, str, int, str, Path, dict[str, EvalMetrics]]) -> dict[str, Any]:
+    splits, cfg, core, seed, device, run_dir, baselines = args
+    if device.startswith("cuda:"):
+        torch.cuda.set_device(torch.device(device))  # extensions and graphs use the current device
+    return run_one(splits, cfg, core, seed, device, run_dir, baselines)
+
+
+def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
+    """Per temporal core: competent seeds, median training seconds and env steps to competence (over the
+    competent seeds; null if none), and the median final unseen metrics."""
+    out: dict[str, Any] = {}
+    for core in sorted({r["temporal_core"] for r in runs}):
+        mine = [r for r in runs if r["temporal_core"] == core]
+        hits = [r["competence"] for r in mine if r["competence"] is not None]
+        last = [r["curve"][-1] for r in mine if r["curve"]]
+        out[core] = {
+            "seeds": len(mine),
+            "competent_seeds": len(hits),
+            "median_train_s_to_competence": statistics.median(h["train_s"] for h in hits) if hits else None,
+            "median_steps_to_competence": statistics.median(h["step"] for h in hits) if hits else None,
+            "competent_within_budget": len(hits) == len(mine),
+            "budget_s": budget_s,
+            "median_final_collisions_per_1k": statistics.median(p["collisions_per_1k"] for p in last)
+            if last
+            else None,
+            "median_final_coverage_per_1k": statistics.median(p["coverage_per_1k"] for p in last)
+            if last
+            else None,
+            "median_sps": statistics.median(r["sps"] for r in mine),
+        }
+    return out
+
+
+def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalMetrics]]) -> str:
+    """report.md: the summary per core, each run, and the per-split tables of the last run of each core."""
+    lines = ["# navi bench learn", "", f"device {result['device']}, {result['date']}", ""]
+    lines += [
+        "| core | seeds | competent | median s to competence | median steps | final coll/1k | final cov/1k | SPS |"
+    ]
+    lines += ["| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for core, s in result["summary"].items():
+        lines.append(
+            f"| {core} | {s['seeds']} | {s['competent_seeds']} | {s['median_train_s_to_competence']} | "
+            f"{s['median_steps_to_competence']} | {s['median_final_collisions_per_1k']} | "
+            f"{s['median_final_coverage_per_1k']} | {s['median_sps']:.0f} |"
+        )
+    lines += [
+        "",
+        "| core | seed | competence (train s, steps) | steps | train s |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for r in result["runs"]:
+        c = r["competence"]
+        hit = f"{c['train_s']:.0f} s, {c['step']:,}" if c else "not reached"
+        lines.append(f"| {r['temporal_core']} | {r['seed']} | {hit} | {r['steps']:,} | {r['train_s']:.0f} |")
+    for r in result["runs"]:
+        for part, metrics in r["final_by_split"].items():
+            rows = [EvalMetrics(**metrics)] + [baselines[part][k] for k in ("random", "reactive")]
+            lines += [
+                "",
+                f"## {r['temporal_core']} seed {r['seed']}, unseen {part}",
+                "",
+                comparison_table(rows),
+            ]
+    return "\n".join(lines) + "\n"
+
+
+def bench_learn(
+    cfg: LearnConfig,
+    out: Path,
+    device: str,
+    resolution: int,
+    corpus_root: Path,
+    pk3: Path | None,
+    say: Say = print,
+) -> dict[str, Any]:
+    """The whole benchmark; writes and returns result.json's content."""
+    for core in cfg.temporal_cores:
+        if core not in TEMPORAL_CORES:
+            raise ValueError(f"unknown temporal core {core!r}; choose from {', '.join(TEMPORAL_CORES)}")
+    out.mkdir(parents=True, exist_ok=True)
+    splits = prepare_splits(
+        corpus_root, resolution, device, pk3, say=say, procedural_share=cfg.procedural_share
+    )
+    say(f"[bench learn] train {splits.train}, unseen {splits.unseen}")
+    baselines = baselines_by_split(splits, cfg, device)
+    for part, b in baselines.items():
+        say(f"[bench learn] baselines on unseen {part}:\n" + comparison_table(list(b.values())))
+    runs_wanted = [(core, seed) for core in cfg.temporal_cores for seed in cfg.seeds]
+    places = run_devices(device, cfg.gpus, len(runs_wanted))
+    jobs = [
+        (splits, cfg, core, seed, place, out / "runs" / f"{core}-seed{seed}", baselines["all"])
+        for (core, seed), place in zip(runs_wanted, places, strict=True)
+    ]
+    started = time.perf_counter()
+    if cfg.parallel > 1:
+        with multiprocessing.get_context("spawn").Pool(cfg.parallel) as pool:
+            runs = pool.map(_child, jobs)
+    else:
+        runs = [_child(job) for job in jobs]
+    notes = list(splits.notes)
+    result: dict[str, Any] = {
+        "device": (torch.cuda.get_device_name() if device.startswith("cuda") else "cpu")
+        + (f" x {cfg.gpus} (one run per GPU at a time)" if cfg.gpus > 0 else ""),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "config": asdict(replace(cfg, seeds=list(cfg.seeds), temporal_cores=list(cfg.temporal_cores))),  # type: ignore[arg-type]
+        "reward": asdict(reward_config(dict(cfg.reward))),
+        "resolution": resolution,
+        "splits": {
+            "scenes": splits.scenes,
+            "train": str(splits.train),
+            "unseen": str(splits.unseen),
+            "notes": notes,
+        },
+        "competence_bar": "collisions/1k <= 0.5 x reactive and coverage/1k >= 1.5 x reactive, unseen split, same seed",
+        "baselines": {part: {k: asdict(v) for k, v in b.items()} for part, b in baselines.items()},
+        "runs": runs,
+        "summary": summarise(runs, cfg.time_budget_s),
+        "wall_s": time.perf_counter() - started,
+    }
+    curves = {f"{r['temporal_core']} seed {r['seed']}": r["curve"] for r in runs}
+    why_not = plot_curves(curves, baselines["all"], out / "learning_curves.png")
+    if why_not:
+        notes.append(why_not)
+    (out / "curves.json").write_text(json.dumps(jsonable(curves), indent=1))
+    (out / "result.json").write_text(json.dumps(jsonable(result), indent=1))
+    (out / "report.md").write_text(report_markdown(result, baselines))
+    return result

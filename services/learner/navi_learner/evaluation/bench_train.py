@@ -1,0 +1,185 @@
+"""`navi bench train`: env only / env + inference / env + training SPS and ms per stage, one JSON object.
+
+`--nproc N` measures one process first, then N data-parallel ranks through torchrun (each rank with
+the same actors on its own device, the three columns measured on every rank at once), and reports the
+per-rank and total SPS with the scaling efficiency SPS(N) / (N x SPS(1)) of each column.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from navi_learner.config import TrainConfig, compact_storage, resolve
+from navi_learner.engine.heads import ACTION_DIM
+from navi_learner.engine.memory import EpisodicMemory
+from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.envs.protocol import BatchedEnv
+from navi_learner.ppo.dist import Dist, Sync, entry_argv, relaunch
+from navi_learner.ppo.train import train
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def env_only_sps(env: BatchedEnv, steps: int) -> float:
+    """Steps/s of the env alone with random actions."""
+    actions = torch.rand(env.n_actors, ACTION_DIM, device=env.device) * 2 - 1  # (N, 4)
+    env.reset(seed=0)
+    for _ in range(min(10, steps)):
+        env.step(actions)
+    _sync(env.device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.step(actions)
+    _sync(env.device)
+    return steps * env.n_actors / (time.perf_counter() - t0)
+
+
+def inference_sps(
+    env: BatchedEnv,
+    cfg: TrainConfig,
+    steps: int,
+    reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> float:
+    """Steps/s of env + the full rollout-side engine (encoder, RND, memory, core step, heads), no learning;
+    `reduce` (a data-parallel rank) pools the RND normaliser over ranks as training does."""
+    device = env.device
+    policy = CognitiveMambaPolicy(env.obs_shape, cfg.engine).to(device)
+    policy.amp = cfg.amp and device.type == "cuda"
+    if cfg.compile and device.type == "cuda":
+        policy.encoder.compile(dynamic=False)
+    memory = EpisodicMemory(
+        env.n_actors, cfg.engine.memory_slots, cfg.engine.embed_dim, cfg.engine.memory_threshold, device
+    )
+    state = policy.initial_state(env.n_actors, device)
+    obs = env.reset(seed=0)
+    resets = torch.ones(env.n_actors, dtype=torch.bool, device=device)  # (N,)
+    t0 = 0.0
+    with torch.no_grad():
+        for i in range(steps + 10):
+            if i == 10:
+                _sync(device)
+                t0 = time.perf_counter()
+            out = policy.act(obs, resets, state)
+            policy.rnd.intrinsic(out.emb, reduce)
+            memory.step(out.emb, resets)
+            step = env.step(out.action)
+            obs, resets, state = step.obs, step.done | step.truncated, out.state
+    _sync(device)
+    return steps * env.n_actors / (time.perf_counter() - t0)
+
+
+def bench_train(
+    env: BatchedEnv,
+    cfg: TrainConfig,
+    updates: int = 5,
+    warmup: int = 2,
+    env_steps: int = 50,
+    dist: Dist | None = None,
+) -> dict[str, Any]:
+    """All three columns for one configuration; the training column skips `warmup` updates.
+
+    On a rank of a data-parallel run (`dist`) every rank measures its own columns, all ranks starting
+    each column together; every rank returns {"world_size", "ranks": [each rank's columns], "total"}."""
+    d = dist or Dist()
+    sync = Sync(d, [], env.device) if d.active else None
+    compact = compact_storage(cfg, bool(getattr(env, "compact_obs", False)))
+    cfg = replace(
+        resolve(cfg, env.obs_shape, compact), sync_timers=True, log_every=1, checkpoint_every=10**12
+    )
+    per_update = cfg.n_actors * cfg.rollout_length
+    cfg = replace(cfg, total_steps=per_update * d.world * (warmup + updates))  # steps count every rank's
+    device = env.device
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    out: dict[str, Any] = {
+        "actors": cfg.n_actors,
+        "rollout_length": cfg.rollout_length,
+        "temporal_core": cfg.engine.temporal_core,
+        "device": str(device),
+        "obs_shape": list(env.obs_shape),
+        "obs_storage": "compact" if compact else "float32",
+        "max_minibatch": cfg.ppo.max_minibatch,
+        "amp": cfg.amp and device.type == "cuda",
+        "compile": cfg.compile and device.type == "cuda",
+    }
+    if sync is not None:
+        sync.barrier()
+    out["env_only_sps"] = round(env_only_sps(env, env_steps))
+    if sync is not None:
+        sync.barrier()
+    out["env_inference_sps"] = round(inference_sps(env, cfg, env_steps, None if sync is None else sync.sum_))
+    rows: list[dict[str, float]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        train(
+            env,
+            cfg,
+            run_dir=Path(tmp) / "run",
+            on_log=lambda _rid, row: rows.append(row),
+            progress=False,
+            dist=d,
+        )
+    measured = rows[warmup:] or rows
+    mean = {
+        k: sum(r[k] for r in measured) / len(measured) for k in ("sps", "ms_env", "ms_forward", "ms_learn")
+    }
+    out.update(
+        {
+            "env_train_sps": round(mean["sps"] / d.world),  # this rank's actor-steps/s (its own clock)
+            "ms_per_step": {k[3:]: round(mean[k], 3) for k in mean if k != "sps"},
+        }
+    )
+    if device.type == "cuda":
+        out["max_memory_gb"] = round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
+    if sync is None:
+        return out
+    ranks = sync.gather_object({"rank": d.rank, **out})
+    return {"world_size": d.world, "ranks": ranks, "total": {k: sum(r[k] for r in ranks) for k in COLUMNS}}
+
+
+COLUMNS = ("env_only_sps", "env_inference_sps", "env_train_sps")
+"""The three SPS columns of `navi bench train`."""
+
+
+def scaling_report(nproc: int, single: dict[str, Any], ranks: dict[str, Any]) -> dict[str, Any]:
+    """One process's columns and nproc ranks' (per rank and total) joined, with the scaling
+    efficiency of each column: total SPS(N) / (N x SPS(1))."""
+    total = ranks["total"]
+    return {
+        "nproc": nproc,
+        "single": single,
+        "ranks": ranks["ranks"],
+        "total": total,
+        "scaling_efficiency": {
+            k.removesuffix("_sps"): round(total[k] / (nproc * single[k]), 3) if single[k] > 0 else None
+            for k in COLUMNS
+        },
+    }
+
+
+def bench_train_scaling(nproc: int, args: list[str]) -> dict[str, Any]:
+    """`navi bench train ARGS` as one process, then on nproc ranks through torchrun (one job, run one
+    after the other so they do not share devices); ARGS is the command line without --nproc."""
+    with tempfile.TemporaryDirectory() as tmp:
+        single_file, ranks_file = Path(tmp) / "single.json", Path(tmp) / "ranks.json"
+        cmd = [sys.executable, *entry_argv(), *args, "--result-file", str(single_file)]
+        if subprocess.run(cmd, check=False).returncode != 0 or not single_file.is_file():
+            raise RuntimeError("the one-process measurement failed (its error is above)")
+        code = relaunch(nproc, [*args, "--result-file", str(ranks_file)])
+        if code != 0 or not ranks_file.is_file():
+            raise RuntimeError(
+                f"the {nproc}-rank measurement failed with exit code {code} (its error is above)"
+            )
+        return scaling_report(nproc, json.loads(single_file.read_text()), json.loads(ranks_file.read_text()))

@@ -1,0 +1,177 @@
+"""Learning measured on unseen scenes: the evaluation protocol, the competence bar, and a training
+monitor that evaluates the live policy every so often and records the learning curve.
+
+Competence (docs/TRAINING.md): on the unseen scenes, with the same seed and deterministic actions,
+at most half the reactive baseline's collisions per 1,000 steps and at least 1.5x its coverage.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.envs.protocol import BatchedEnv
+from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
+from navi_learner.evaluation.evaluate import EvalMetrics, ModulePolicy, competent, evaluate
+
+CURVE_KEYS = (
+    "collisions_per_1k",
+    "obstacle_collisions_per_1k",
+    "coverage_per_1k",
+    "episode_return",
+    "reward_per_step",
+)
+"""The metrics each learning-curve point records (with their intervals)."""
+
+
+@dataclass(frozen=True)
+class EvalProtocol:
+    """How a policy is evaluated on unseen scenes: `actors` drones for `steps` steps from env seed
+    `seed`, episodes of `episode_steps` steps (so `steps / episode_steps` episodes per actor finish and
+    returns are those of finished episodes)."""
+
+    actors: int = 256
+    steps: int = 1000
+    episode_steps: int = 500
+    seed: int = 12345
+
+    @classmethod
+    def for_device(cls, device: torch.device) -> EvalProtocol:
+        """256 actors x 1,000 steps on a GPU; 16 actors x 400 steps (episodes of 200) on a CPU."""
+        return cls() if device.type == "cuda" else cls(actors=16, steps=400, episode_steps=200)
+
+
+def evaluate_baselines(env: BatchedEnv, protocol: EvalProtocol) -> dict[str, EvalMetrics]:
+    """random and reactive on the protocol's env seed."""
+    return {
+        p.name: evaluate(env, p, protocol.steps, protocol.seed)
+        for p in (RandomPolicy(protocol.seed), reactive_for_env(env))
+    }
+
+
+def curve_point(metrics: EvalMetrics, step: int, train_s: float, wall_s: float) -> dict[str, Any]:
+    """One learning-curve point: env steps, training seconds, wall seconds, the metrics and intervals."""
+    point: dict[str, Any] = {"step": step, "train_s": train_s, "wall_s": wall_s}
+    for key in CURVE_KEYS:
+        point[key] = getattr(metrics, key)
+        point[f"{key}_ci"] = metrics.ci.get(key)
+    return point
+
+
+@dataclass
+class CompetenceMonitor:
+    """A train() monitor: every `every_s` seconds of training it evaluates the live policy on `env`
+    (the unseen scenes) with `protocol`, appends a curve point, and notes the first competent point.
+    With `stop_at_competence` training ends there."""
+
+    env: BatchedEnv
+    protocol: EvalProtocol
+    every_s: float
+    stop_at_competence: bool = True
+    say: Callable[[str], None] | None = None
+    baselines: dict[str, EvalMetrics] = field(default_factory=dict)
+    curve: list[dict[str, Any]] = field(default_factory=list)
+    competence: dict[str, Any] | None = None
+    latest: EvalMetrics | None = None
+    status: str = ""
+
+    def __post_init__(self) -> None:
+        self.started = time.perf_counter()
+        self.next_s = self.every_s
+        if not self.baselines:
+            self.baselines = evaluate_baselines(self.env, self.protocol)
+        r = self.baselines["reactive"]
+        self.status = f"unseen: reactive {r.collisions_per_1k:.2f} coll/1k, {r.coverage_per_1k:.0f} cov/1k"
+
+    def evaluate_policy(self, policy: CognitiveMambaPolicy, name: str = "trained") -> EvalMetrics:
+        """Deterministic evaluation of `policy` on the unseen env (train mode restored afterwards)."""
+        was_training = policy.training
+        policy.eval()
+        try:
+            return evaluate(self.env, ModulePolicy(policy, name), self.protocol.steps, self.protocol.seed)
+        finally:
+            policy.train(was_training)
+
+    def record(self, policy: CognitiveMambaPolicy, step: int, train_s: float) -> EvalMetrics:
+        """Evaluate now and append the curve point; notes competence the first time it is reached."""
+        m = self.evaluate_policy(policy)
+        self.latest = m
+        point = curve_point(m, step, train_s, time.perf_counter() - self.started)
+        point["competent"] = competent(m, self.baselines["reactive"])
+        self.curve.append(point)
+        if point["competent"] and self.competence is None:
+            self.competence = {"step": step, "train_s": train_s, "wall_s": point["wall_s"]}
+        self.status = (
+            f"unseen: {m.collisions_per_1k:.2f} coll/1k (reactive "
+            f"{self.baselines['reactive'].collisions_per_1k:.2f}), {m.coverage_per_1k:.0f} cov/1k "
+            f"(reactive {self.baselines['reactive'].coverage_per_1k:.0f})"
+            + (" COMPETENT" if point["competent"] else "")
+        )
+        if self.say is not None:
+            self.say(f"step {step:,} ({train_s:.0f} s) {self.status}")
+        return m
+
+    def __call__(self, policy: CognitiveMambaPolicy, step_id: int, train_s: float) -> bool:
+        if train_s < self.next_s:
+            return False
+        self.next_s = train_s + self.every_s
+        self.record(policy, step_id, train_s)
+        return self.stop_at_competence and self.competence is not None
+
+    def to_json(self) -> dict[str, Any]:
+        """Protocol, baselines, curve and competence (NaN left as is; see evaluate.jsonable)."""
+        return {
+            "protocol": asdict(self.protocol),
+            "baselines": {k: asdict(v) for k, v in self.baselines.items()},
+            "curve": self.curve,
+            "competence": self.competence,
+        }
+
+
+def plot_curves(
+    runs: dict[str, list[dict[str, Any]]], baselines: dict[str, EvalMetrics], path: Path
+) -> str | None:
+    """Learning curves (collisions, coverage, return; against env steps and against training time),
+    one line per run, the baselines as horizontal lines and the competence bars dotted. Returns None
+    when the PNG was written, else why not."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return "matplotlib is not installed, so no plot was drawn (pip install matplotlib)"
+    keys = (
+        ("collisions_per_1k", "collisions / 1k steps"),
+        ("coverage_per_1k", "coverage / 1k steps"),
+        ("episode_return", "episode return"),
+    )
+    fig, axes = plt.subplots(2, 3, figsize=(15, 8))
+    reactive = baselines.get("reactive")
+    for row, (xkey, xlabel) in enumerate((("step", "env steps"), ("train_s", "training seconds"))):
+        for col, (key, label) in enumerate(keys):
+            ax = axes[row][col]
+            for name, points in runs.items():
+                xs = [p[xkey] for p in points]
+                ax.plot(xs, [p[key] for p in points], marker="o", markersize=3, label=name)
+            for bname, style in (("random", ":"), ("reactive", "--")):
+                if bname in baselines:
+                    ax.axhline(getattr(baselines[bname], key), linestyle=style, color="gray", label=bname)
+            if reactive is not None and key == "collisions_per_1k":
+                ax.axhline(0.5 * reactive.collisions_per_1k, color="green", linewidth=0.8, label="competence")
+            if reactive is not None and key == "coverage_per_1k":
+                ax.axhline(1.5 * reactive.coverage_per_1k, color="green", linewidth=0.8, label="competence")
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel(label)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return None

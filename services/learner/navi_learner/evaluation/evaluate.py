@@ -1,0 +1,284 @@
+"""Evaluation: run a policy (a checkpoint, a live engine, random, reactive) against a BatchedEnv and
+summarise it with 95% bootstrap confidence intervals over actors.
+
+Every policy sees the same env seed, so the same scenes and spawns. Metrics (each a ratio of per-actor
+sums, so the bootstrap resamples actors and recomputes the ratio):
+  episode_return     mean return of the episodes that finished during the evaluation (NaN if none did)
+  reward_per_step    extrinsic reward per actor-step
+  collisions_per_1k  contact steps per 1,000 actor-steps
+  obstacle_collisions_per_1k  of those, contacts with moving obstacles (0 without; NaN if the env has none)
+  mean_clearance     the env's clearance (info["clearance"]) per actor-step
+  coverage_per_1k    distinct 1 m cells visited per actor-episode, per 1,000 actor-steps
+  distance_per_1k    meters flown per 1,000 actor-steps
+  starvation_rate    starved episodes / finished episodes
+Info keys that an env lacks give NaN for that metric.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from navi_learner.config import EngineConfig
+from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.engine.temporal import CoreState
+from navi_learner.envs.protocol import BatchedEnv
+from navi_learner.evaluation.baselines import EvalPolicy
+from navi_learner.serving.checkpoint import load_checkpoint
+
+METRICS: tuple[str, ...] = (
+    "episode_return",
+    "reward_per_step",
+    "collisions_per_1k",
+    "obstacle_collisions_per_1k",
+    "mean_clearance",
+    "coverage_per_1k",
+    "distance_per_1k",
+    "starvation_rate",
+)
+"""The metrics of an evaluation, each with a confidence interval."""
+
+BOOTSTRAP_SAMPLES = 1000
+"""Resamples of the actors behind every confidence interval."""
+
+
+class ModulePolicy:
+    """A CognitiveMambaPolicy (live or loaded) driven step by step with its recurrent state."""
+
+    def __init__(self, policy: CognitiveMambaPolicy, name: str, deterministic: bool = True) -> None:
+        self.policy = policy
+        self.name = name
+        self.deterministic = deterministic
+        self.state: CoreState = ()
+
+    def reset(self, n: int, device: torch.device) -> None:
+        self.state = self.policy.initial_state(n, device)
+
+    def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            out = self.policy.act(obs, resets, self.state, self.deterministic)
+        self.state = out.state
+        return out.action.clamp(-1.0, 1.0)  # (N, 4)
+
+
+class CheckpointPolicy(ModulePolicy):
+    """A trained checkpoint (no PPO, no reward shaping); the mean action unless deterministic=False."""
+
+    def __init__(self, path: Path, device: torch.device, deterministic: bool = True) -> None:
+        ckpt = load_checkpoint(path, device)
+        shape = ckpt.meta.obs_shape
+        self.obs_shape = (int(shape[0]), int(shape[1]), int(shape[2]))
+        policy = CognitiveMambaPolicy(self.obs_shape, EngineConfig.from_dict(ckpt.meta.config["engine"])).to(
+            device
+        )
+        policy.load_state_dict(ckpt.model)
+        policy.eval()
+        super().__init__(policy, str(path), deterministic)
+
+
+@dataclass
+class EvalMetrics:
+    """Result of one evaluation (JSON-friendly); `ci` maps every metric to its [low, high] 95% interval."""
+
+    policy: str
+    steps: int
+    actors: int
+    episodes: int
+    episode_return: float
+    reward_per_step: float
+    collisions_per_1k: float
+    mean_clearance: float
+    coverage_per_1k: float
+    distance_per_1k: float
+    starvation_rate: float
+    sps: float
+    obstacle_collisions_per_1k: float = math.nan  # results saved before moving obstacles lack it
+    ci: dict[str, list[float]] = field(default_factory=dict)
+
+
+@dataclass
+class ActorSums:
+    """Per-actor sums of one evaluation, (N,) float64 each; every metric is a ratio of two of them."""
+
+    steps: np.ndarray
+    reward: np.ndarray
+    finished_return: np.ndarray
+    episodes: np.ndarray
+    collision: np.ndarray
+    obstacle_collision: np.ndarray
+    clearance: np.ndarray
+    starved: np.ndarray
+    distance: np.ndarray
+    cells: np.ndarray
+
+    def ratios(self) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
+        """metric -> (numerator (N,), denominator (N,), scale)."""
+        return {
+            "episode_return": (self.finished_return, self.episodes, 1.0),
+            "reward_per_step": (self.reward, self.steps, 1.0),
+            "collisions_per_1k": (self.collision, self.steps, 1000.0),
+            "obstacle_collisions_per_1k": (self.obstacle_collision, self.steps, 1000.0),
+            "mean_clearance": (self.clearance, self.steps, 1.0),
+            "coverage_per_1k": (self.cells, self.steps, 1000.0),
+            "distance_per_1k": (self.distance, self.steps, 1000.0),
+            "starvation_rate": (self.starved, self.episodes, 1.0),
+        }
+
+
+def ratio(num: np.ndarray, den: np.ndarray, scale: float) -> float:
+    """scale * sum(num) / sum(den), NaN when the denominator is 0."""
+    total = float(den.sum())
+    return scale * float(num.sum()) / total if total > 0 else math.nan
+
+
+def bootstrap_ci(
+    num: np.ndarray, den: np.ndarray, scale: float, samples: int = BOOTSTRAP_SAMPLES, seed: int = 0
+) -> list[float]:
+    """95% percentile interval of the ratio over `samples` resamples of the actors (with replacement)."""
+    n = num.shape[0]
+    idx = np.random.default_rng(seed).integers(0, n, size=(samples, n))  # (B, N)
+    nums, dens = num[idx].sum(axis=1), den[idx].sum(axis=1)  # (B,) each
+    ok = dens > 0
+    if not ok.any():
+        return [math.nan, math.nan]
+    values = scale * nums[ok] / dens[ok]  # (B',)
+    return [float(np.percentile(values, 2.5)), float(np.percentile(values, 97.5))]
+
+
+def summarise(name: str, sums: ActorSums, steps: int, has: dict[str, bool], elapsed: float) -> EvalMetrics:
+    """EvalMetrics with bootstrap intervals from per-actor sums; metrics without their info key are NaN."""
+    needs = {
+        "collisions_per_1k": "collision",
+        "obstacle_collisions_per_1k": "obstacle_collision",
+        "mean_clearance": "clearance",
+        "coverage_per_1k": "position",
+        "distance_per_1k": "position",
+        "starvation_rate": "starved",
+    }
+    values: dict[str, float] = {}
+    ci: dict[str, list[float]] = {}
+    for metric, (num, den, scale) in sums.ratios().items():
+        if not has.get(needs.get(metric, ""), True):
+            values[metric], ci[metric] = math.nan, [math.nan, math.nan]
+            continue
+        values[metric] = ratio(num, den, scale)
+        ci[metric] = bootstrap_ci(num, den, scale)
+    n = sums.steps.shape[0]
+    return EvalMetrics(
+        policy=name,
+        steps=steps,
+        actors=n,
+        episodes=int(sums.episodes.sum()),
+        sps=n * steps / max(elapsed, 1e-9),
+        ci=ci,
+        **values,
+    )
+
+
+def evaluate(
+    env: BatchedEnv, policy: EvalPolicy, steps: int, seed: int = 0, progress: bool = False
+) -> EvalMetrics:
+    """Run `steps` batched steps from env.reset(seed) and summarise (one host read at the end)."""
+    n, device = env.n_actors, env.device
+    policy.reset(n, device)
+    obs = env.reset(seed=seed)
+    resets = torch.ones(n, dtype=torch.bool, device=device)  # (N,)
+    names = (
+        "reward",
+        "finished_return",
+        "episodes",
+        "collision",
+        "obstacle_collision",
+        "clearance",
+        "starved",
+        "distance",
+    )
+    acc = {k: torch.zeros(n, dtype=torch.float64, device=device) for k in names}  # (N,) float64 each
+    has = {k: False for k in ("collision", "obstacle_collision", "clearance", "starved", "position")}
+    ret = torch.zeros(n, dtype=torch.float64, device=device)  # (N,) return of the running episode
+    episode = torch.zeros(n, dtype=torch.long, device=device)  # (N,) episode index per actor
+    ids = torch.arange(n, device=device)  # (N,)
+    cells: list[torch.Tensor] = []
+    prev_pos: torch.Tensor | None = None
+    same_episode = torch.zeros(n, dtype=torch.bool, device=device)  # (N,) prev_pos is this episode's
+    t0 = time.perf_counter()
+    for i in range(steps):
+        out = env.step(policy.act(obs, resets))
+        ends = out.done | out.truncated  # (N,) bool
+        ret += out.reward
+        acc["reward"] += out.reward
+        acc["finished_return"] += ret * ends
+        acc["episodes"] += ends
+        for key in ("collision", "obstacle_collision", "clearance", "starved"):
+            if key in out.info:
+                has[key] = True
+                acc[key] += out.info[key].double()
+        if "position" in out.info:
+            has["position"] = True
+            pos = out.info["position"].float().clone()  # (N, 3) after this step's move, before any reset
+            if prev_pos is not None:
+                acc["distance"] += (pos - prev_pos).norm(dim=1).double() * same_episode
+            cells.append(
+                torch.cat([ids[:, None], episode[:, None], torch.floor(pos).long()], dim=1)
+            )  # (N, 5)
+            prev_pos = pos
+            same_episode = ~ends
+        ret *= ~ends
+        episode += ends.long()
+        obs, resets = out.obs, ends
+        if progress and sys.stderr.isatty() and i % 50 == 0:
+            sys.stderr.write(f"\r{policy.name}: {i}/{steps} steps")
+    covered = torch.zeros(n, dtype=torch.float64, device=device)  # (N,)
+    if cells:
+        visited = torch.unique(torch.cat(cells), dim=0)  # (V, 5) distinct (actor, episode, cell)
+        covered = torch.bincount(visited[:, 0], minlength=n).double()
+    host = {k: v.cpu().numpy() for k, v in acc.items()}
+    elapsed = time.perf_counter() - t0
+    if progress and sys.stderr.isatty():
+        sys.stderr.write("\n")
+    sums = ActorSums(steps=np.full(n, float(steps)), cells=covered.cpu().numpy(), **host)
+    return summarise(policy.name, sums, steps, has, elapsed)
+
+
+def jsonable(value: object) -> object:
+    """Plain JSON values: NaN becomes None, recursively through dicts, lists and dataclass dicts."""
+    if isinstance(value, float):
+        return None if math.isnan(value) else value
+    if isinstance(value, dict):
+        return {k: jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    return value
+
+
+def competent(
+    trained: EvalMetrics, reactive: EvalMetrics, collisions: float = 0.5, coverage: float = 1.5
+) -> bool:
+    """The competence bar of `navi bench learn`: at most `collisions` x the reactive baseline's collisions
+    per 1,000 steps and at least `coverage` x its coverage, on the same unseen scenes and seed."""
+    return (
+        trained.collisions_per_1k <= collisions * reactive.collisions_per_1k
+        and trained.coverage_per_1k >= coverage * reactive.coverage_per_1k
+    )
+
+
+def comparison_table(rows: list[EvalMetrics]) -> str:
+    """A markdown table of several evaluations: each metric with its 95% interval."""
+    keys = ["collisions_per_1k", "coverage_per_1k", "episode_return", "reward_per_step", "mean_clearance"]
+    keys += ["distance_per_1k", "starvation_rate"]
+    lines = ["| policy | " + " | ".join(keys) + " | episodes |", "| --- " * (len(keys) + 2) + "|"]
+    for r in rows:
+        cells = [
+            f"{getattr(r, k):.4g} [{r.ci[k][0]:.3g}, {r.ci[k][1]:.3g}]"
+            if k in r.ci
+            else f"{getattr(r, k):.4g}"
+            for k in keys
+        ]
+        lines.append(f"| {r.policy} | " + " | ".join(cells) + f" | {r.episodes} |")
+    return "\n".join(lines)

@@ -1,0 +1,266 @@
+"""`navi run`: the main job. It ends with a table where the trained drone is compared, live, with the
+random and reactive baselines on procedural scenes it never trained on.
+
+On CUDA: build the procedural default corpus and an unseen one when missing, train (resuming from the
+registry's latest when compatible) until the drone is competent on the unseen scenes or the time
+budget ends, with a progress bar that shows the latest unseen collisions and coverage; promote; then
+evaluate with enough steps for episodes to finish, and write the table and the learning curves.
+
+On a CPU, where minutes cannot train this engine from scratch: start from the reference checkpoint
+shipped with Navi (made by `navi train` on a GPU; reference/README.md and its JSON say how), fine-tune
+it for the CPU budget on the default corpus, then evaluate the same way.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.envs.factory import EnvUnavailable, corpus_summary, make_env
+from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
+from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol, plot_curves
+from navi_learner.evaluation.evaluate import (
+    CheckpointPolicy,
+    EvalMetrics,
+    comparison_table,
+    competent,
+    evaluate,
+    jsonable,
+)
+from navi_learner.ppo.train import train
+from navi_learner.serving.checkpoint import CheckpointError, atomic_write, read_meta
+from navi_learner.serving.registry import ModelRegistry
+
+REFERENCE = Path(__file__).resolve().parents[1] / "reference" / "mamba2.pt"
+"""The reference checkpoint the CPU path fine-tunes (reference/mamba2.json: how it was made)."""
+
+UNSEEN_SEED = 1000
+"""Seed of the procedural scenes the main job evaluates on (the default corpus uses seed 0)."""
+
+UNSEEN_SCENES = 8
+"""Unseen scenes: one of each procedural kind (rooms, corridors, hall, maze, caves, forest, building,
+yard), as in `navi bench learn`'s procedural-unseen split."""
+
+CPU_TRAIN_SCENES = 4
+"""Scenes of the default corpus the CPU path builds and fine-tunes on (16 on CUDA)."""
+
+CORPUS_RESOLUTION = 512
+"""Cells per cube edge of the main job's scenes on both paths: the reference checkpoint was trained at
+512^3, and a policy flies differently through the blockier geometry of coarser scenes."""
+
+
+class MainJobError(RuntimeError):
+    """A piece the main job needs is missing."""
+
+
+@dataclass(frozen=True)
+class MainJobConfig:
+    """`navi run` options."""
+
+    corpus: Path
+    unseen: Path
+    models_dir: Path
+    device: str
+    seed: int = 0
+    budget_s: float = 600.0
+    """CUDA: training seconds at most (evaluations excluded)."""
+    eval_every_s: float = 30.0
+    """CUDA: training seconds between two unseen evaluations."""
+    cpu_steps: int = 2048
+    """CPU: fine-tuning env steps."""
+    reference: Path = REFERENCE
+
+
+def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int = 16) -> None:
+    """Build `count` procedural scenes of `seed` at 512^3 into `corpus` unless it already has a
+    manifest (8 scenes of 512^3 take about 75 s on 2 CPU cores; the GPU builds them in seconds)."""
+    if (corpus / "manifest.json").is_file():
+        return
+    try:
+        from navi_env.corpus.folder import CorpusError, build_default_corpus
+    except ImportError as err:
+        raise MainJobError(
+            f"no corpus at {corpus} and navi_env's corpus builder is not importable ({err})"
+        ) from err
+    resolution = CORPUS_RESOLUTION
+    print(
+        f"[navi run] building procedural scenes of seed {seed} ({count} scenes, {resolution}^3) into {corpus}",
+        flush=True,
+    )
+    try:
+        build_default_corpus(
+            corpus,
+            resolution=resolution,
+            count=count,
+            seed=seed,
+            device=device,
+            progress=lambda line: print(f"[navi run] {line}", flush=True),
+        )
+    except CorpusError as err:
+        raise MainJobError(f"building the corpus {corpus} failed: {err}") from err
+
+
+def cuda_config(job: MainJobConfig) -> TrainConfig:
+    """Training on a GPU: the learning benchmark's settings (bench_learn.train_config), time-limited."""
+    return TrainConfig(
+        n_actors=2048,
+        rollout_length=64,
+        total_steps=10**12,
+        time_limit_s=job.budget_s,
+        seed=job.seed,
+        device=job.device,
+        ppo=PPOConfig(lr=3e-4, ppo_epochs=2, max_minibatch=16_384),
+    )
+
+
+def cpu_config(job: MainJobConfig, start_step: int) -> TrainConfig:
+    """Fine-tuning on a CPU: 4 actors, 64-step rollouts, a small learning rate, job.cpu_steps steps."""
+    return TrainConfig(
+        n_actors=4,
+        rollout_length=64,
+        total_steps=start_step + job.cpu_steps,
+        seed=job.seed,
+        device=job.device,
+        ppo=PPOConfig(lr=1e-4, ppo_epochs=1),
+    )
+
+
+def resume_point(registry: ModelRegistry, cfg: TrainConfig) -> tuple[Path | None, TrainConfig]:
+    """The registry's latest when it uses the same temporal core (its engine shape comes along)."""
+    if not registry.latest_path.is_file():
+        return None, cfg
+    try:
+        meta = read_meta(registry.latest_path)
+    except CheckpointError as err:
+        print(f"[navi run] ignoring {registry.latest_path}: {err}", flush=True)
+        return None, cfg
+    if meta.temporal_core != cfg.engine.temporal_core:
+        return None, cfg
+    budget = cfg.total_steps if cfg.total_steps >= 10**12 else meta.step_id + cfg.total_steps
+    return registry.latest_path, replace(
+        cfg, engine=EngineConfig.from_dict(meta.config["engine"]), total_steps=budget
+    )
+
+
+def main_job(job: MainJobConfig) -> Path:
+    """Returns the path of the evaluation report."""
+    dev = torch.device(job.device)
+    cuda = dev.type == "cuda"
+    ensure_corpus(job.corpus, dev, count=16 if dev.type == "cuda" else CPU_TRAIN_SCENES)
+    ensure_corpus(job.unseen, dev, seed=UNSEEN_SEED, count=UNSEEN_SCENES)
+    protocol = EvalProtocol.for_device(dev)
+    registry = ModelRegistry(job.models_dir)
+    try:
+        unseen_env = make_env(
+            job.unseen, protocol.actors, job.device, protocol.seed, episode_steps=protocol.episode_steps
+        )
+    except EnvUnavailable as err:
+        raise MainJobError(str(err)) from err
+    monitor: CompetenceMonitor | None = None
+    if cuda:
+        cfg = cuda_config(job)
+        resume, cfg = resume_point(registry, cfg)
+        print(
+            f"[navi run] path: CUDA. Training {'from ' + str(resume) if resume else 'from scratch'} on {job.corpus} "
+            f"with {cfg.n_actors} actors until competent on the unseen scenes {job.unseen} or {job.budget_s:.0f} s",
+            flush=True,
+        )
+        monitor = CompetenceMonitor(
+            unseen_env, protocol, job.eval_every_s, say=lambda line: print(f"\n[navi run] {line}", flush=True)
+        )
+    else:
+        if not job.reference.is_file():
+            raise MainJobError(f"the reference checkpoint {job.reference} is missing (it ships with Navi)")
+        meta = read_meta(job.reference)
+        made_by = json.loads(job.reference.with_suffix(".json").read_text()).get("command", "?")
+        resume = job.reference
+        cfg = replace(cpu_config(job, meta.step_id), engine=EngineConfig.from_dict(meta.config["engine"]))
+        print(
+            f"[navi run] path: CPU. Fine-tuning the reference checkpoint {job.reference} (step {meta.step_id:,}, "
+            f"made on a GPU by `{made_by}`) for {job.cpu_steps:,} "
+            f"steps on {job.corpus}",
+            flush=True,
+        )
+    try:
+        env = make_env(job.corpus, cfg.n_actors, job.device, job.seed)
+    except EnvUnavailable as err:
+        raise MainJobError(str(err)) from err
+    result = train(
+        env,
+        cfg,
+        resume_from=resume,
+        registry=registry,
+        corpus_summary=corpus_summary(job.corpus, "sdfdag"),
+        progress=None,
+        monitor=monitor,
+    )
+    print(
+        f"[navi run] trained to step {result.step_id:,} in {result.last_metrics.get('train_s', 0.0):.0f} s; "
+        f"promoted: {result.promoted or 'no (did not beat the best)'}",
+        flush=True,
+    )
+    trained = CheckpointPolicy(result.final_checkpoint, dev)
+    trained.name = f"trained ({result.run_id})"
+    rows = [
+        evaluate(unseen_env, p, protocol.steps, protocol.seed, progress=True)
+        for p in (trained, RandomPolicy(protocol.seed), reactive_for_env(unseen_env))
+    ]
+    return write_evaluation(
+        result.run_dir / "reports", job, protocol, rows, monitor, "cuda" if cuda else "cpu"
+    )
+
+
+def write_evaluation(
+    reports: Path,
+    job: MainJobConfig,
+    protocol: EvalProtocol,
+    rows: list[EvalMetrics],
+    monitor: CompetenceMonitor | None,
+    path_taken: str,
+) -> Path:
+    """evaluation.md / .json (and on CUDA the learning curves) in the run's reports folder."""
+    trained, rand, reactive = rows
+    beats = {
+        "random": trained.collisions_per_1k <= rand.collisions_per_1k
+        and trained.coverage_per_1k > rand.coverage_per_1k,
+        "reactive": trained.collisions_per_1k <= reactive.collisions_per_1k
+        and trained.coverage_per_1k > reactive.coverage_per_1k,
+    }
+    verdict = (
+        f"Trained vs random: {'beats it' if beats['random'] else 'does not beat it'}; vs reactive: "
+        f"{'beats it' if beats['reactive'] else 'does not beat it'} (fewer or equal collisions per 1,000 steps and "
+        f"more coverage). Competent (half the reactive collisions, 1.5x its coverage): "
+        f"{'yes' if competent(trained, reactive) else 'no'}."
+    )
+    table = comparison_table(rows)
+    text = (
+        f"# navi run: evaluation on unseen scenes ({path_taken} path)\n\n"
+        f"{protocol.actors} actors x {protocol.steps} steps on {job.unseen} (procedural seed {UNSEEN_SEED}), "
+        f"episodes of {protocol.episode_steps} steps, env seed {protocol.seed}, deterministic actions; "
+        f"95% bootstrap intervals over actors.\n\n{table}\n\n{verdict}\n"
+    )
+    payload: dict[str, object] = {
+        "path": path_taken,
+        "protocol": asdict(protocol),
+        "results": [asdict(r) for r in rows],
+        "beats": beats,
+    }
+    if monitor is not None:
+        payload["learning"] = monitor.to_json()
+        why_not = plot_curves({"trained": monitor.curve}, monitor.baselines, reports / "learning_curves.png")
+        text += "\n" + (
+            f"Learning curves not drawn: {why_not}\n"
+            if why_not
+            else "![learning curves](learning_curves.png)\n"
+        )
+    atomic_write(reports / "evaluation.md", lambda f: f.write(text.encode()))
+    blob = json.dumps(jsonable(payload), indent=1).encode()
+    atomic_write(reports / "evaluation.json", lambda f: f.write(blob))
+    print(table, flush=True)
+    print(f"[navi run] {verdict}", flush=True)
+    print(f"[navi run] evaluation: {reports / 'evaluation.md'}", flush=True)
+    return reports / "evaluation.md"

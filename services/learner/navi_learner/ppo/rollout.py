@@ -1,0 +1,162 @@
+"""Rollout storage (T, N, ...) allocated once on the training device, and sequence-aware minibatches.
+
+Step t stores the observation the policy acted on, its action, log-prob and value, the reward of the
+transition, `resets[t]` (an episode starts at t: the recurrent state and episodic memory were zeroed
+before acting), `ends[t]` and `truncs[t]` (the episode ended after step t). The recurrent state that
+entered step t is stored at every BPTT chunk start, so each (chunk, actor) sequence can be replayed
+independently with truncated BPTT.
+
+Observations are stored in one of two forms. Compact (the drone env, DistanceMatrix v2): channel 0 as
+float16 and the semantic code as a byte per ray, 3 bytes per ray; a minibatch's observations are
+rebuilt on the device by navi_env.sim.observation.unpack (channel 2 from consecutive frames and the reset
+flags), bit-identical to the float32 observations the policy acted on. On CUDA pack and unpack run
+torch.compile'd (one pass each instead of a few eager kernels; the same exact operations, so the same
+values: tests/learner/test_learner_rollout.py checks both devices). Float32 (any other env): the
+observations as they came, 12 bytes per ray.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, TypeVar, cast
+
+import torch
+
+from navi_env.sim.observation import pack, semantic_table, unpack
+from navi_learner.engine.heads import ACTION_DIM
+from navi_learner.engine.temporal import CoreState
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+@functools.cache
+def _compiled(fn: F) -> F:
+    """fn compiled once per process (one program per input shape)."""
+    return cast(F, torch.compile(fn, fullgraph=True, dynamic=False))
+
+
+@dataclass
+class Minibatch:
+    """M whole sequences of length L (time-major)."""
+
+    obs: torch.Tensor  # (L, M, 3, Az, El) float32, exactly what the policy acted on
+    actions: torch.Tensor  # (L, M, 4) float32
+    logp: torch.Tensor  # (L, M) float32
+    values: torch.Tensor  # (L, M) float32
+    advantages: torch.Tensor  # (L, M) float32
+    returns: torch.Tensor  # (L, M) float32
+    resets: torch.Tensor  # (L, M) bool
+    state: CoreState  # each (M, ...) float32: the recurrent state entering the first step
+    chunks: torch.Tensor  # (M,) int64 BPTT chunk of each sequence: steps chunk·L .. chunk·L + L - 1
+    actors: torch.Tensor  # (M,) int64 actor of each sequence
+
+
+class RolloutStorage:
+    """Preallocated (T, N, ...) buffers on one device."""
+
+    def __init__(
+        self,
+        t_len: int,
+        n: int,
+        obs_shape: tuple[int, int, int],
+        state_template: CoreState,
+        bptt_chunk: int,
+        device: torch.device,
+        compact: bool = False,
+    ) -> None:
+        if t_len % bptt_chunk:
+            raise ValueError(f"rollout length {t_len} is not a multiple of the BPTT chunk {bptt_chunk}")
+        self.t_len, self.n, self.chunk, self.compact = t_len, n, bptt_chunk, compact
+        self.n_chunks = t_len // bptt_chunk
+        c, az, el = obs_shape
+        if compact:
+            if c != 3:
+                raise ValueError(f"compact observations have 3 channels, got {c}")
+            # channel 0 of the frame before the rollout, then of its T frames
+            self.depth16 = torch.zeros(
+                t_len + 1, n, az, el, dtype=torch.float16, device=device
+            )  # (T+1, N, Az, El)
+            self.semantic = torch.zeros(t_len, n, az, el, dtype=torch.uint8, device=device)  # (T, N, Az, El)
+            self.table = semantic_table(device)  # (256,) float32
+            self.frame_steps = torch.arange(bptt_chunk + 1, device=device)[:, None]  # (L+1, 1) int64
+            fast = device.type == "cuda"
+            self._pack = _compiled(pack) if fast else pack
+            self._unpack = _compiled(unpack) if fast else unpack
+        else:
+            self.obs = torch.zeros(t_len, n, c, az, el, device=device)  # (T, N, 3, Az, El) float32
+        self.actions = torch.zeros(t_len, n, ACTION_DIM, device=device)  # (T, N, 4) float32
+        self.logp = torch.zeros(t_len, n, device=device)  # (T, N) float32
+        self.values = torch.zeros(t_len, n, device=device)  # (T, N) float32
+        self.rewards = torch.zeros(t_len, n, device=device)  # (T, N) float32 extrinsic + intrinsic
+        self.resets = torch.zeros(t_len, n, dtype=torch.bool, device=device)  # (T, N) bool
+        self.ends = torch.zeros(t_len, n, dtype=torch.bool, device=device)  # (T, N) bool
+        self.truncs = torch.zeros(t_len, n, dtype=torch.bool, device=device)  # (T, N) bool
+        self.advantages = torch.zeros(t_len, n, device=device)  # (T, N) float32
+        self.returns = torch.zeros(t_len, n, device=device)  # (T, N) float32
+        self.states = tuple(
+            torch.zeros(self.n_chunks, *s.shape, dtype=s.dtype, device=device) for s in state_template
+        )  # each (T/L, N, ...)
+
+    def begin(self) -> None:
+        """Start a rollout: the last frame of the previous one becomes the frame before this one."""
+        if self.compact:
+            self.depth16[0].copy_(self.depth16[self.t_len])
+
+    def store_obs(self, t: int, obs: torch.Tensor) -> None:
+        """Keep step t's observation obs (N, 3, Az, El) float32. Compact storage rebuilds its delta
+        channel from step t - 1's frame and self.resets[t], so store resets[t] as well."""
+        if self.compact:
+            self._pack(obs, self.depth16[t + 1], self.semantic[t])
+        else:
+            self.obs[t].copy_(obs)
+
+    def obs_at(self, t: int) -> torch.Tensor:
+        """Step t's stored observation (N, 3, Az, El) float32, as the policy saw it."""
+        if not self.compact:
+            return self.obs[t]
+        frames = unpack(self.depth16[t : t + 2], self.semantic[t : t + 1], self.resets[t : t + 1], self.table)
+        return frames[0]  # (N, 3, Az, El)
+
+    def store_state(self, t: int, state: CoreState) -> None:
+        """Keep the recurrent state entering step t when t starts a BPTT chunk."""
+        if t % self.chunk == 0:
+            for buf, s in zip(self.states, state, strict=True):
+                buf[t // self.chunk].copy_(s)
+
+    def minibatches(
+        self, num_minibatches: int, generator: torch.Generator | None = None
+    ) -> Iterator[Minibatch]:
+        """Shuffle the (chunk, actor) sequences and yield num_minibatches groups of whole sequences."""
+        total = self.n_chunks * self.n
+        device = self.actions.device
+        perm = torch.randperm(total, generator=generator).to(device)  # (S,) int64 sequence ids
+        size = max(1, total // num_minibatches)
+        for start in range(0, total - size + 1, size):
+            ids = perm[start : start + size]  # (M,)
+            c, a = ids // self.n, ids % self.n  # (M,) each
+
+            def seq(buf: torch.Tensor, c: torch.Tensor = c, a: torch.Tensor = a) -> torch.Tensor:
+                view = buf.view(self.n_chunks, self.chunk, self.n, *buf.shape[2:])  # (T/L, L, N, ...)
+                return view[c, :, a].transpose(0, 1)  # (L, M, ...)
+
+            resets = seq(self.resets)  # (L, M) bool
+            if self.compact:
+                frames = c[None] * self.chunk + self.frame_steps  # (L+1, M) from the frame before
+                depth16 = self.depth16[frames, a[None]]  # (L+1, M, Az, El) float16, from the frame before
+                obs = self._unpack(depth16, seq(self.semantic), resets, self.table)  # (L, M, 3, Az, El)
+            else:
+                obs = seq(self.obs)  # (L, M, 3, Az, El)
+            yield Minibatch(
+                obs=obs,
+                actions=seq(self.actions),
+                logp=seq(self.logp),
+                values=seq(self.values),
+                advantages=seq(self.advantages),
+                returns=seq(self.returns),
+                resets=resets,
+                state=tuple(s[c, a] for s in self.states),
+                chunks=c,
+                actors=a,
+            )
