@@ -1,7 +1,9 @@
 """Navi: train drones to navigate real 3D scenes with reinforcement learning.
 
-This package holds only the `navi` command; the system lives in the workspace packages
-`navi_contracts`, `navi_compiler`, `navi_env`, `navi_learner` and `navi_auditor`.
+The top layer: the `navi` command (cli.py over the groups in commands/) and the wiring that starts
+several services together (stack.py, `navi stack`). The system itself lives in the workspace packages
+below it, each importing only those under it: navi_contracts <- navi_mesh <- navi_compiler <- navi_env
+<- navi_learner <- navi_auditor <- navi (docs/ARCHITECTURE.md).
 """
 
 from __future__ import annotations

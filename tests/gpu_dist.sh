@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Data-parallel PPO (DD-PPO) on several GPUs of one host over NCCL, for a CUDA host without a package
-# registry (our lent 2xH200 machines): builds the extensions in place (tests/gpu_env.sh), then runs
+# registry (a 2-GPU benchmark host): builds the extensions in place (tests/gpu_env.sh), then runs
 # `navi bench train --nproc N` at 8,192 actors per GPU: the one-process measurement (`--nproc 1`, the
 # "single" field) first, then N ranks through torchrun, in one job; prints the JSON (per-rank and total
 # SPS of env only / env + inference / env + training, scaling efficiency SPS(N) / (N x SPS(1))).
@@ -12,7 +12,7 @@ cd "$(dirname "$0")/.."
 corpus=${1:-artifacts/bench-corpus}; nproc=${2:-2}; cores=${CORES:-mamba2}
 out=${OUT:-artifacts/gpu-dist}; mkdir -p "$out"
 source tests/gpu_env.sh
-export NCCL_NVLS_ENABLE=0  # NVLink multicast (NVLS) stays off on the lent machines
+export NCCL_NVLS_ENABLE=0  # NVLink multicast (NVLS) stays off: on shared multi-GPU hosts it can take the GPUs out of service
 export NAVI_DIST_TIMEOUT_S=${NAVI_DIST_TIMEOUT_S:-300}  # the first update includes torch.compile
 nvidia-smi --query-gpu=index,name,memory.total,driver_version --format=csv,noheader
 python -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'nccl', \

@@ -19,8 +19,10 @@ from navi.commands.common import (
     CorpusOpt,
     DeviceOpt,
     EnvOpt,
+    RecordOpt,
     fail,
     pick_device,
+    record_result,
 )
 from navi.commands.compiler import EngineChoice, _check_device, _load, _summary, max_source_bytes
 from navi.commands.learner import (
@@ -50,6 +52,7 @@ def bench_compile(
     threads: Annotated[int, typer.Option(help="C++ worker threads (0: all cores).", min=0)] = 0,
     device: Annotated[str, typer.Option(help="Torch device for --engine torch (cpu, cuda).")] = "cpu",
     json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object (always on).")] = True,
+    record: RecordOpt = None,
 ) -> None:
     """Time one compile (nothing written) and print the stats as one JSON object. With --engine
     torch a first (warm-up) compile runs before the timed one; its time is `warmup_seconds`."""
@@ -88,6 +91,8 @@ def bench_compile(
         }
     )
     typer.echo(json.dumps(result))
+    if record is not None:
+        record_result(result, "compile", device, record)
 
 
 @app.command("trace", rich_help_panel="Tracer")
@@ -135,6 +140,7 @@ def bench_trace_cmd(
         ),
     ] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    record: RecordOpt = None,
 ) -> None:
     """G rays/s and observations/s of the tracer with the 256x48 spherical pattern."""
     from navi_compiler.gmdag import GmdagError
@@ -163,6 +169,8 @@ def bench_trace_cmd(
             report = bench_trace_maps(paths, cfg, lambda line: typer.echo(line, err=True))
         except (OSError, GmdagError, ValueError, RuntimeError) as exc:
             raise fail(str(exc)) from None
+        if record is not None:
+            record_result(report, "trace", device, record)
         if as_json:
             sys.stdout.write(json.dumps(report) + "\n")
         else:
@@ -184,6 +192,8 @@ def bench_trace_cmd(
                 typer.echo(f"--vs-warp skipped: {exc}", err=True)
     except (OSError, GmdagError, ValueError, RuntimeError) as exc:
         raise fail(str(exc)) from None
+    if record is not None:
+        record_result(result, "trace", device, record)
     if as_json:
         sys.stdout.write(json.dumps(result) + "\n")
         return
@@ -220,6 +230,7 @@ def bench_env_cmd(
         ),
     ] = 0,
     json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    record: RecordOpt = None,
 ) -> None:
     """Env-steps per second of SdfDagEnv with random actions, and milliseconds per stage."""
     from navi_env.sim.bench import bench_env
@@ -234,6 +245,8 @@ def bench_env_cmd(
         result = bench_env(gmdag, corpus, actors, steps, device, azimuth, elevation, seed, obstacles, squad)
     except (OSError, RuntimeError, ValueError) as exc:
         raise fail(str(exc)) from exc
+    if record is not None:
+        record_result(result, "env", device, record)
     if json_out:
         typer.echo(json.dumps(result))
     else:
@@ -341,6 +354,7 @@ def bench_learn_cmd(
     ] = 0.0,
     device: DeviceOpt = "auto",
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False,
+    record: RecordOpt = None,
 ) -> None:
     """Train from scratch on a train split, evaluate on unseen scenes during training; time to competence
     (half the reactive baseline's collisions, 1.5x its coverage), learning curves (JSON + PNG)."""
@@ -395,6 +409,8 @@ def bench_learn_cmd(
         )
     except ValueError as err:
         raise fail(str(err)) from err
+    if record is not None:
+        record_result(jsonable({"out": str(folder), "summary": result["summary"]}), "learn", dev, record)
     if as_json:
         typer.echo(json.dumps(jsonable({"out": str(folder), "summary": result["summary"]})))
     else:
@@ -419,6 +435,7 @@ def bench_train_cmd(
     obs_storage: ObsStorageOpt = "auto",
     max_minibatch: MaxMinibatchOpt = 8_192,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    record: RecordOpt = None,
     nproc: Annotated[
         int,
         typer.Option(
@@ -470,4 +487,6 @@ def bench_train_cmd(
             dist.leave(d)
             return
     typer.echo(json.dumps(result) if as_json else "\n".join(f"{k}: {v}" for k, v in result.items()))
+    if record is not None:
+        record_result(result, "train", pick_device(device), record)
     sys.stdout.flush()

@@ -1,5 +1,5 @@
 """What every command group shares: one-line errors, device and choice checks, the options several groups
-take, and the benchmark output (`--json`, `--record DIR`). Module-level imports: typer and the standard
+take, and the benchmark records (`--record DIR`). Module-level imports: typer and the standard
 library only, so `navi --help` stays fast."""
 
 from __future__ import annotations
@@ -77,7 +77,8 @@ def device_name(device: str) -> str:
 
 
 def record_result(result: dict[str, Any], bench: str, device: str, folder: Path) -> Path:
-    """Append `result` to folder/DATE-DEVICE.jsonl as one line, with what it takes to reproduce it."""
+    """Append `result` to folder/DATE-GPU.jsonl as one line, with the date, the machine, the command line
+    and the commit that reproduce it (docs/PERFORMANCE.md reads these records)."""
     from navi import __version__, git_commit
 
     day = time.strftime("%Y-%m-%d")
@@ -96,12 +97,5 @@ def record_result(result: dict[str, Any], bench: str, device: str, folder: Path)
     path = folder / f"{day}-{machine}.jsonl"
     with path.open("a", encoding="utf-8") as out:
         out.write(json.dumps(row, default=str) + "\n")
+    typer.echo(f"recorded in {path}", err=True)
     return path
-
-
-def emit_result(result: dict[str, Any], as_json: bool, bench: str, device: str, record: Path | None) -> None:
-    """Print a benchmark's result (one JSON object, or `key: value` lines) and record it when asked."""
-    typer.echo(json.dumps(result) if as_json else "\n".join(f"{k}: {v}" for k, v in result.items()))
-    sys.stdout.flush()
-    if record is not None:
-        typer.echo(f"recorded in {record_result(result, bench, device, record)}", err=True)

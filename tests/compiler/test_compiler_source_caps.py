@@ -124,8 +124,8 @@ def run_measured(argv: list[str], env: dict[str, str], log: Path) -> tuple[int, 
     return proc.returncode, log.read_text(errors="replace"), usage.ru_maxrss * 1024
 
 
-def test_navi_compile_rejects_the_issue_archive_without_inflating_it(tmp_path: Path) -> None:
-    """The reported case: a ~300 KB .pk3 holding one 300 MB member of zeros, at the default cap."""
+def test_navi_compile_rejects_a_zip_bomb_archive_without_inflating_it(tmp_path: Path) -> None:
+    """A ~300 KB .pk3 holding one 300 MB member of zeros, at the default cap."""
     bomb = zeros_pk3(tmp_path / "bomb.pk3", 300_000_000)
     small = zeros_pk3(tmp_path / "small.pk3", 4096)
     assert bomb.stat().st_size < 400_000

@@ -209,10 +209,20 @@ def test_cli_qualify_corpus_and_bench(sources: Path, tmp_path: Path) -> None:
             "--elevation",
             "4",
             "--json",
+            "--record",
+            str(tmp_path / "results"),
         ],
     )
     assert res.exit_code == 0, res.output
     report = json.loads(res.stdout)
+    (record_file,) = (tmp_path / "results").glob("*.jsonl")  # DATE-cpu-<N>cores.jsonl
+    (row,) = [json.loads(line) for line in record_file.read_text().splitlines()]
+    assert (
+        row["bench"] == "env"
+        and row["command"].startswith("navi ")
+        and record_file.stem.startswith(row["date"])
+    )
+    assert {k: row[k] for k in report} == report  # the printed result, whole, plus how to reproduce it
     assert report["obs_shape"] == [2, 3, 16, 4] and report["steps_per_s"] > 0
     assert set(report["ms_per_stage"]) == {"physics", "reward", "episode", "trace", "observation"}
     assert torch.tensor(list(report["ms_per_stage"].values())).ge(0).all()

@@ -109,7 +109,7 @@ def test_origin_samples_keep_the_reference_parity() -> None:
 
 
 def test_origin_record_size_matches_the_build() -> None:
-    assert ORIGIN_SAMPLE_BYTES == 48  # static_assert(sizeof(OriginSample) == 48) in gmdag_trace.h
+    assert ORIGIN_SAMPLE_BYTES == 48  # static_assert(sizeof(OriginSample) == 48) in csrc/ray_walk.h
 
 
 @pytest.mark.gpu

@@ -37,7 +37,7 @@ from navi.stack import (
 pytestmark = pytest.mark.integration
 
 HEALTHY_WITHIN_S = 15.0
-"""The issue's bound: each service answers its health check within 15 s on a 2-core machine."""
+"""The bound the README promises: each service answers its health check within 15 s on a 2-core machine."""
 
 
 def test_specs_are_the_compose_commands() -> None:

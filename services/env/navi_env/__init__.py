@@ -1,7 +1,13 @@
-"""navi_env: batched sphere tracing of .gmdag scenes (CPU and CUDA) and the drone environment.
+"""navi_env: the drone environment over compiled .gmdag scenes, on CPU or CUDA.
 
-Tracer modules: `scene` (SceneCorpus on a device), `trace` (trace, sample_distance), `trace_ref`
-(PyTorch twins), `rays` (spherical pattern, tiled ray order), `cuda_build` (CUDA JIT),
-`analytic_scenes` (exact test scenes), `bench_trace` / `device_check` (benchmarks).
-See docs/SDFDAG_RUNTIME.md.
+Sub-packages, in the order data flows through them:
+  corpus/   training corpora: folders of qualified .gmdag scenes (folder), spawn qualification (qualify),
+            and the procedural default corpus built over the compiler workers' jobs (jobs)
+  tracer/   the sphere tracer: scenes resident on a device (scene), the batched trace and point queries
+            (trace; C++/CUDA in csrc/), their PyTorch twins (trace_ref), moving primitives (primitives),
+            exact test scenes, accuracy checks and `navi bench trace`
+  sim/      the simulation: SdfDagEnv (env) stepping physics, episodes, observation and rewards for N
+            drones at once, scripted obstacles, the sensor's ray pattern, and `navi bench env`
+service.py is the thin `navi serve env` shell over sim.env. docs/SIMULATION.md and docs/SDFDAG_RUNTIME.md
+describe them.
 """

@@ -1,4 +1,4 @@
-"""ctypes mirrors of the launcher argument structs in csrc/gmdag_trace.h (TraceArgs, SampleArgs,
+"""ctypes mirrors of the launcher argument structs in csrc/launch_args.h (TraceArgs, SampleArgs,
 SweepArgs).
 
 Both launchers (CPU extension and CUDA library) take the address of one of these structs. Each
@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 
 class TraceArgs(ctypes.Structure):
-    """Arguments of one trace launch (field meanings in gmdag_trace.h)."""
+    """Arguments of one trace launch (field meanings in csrc/launch_args.h)."""
 
     _fields_ = [
         ("nodes", ctypes.c_void_p),
@@ -54,7 +54,7 @@ class TraceArgs(ctypes.Structure):
 
 
 class SampleArgs(ctypes.Structure):
-    """Arguments of one point-query launch (field meanings in gmdag_trace.h)."""
+    """Arguments of one point-query launch (field meanings in csrc/launch_args.h)."""
 
     _fields_ = [
         ("nodes", ctypes.c_void_p),
@@ -81,7 +81,7 @@ class SampleArgs(ctypes.Structure):
 
 
 class SweepArgs(ctypes.Structure):
-    """Arguments of one obstacle-sweep launch (field meanings in gmdag_trace.h)."""
+    """Arguments of one obstacle-sweep launch (field meanings in csrc/launch_args.h)."""
 
     _fields_ = [
         ("prims", ctypes.c_void_p),

@@ -1,6 +1,6 @@
 """Dynamic primitives: spheres, capsules and boxes that move without any rebuild of the static scene.
 
-A signed distance field composes by min, so the tracer (csrc/gmdag_trace.h) reads, beside the static
+A signed distance field composes by min, so the tracer (csrc/primitives.h) reads, beside the static
 .gmdag corpus, a (W, K, 16) float32 tensor of primitive records: W worlds of K slots each. Actor b's
 rays see the primitives of its world (`prim_world[b]`, or world b) and leave out the primitive whose
 owner is b (its own drone); a ray reports the first primitive it enters (exact ray-primitive

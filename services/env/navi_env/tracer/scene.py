@@ -1,7 +1,7 @@
 """Scenes on a device: many .gmdag scenes resident at once, addressed by index.
 
 A `SceneCorpus` packs every scene's child words, leaf grid, bricks and brick classes into one buffer
-each, plus a table with one 16-word record per scene (layout `SceneWord` in csrc/gmdag_trace.h).
+each, plus a table with one 16-word record per scene (layout `SceneWord` in csrc/scene_record.h).
 Payloads stay relative to their scene; the record's offsets rebase them at trace time, so loading is a
 few vectorised numpy passes and one host-to-device copy per buffer.
 
@@ -49,7 +49,7 @@ from navi_compiler.gmdag import (
 )
 
 SCENE_WORDS = 16  # 32-bit words per scene record
-# Word indices of a scene record (mirror of enum SceneWord in gmdag_trace.h).
+# Word indices of a scene record (mirror of enum SceneWord in csrc/scene_record.h).
 W_ROOT, W_NODE_OFFSET, W_BRICK_OFFSET, W_RESOLUTION, W_LEVELS = 0, 1, 2, 3, 4
 W_ORIGIN, W_VOXEL, W_INV_VOXEL, W_QUANT, W_BAND = 5, 8, 9, 10, 11
 W_GRID_OFFSET, W_GRID_DEPTH = 12, 13

@@ -26,13 +26,13 @@ DEFAULT_MAX_STEPS = 256  # main-loop samples per ray
 DEFAULT_HORIZON = 100.0  # meters
 DEFAULT_HIT_EPSILON_VOXELS = 0.1  # used per scene when hit_epsilon is None (kDefaultHitEpsilonVoxels)
 NORM_TOLERANCE = 1e-3  # | |direction| - 1 | allowed
-RAY_GROUP = 128  # work items per ray group (kRayGroup in gmdag_trace.h)
+RAY_GROUP = 128  # work items per ray group (kRayGroup in csrc/primitives.h)
 MASK_PRIMS = 64  # most primitives per world with per-group masks (kMaskPrims)
-ORIGIN_SAMPLE_BYTES = 48  # one actor's origin sample (sizeof(OriginSample) in gmdag_trace.h)
+ORIGIN_SAMPLE_BYTES = 48  # one actor's origin sample (sizeof(OriginSample) in csrc/ray_walk.h)
 
 
 def prim_scratch_bytes(batch: int, rays: int, per_world: int, shared: bool) -> int:
-    """Device bytes a trace launch with primitives builds its tables in (gmdag_trace.h,
+    """Device bytes a trace launch with primitives builds its tables in (csrc/primitives.h,
     prim_scratch_bytes): cull entries (B, K) of 16 bytes, and with shared directions and K <= 64 also
     a cone per ray group (G,) of 16 bytes and a mask word per actor and group (B, G) of 8 bytes."""
     groups = -(-rays // RAY_GROUP)
@@ -504,7 +504,7 @@ def _(
 def sweep_prims(
     prims: torch.Tensor, delta: torch.Tensor, drone: torch.Tensor, radius: float, skin: float, iterations: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The obstacle sweep in one launch (gmdag_trace.h `sweep_item`; torch twin
+    """The obstacle sweep in one launch (csrc/queries.h `sweep_item`; torch twin
     navi_env.sim.obstacles.sweep_ref): for N actors' K primitives, records prims (N, K, 16) translating
     by delta (N, K, 3) towards a drone sphere of `radius` at drone (N, 3), the fraction t (N, K) in
     [0, 1] each may move while keeping `skin` outside the sphere (`iterations` march steps), and its

@@ -1,4 +1,4 @@
-"""The reference tracer: the algorithm of csrc/gmdag_trace.h in plain PyTorch, vectorised over rays.
+"""The reference tracer: the traversal of csrc/ (gmdag_trace.h and its headers) in plain PyTorch, by ray.
 
 Slow and obviously correct: every sample descends from the root through the file's child words (no
 leaf grid, no leaf cache) and reads the file's 729 samples of a brick (decoded back from the corpus's
@@ -108,7 +108,7 @@ def ref_scene(scenes: SceneCorpus, sid: torch.Tensor) -> RefScene:
 
 @dataclass
 class Field:
-    """The field at K points (gmdag_trace.h FieldSample plus the leaf cube)."""
+    """The field at K points (csrc/brick_sample.h FieldSample plus the leaf cube)."""
 
     dist: torch.Tensor  # (K,) float32 voxels
     solid: torch.Tensor  # (K,) bool
@@ -190,7 +190,7 @@ def cells_at(s: RefScene, p: torch.Tensor) -> torch.Tensor:
 
 def clip_slab(o: torch.Tensor, d: torch.Tensor, inv: torch.Tensor, res: torch.Tensor,
               t0: torch.Tensor, t1: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """gmdag_trace.h clip_slab over (M,) rays."""
+    """csrc/ray_walk.h clip_slab over (M,) rays."""
     ta = (0.0 - o) * inv
     tb = (res - o) * inv
     moving = d != 0
@@ -203,7 +203,7 @@ def clip_slab(o: torch.Tensor, d: torch.Tensor, inv: torch.Tensor, res: torch.Te
 def exit_time(
     o: torch.Tensor, d: torch.Tensor, inv: torch.Tensor, c: torch.Tensor, edge: torch.Tensor
 ) -> torch.Tensor:
-    """gmdag_trace.h exit_time over (K,) rays."""
+    """csrc/ray_walk.h exit_time over (K,) rays."""
     bound = torch.where(d > 0, c + edge, c).to(F32)
     return torch.where(d == 0, torch.full_like(o, BIG), (bound - o) * inv)
 

@@ -1,1 +1,3 @@
-"""navi_learner.serving."""
+"""Trained models out to the world: the checkpoint format (checkpoint.py), the model registry with aliases
+and an audit log (registry.py), its REST control plane (control_plane.py), and ONNX export (export.py).
+"""
