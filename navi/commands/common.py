@@ -5,6 +5,7 @@ library only, so `navi --help` stays fast."""
 from __future__ import annotations
 
 import json
+import os
 import platform
 import sys
 import time
@@ -61,8 +62,8 @@ def check_choice(value: str, choices: tuple[str, ...], what: str) -> str:
 
 
 def device_name(device: str) -> str:
-    """A short name for the machine a benchmark ran on: the GPU's marketing name's model (H100, H200, ...)
-    for a CUDA device, else `cpu-<N>cores`."""
+    """A short name for the machine a benchmark ran on: the GPU's model (H100, H200, ...) for a CUDA device,
+    else CPU."""
     if device.startswith("cuda"):
         import torch
 
@@ -71,9 +72,7 @@ def device_name(device: str) -> str:
             if any(c.isdigit() for c in word) and word[0].isalpha():
                 return word
         return name.replace(" ", "_")
-    import os
-
-    return f"cpu-{os.cpu_count()}cores"
+    return "CPU"
 
 
 def record_result(result: dict[str, Any], bench: str, device: str, folder: Path) -> Path:
@@ -91,6 +90,7 @@ def record_result(result: dict[str, Any], bench: str, device: str, folder: Path)
         "commit": git_commit(),
         "navi": __version__,
         "python": platform.python_version(),
+        "cpu_count": os.cpu_count(),
         **result,
     }
     folder.mkdir(parents=True, exist_ok=True)
