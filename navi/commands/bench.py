@@ -24,7 +24,14 @@ from navi.commands.common import (
     pick_device,
     record_result,
 )
-from navi.commands.compiler import EngineChoice, _check_device, _load, _summary, max_source_bytes
+from navi.commands.compiler import (
+    EngineChoice,
+    _check_device,
+    _load,
+    _summary,
+    compile_or_fail,
+    max_source_bytes,
+)
 from navi.commands.learner import (
     MaxMinibatchOpt,
     ObsStorageOpt,
@@ -58,27 +65,16 @@ def bench_compile(
     torch a first (warm-up) compile runs before the timed one; its time is `warmup_seconds`."""
     import os
 
-    from navi_compiler.compile import compile_scene
-
     _check_device(engine, device)
     t0 = time.perf_counter()
     scene = _load(src, map_name, scale, False, None, max_source_bytes(None))
     load_seconds = time.perf_counter() - t0
     warmup: float | None = None
-    try:
-        if engine == EngineChoice.torch:
-            t1 = time.perf_counter()
-            compile_scene(scene, resolution=resolution, engine="torch", device=device)
-            warmup = time.perf_counter() - t1
-        _, stats = compile_scene(
-            scene, resolution=resolution, engine=engine.value, threads=threads, device=device
-        )
-    except ValueError as exc:
-        raise fail(str(exc)) from None
-    except MemoryError:
-        raise fail(
-            f"not enough memory for resolution {resolution} (about 20 bytes per lattice point)"
-        ) from None
+    if engine == EngineChoice.torch:
+        t1 = time.perf_counter()
+        compile_or_fail(scene, resolution, engine="torch", device=device)
+        warmup = time.perf_counter() - t1
+    _, stats = compile_or_fail(scene, resolution, engine=engine.value, threads=threads, device=device)
     result = _summary(asdict(stats), None, load_seconds)
     result.update(
         {
@@ -214,21 +210,8 @@ def bench_env_cmd(
     threads: Annotated[
         int, typer.Option(help="CPU threads for torch and the CPU tracer (0: torch's default).", min=0)
     ] = 0,
-    obstacles: Annotated[
-        int,
-        typer.Option(
-            "--obstacles",
-            min=0,
-            max=64,
-            help="K scripted moving obstacles per actor (EnvConfig.obstacles; traced, felt by physics).",
-        ),
-    ] = 0,
-    squad: Annotated[
-        int,
-        typer.Option(
-            "--squad", min=0, max=64, help="Squads of this many actors see and collide with each other."
-        ),
-    ] = 0,
+    obstacles: ObstaclesOpt = 0,
+    squad: SquadOpt = 0,
     json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
     record: RecordOpt = None,
 ) -> None:
@@ -409,10 +392,11 @@ def bench_learn_cmd(
         )
     except ValueError as err:
         raise fail(str(err)) from err
+    summary = {"out": str(folder), "summary": jsonable(result["summary"])}
     if record is not None:
-        record_result(jsonable({"out": str(folder), "summary": result["summary"]}), "learn", dev, record)
+        record_result(summary, "learn", dev, record)
     if as_json:
-        typer.echo(json.dumps(jsonable({"out": str(folder), "summary": result["summary"]})))
+        typer.echo(json.dumps(summary))
     else:
         typer.echo((folder / "report.md").read_text())
         typer.echo(f"results: {folder}")

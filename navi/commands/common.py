@@ -25,6 +25,19 @@ DeviceOpt = Annotated[str, typer.Option("--device", help="Torch device: auto, cp
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed for torch and the environment.")]
 CoreOpt = Annotated[str, typer.Option("--temporal-core", help="Temporal core: mamba2, gru or mambapy.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object.")]
+ActorsOpt = Annotated[
+    int, typer.Option("--actors", min=0, help="Parallel actors (0: 4 on CPU, 4096 on CUDA).")
+]
+RolloutOpt = Annotated[
+    int, typer.Option("--rollout-length", min=0, help="Steps per rollout (0: 512, capped by memory).")
+]
+TotalStepsOpt = Annotated[int, typer.Option("--total-steps", min=1, help="Training: env-step budget.")]
+CheckpointEveryOpt = Annotated[
+    int, typer.Option("--checkpoint-every", min=1, help="Training: env steps between checkpoints.")
+]
+ResumeOpt = Annotated[
+    Path | None, typer.Option("--checkpoint", help="Training: resume from this checkpoint.")
+]
 RecordOpt = Annotated[
     Path | None,
     typer.Option(

@@ -10,13 +10,15 @@ from collections.abc import Callable
 from dataclasses import asdict
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from navi.commands.common import fail
 
 if TYPE_CHECKING:
+    from navi_compiler.compile import CompileStats
+    from navi_compiler.gmdag import Gmdag
     from navi_compiler.scene import Scene
 
 PANEL = "Compiler"
@@ -108,6 +110,20 @@ def _check_device(engine: EngineChoice, device: str) -> None:
         raise fail(f"--device {device}: only {torch.cuda.device_count()} CUDA device(s) here")
     if dev.type not in ("cpu", "cuda"):
         raise fail(f"--device {device}: only cpu and cuda are supported")
+
+
+def compile_or_fail(scene: Scene, resolution: int, **options: Any) -> tuple[Gmdag, CompileStats]:
+    """compile_scene, with bad input and a lattice too large for memory as one-line errors (exit 2)."""
+    from navi_compiler.compile import compile_scene
+
+    try:
+        return compile_scene(scene, resolution=resolution, **options)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    except MemoryError:
+        raise fail(
+            f"not enough memory for resolution {resolution} (about 20 bytes per lattice point)"
+        ) from None
 
 
 def _compile_remote(
@@ -242,7 +258,6 @@ def compile_cmd(
     ] = None,
 ) -> None:
     """Compile a scene into a .gmdag signed-distance DAG."""
-    from navi_compiler.compile import compile_scene
     from navi_compiler.gmdag import write_gmdag
     from navi_compiler.scene import write_surface_mesh
 
@@ -258,22 +273,15 @@ def compile_cmd(
     scene = _load(src, map_name, scale, repair, seed, max_source_bytes(max_source_mb))
     load_seconds = time.perf_counter() - t0
     show = sys.stderr.isatty() and not json_out
-    try:
-        g, stats = compile_scene(
-            scene,
-            resolution=resolution,
-            min_band_m=band_m,
-            engine=engine.value,
-            threads=threads,
-            progress=_progress(show),
-            device=device,
-        )
-    except ValueError as exc:
-        raise fail(str(exc)) from None
-    except MemoryError:
-        raise fail(
-            f"not enough memory for resolution {resolution} (about 20 bytes per lattice point)"
-        ) from None
+    g, stats = compile_or_fail(
+        scene,
+        resolution=resolution,
+        min_band_m=band_m,
+        engine=engine.value,
+        threads=threads,
+        progress=_progress(show),
+        device=device,
+    )
     if not out.parent.exists():
         raise fail(f"output folder {out.parent} does not exist")
     write_gmdag(g, out)

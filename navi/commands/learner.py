@@ -16,12 +16,17 @@ from navi.commands.common import (
     DEFAULT_CORPUS,
     MODELS_DIR,
     UNSEEN_CORPUS,
+    ActorsOpt,
+    CheckpointEveryOpt,
     CoreOpt,
     CorpusOpt,
     DeviceOpt,
     EnvOpt,
     JsonOpt,
+    ResumeOpt,
+    RolloutOpt,
     SeedOpt,
+    TotalStepsOpt,
     check_choice,
     fail,
     pick_device,
@@ -220,23 +225,17 @@ app = typer.Typer()
 @app.command(rich_help_panel=PANEL)
 def train(
     corpus: CorpusOpt = None,
-    actors: Annotated[int, typer.Option("--actors", help="Parallel actors (0: 4 on CPU, 4096 on CUDA).")] = 0,
+    actors: ActorsOpt = 0,
     temporal_core: CoreOpt = "mamba2",
-    rollout_length: Annotated[
-        int, typer.Option("--rollout-length", help="Steps per rollout (0: 512, capped by memory).")
-    ] = 0,
+    rollout_length: RolloutOpt = 0,
     ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", help="PPO epochs per rollout.")] = 1,
     lr: Annotated[float, typer.Option("--lr", help="Learning rate.")] = 5e-4,
-    total_steps: Annotated[int, typer.Option("--total-steps", help="Env-step budget.")] = 1_000_000,
+    total_steps: TotalStepsOpt = 1_000_000,
     time_limit: Annotated[
         float, typer.Option("--time-limit-s", min=0.0, help="Training-seconds budget (0: none).")
     ] = 0.0,
-    checkpoint_every: Annotated[
-        int, typer.Option("--checkpoint-every", help="Env steps between checkpoints.")
-    ] = 25_000,
-    checkpoint: Annotated[
-        Path | None, typer.Option("--checkpoint", help="Resume from this checkpoint.")
-    ] = None,
+    checkpoint_every: CheckpointEveryOpt = 25_000,
+    checkpoint: ResumeOpt = None,
     fresh: Annotated[
         bool, typer.Option("--fresh", help="Do not resume from artifacts/models/latest.pt.")
     ] = False,

@@ -18,7 +18,18 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from navi.commands.common import DeviceOpt, fail, pick_device
+from navi.commands.common import (
+    ActorsOpt,
+    CheckpointEveryOpt,
+    CoreOpt,
+    DeviceOpt,
+    EnvOpt,
+    ResumeOpt,
+    RolloutOpt,
+    TotalStepsOpt,
+    fail,
+    pick_device,
+)
 
 if TYPE_CHECKING:
     from navi_contracts.settings import NaviSettings
@@ -247,25 +258,13 @@ def wait_for_corpus(corpus: Path, stop: threading.Event, metrics_port: int, metr
 def serve_learner(
     mode: Annotated[str, typer.Option("--mode", help="train (PPO) or infer (run a model).")] = "train",
     corpus: CorpusOpt = Path("artifacts/corpus/default"),
-    env_kind: Annotated[
-        str, typer.Option("--env", help="Environment: sdfdag (the drone env) or toy (tests).")
-    ] = "sdfdag",
-    actors: Annotated[
-        int, typer.Option("--actors", min=0, help="Parallel actors (0: 4 on CPU, 4096 on CUDA).")
-    ] = 0,
-    temporal_core: Annotated[str, typer.Option("--temporal-core", help="mamba2, gru or mambapy.")] = "mamba2",
-    rollout_length: Annotated[
-        int, typer.Option("--rollout-length", min=0, help="Steps per rollout (0: default).")
-    ] = 0,
-    total_steps: Annotated[
-        int, typer.Option("--total-steps", min=1, help="train: env-step budget.")
-    ] = 1_000_000,
-    checkpoint_every: Annotated[
-        int, typer.Option("--checkpoint-every", min=1, help="train: env steps between checkpoints.")
-    ] = 25_000,
-    checkpoint: Annotated[
-        Path | None, typer.Option("--checkpoint", help="train: resume from this checkpoint.")
-    ] = None,
+    env_kind: EnvOpt = "sdfdag",
+    actors: ActorsOpt = 0,
+    temporal_core: CoreOpt = "mamba2",
+    rollout_length: RolloutOpt = 0,
+    total_steps: TotalStepsOpt = 1_000_000,
+    checkpoint_every: CheckpointEveryOpt = 25_000,
+    checkpoint: ResumeOpt = None,
     model: Annotated[
         str, typer.Option("--model", help="infer: checkpoint path, registry version or alias.")
     ] = "latest",

@@ -21,15 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from navi_env.tracer.analytic_scenes import (
-    AnalyticScene,
-    Box,
-    Sphere,
-    demo_room,
-    free_points,
-    random_directions,
-    slab_scene,
-)
+from navi_env.tracer import analytic_scenes as analytic
 from navi_env.tracer.bench import TraceBenchConfig, TraceBenchResult, bench_trace
 from navi_env.tracer.cuda_build import CSRC, NVCC_FLAGS, build_library, cuda_library, find_nvcc
 from navi_env.tracer.scene import SceneCorpus, load_corpus, load_scene
@@ -58,21 +50,25 @@ def ptxas_report() -> str:
     return " | ".join(keep)
 
 
-def parity_scenes() -> list[AnalyticScene]:
+def parity_scenes() -> list[analytic.AnalyticScene]:
     return [
-        demo_room(64, 16.0),
-        AnalyticScene((Sphere((5.1, 4.3, 3.9), 2.6), Box((0.5, 0.5, 0.5), (3.0, 7.0, 2.0))), 64, 0.125),
-        slab_scene(0.25, np.array([0.3, -0.2, 0.9]), resolution=64),
+        analytic.demo_room(64, 16.0),
+        analytic.AnalyticScene(
+            (analytic.Sphere((5.1, 4.3, 3.9), 2.6), analytic.Box((0.5, 0.5, 0.5), (3.0, 7.0, 2.0))), 64, 0.125
+        ),
+        analytic.slab_scene(0.25, np.array([0.3, -0.2, 0.9]), resolution=64),
     ]
 
 
-def parity(cpu: SceneCorpus, cuda: SceneCorpus, scenes: list[AnalyticScene]) -> dict[str, float]:
+def parity(cpu: SceneCorpus, cuda: SceneCorpus, scenes: list[analytic.AnalyticScene]) -> dict[str, float]:
     """CUDA vs CPU over 64 agents per scene x 2048 rays with yaw; and sample_distance."""
     per = 64
-    origins = np.concatenate([free_points(s, per, 0.0, seed=i) for i, s in enumerate(scenes)])  # (B, 3)
+    origins = np.concatenate(
+        [analytic.free_points(s, per, 0.0, seed=i) for i, s in enumerate(scenes)]
+    )  # (B, 3)
     ids = torch.arange(len(scenes)).repeat_interleave(per)  # (B,)
     o = torch.tensor(origins, dtype=torch.float32)  # (B, 3)
-    dirs = torch.tensor(random_directions(2048, seed=1), dtype=torch.float32)  # (R, 3)
+    dirs = torch.tensor(analytic.random_directions(2048, seed=1), dtype=torch.float32)  # (R, 3)
     yaw = torch.linspace(-3.0, 3.0, len(ids))  # (B,)
     out = {}
     d_cpu, s_cpu = torch.empty(len(ids), 2048), torch.empty(len(ids), 2048, dtype=torch.int32)
@@ -86,7 +82,7 @@ def parity(cpu: SceneCorpus, cuda: SceneCorpus, scenes: list[AnalyticScene]) -> 
     out["trace_within_1e-4_fraction"] = float((diff <= REL_TOL * d_cpu.abs().clamp(min=1e-3)).float().mean())
     out["trace_max_abs_diff_m"] = float(diff.max())
     out["semantic_mismatch_fraction"] = float((s_gpu.cpu() != s_cpu).float().mean())
-    pts = torch.tensor(np.concatenate([free_points(s, 2000, -1e9, seed=9 + i) for i, s in enumerate(scenes)]),
+    pts = torch.tensor(np.concatenate([analytic.free_points(s, 2000, -1e9, seed=9 + i) for i, s in enumerate(scenes)]),
                        dtype=torch.float32)  # fmt: skip
     sid = torch.arange(len(scenes)).repeat_interleave(2000)  # (N,)
     sd = (sample_distance(cuda, sid.cuda(), pts.cuda()).cpu() - sample_distance(cpu, sid, pts)).abs()
@@ -94,10 +90,10 @@ def parity(cpu: SceneCorpus, cuda: SceneCorpus, scenes: list[AnalyticScene]) -> 
     return out
 
 
-def room_accuracy(scene: AnalyticScene, corpus: SceneCorpus) -> dict[str, float]:
+def room_accuracy(scene: analytic.AnalyticScene, corpus: SceneCorpus) -> dict[str, float]:
     """CUDA trace vs exact hits in the analytic room (voxels)."""
-    origins = free_points(scene, 64, 0.3, seed=3)  # (B, 3)
-    dirs = random_directions(2048, seed=4)  # (R, 3)
+    origins = analytic.free_points(scene, 64, 0.3, seed=3)  # (B, 3)
+    dirs = analytic.random_directions(2048, seed=4)  # (R, 3)
     depth = torch.empty(64, 2048, device="cuda")  # (B, R) float32
     trace(corpus, torch.zeros(64, dtype=torch.int64, device="cuda"), torch.tensor(origins, dtype=torch.float32).cuda(),
           torch.tensor(dirs, dtype=torch.float32).cuda(), out_depth=depth, horizon=1000.0, max_steps=2048)  # fmt: skip
@@ -130,9 +126,9 @@ def main() -> None:
     gmdags = [s.gmdag(dilate_voxels=0.5 if i == 2 else 0.0) for i, s in enumerate(scenes)]
     report["parity"] = parity(load_corpus(gmdags), load_corpus(gmdags, "cuda"), scenes)
     say(f"parity: {report['parity']}")
-    room = demo_room(256, 16.0)
+    room = analytic.demo_room(256, 16.0)
     say("building the 256^3 analytic room")
-    room_corpus = load_scene(room.gmdag(spawns=free_points(room, 64, 1.0, seed=5)), "cuda")
+    room_corpus = load_scene(room.gmdag(spawns=analytic.free_points(room, 64, 1.0, seed=5)), "cuda")
     report["room256_accuracy"] = room_accuracy(room, room_corpus)
     say(f"accuracy: {report['room256_accuracy']}")
 
