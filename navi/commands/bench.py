@@ -26,10 +26,10 @@ from navi.commands.common import (
 )
 from navi.commands.compiler import (
     EngineChoice,
-    _check_device,
-    _load,
-    _summary,
+    check_engine_device,
     compile_or_fail,
+    compile_summary,
+    load_source,
     max_source_bytes,
 )
 from navi.commands.learner import (
@@ -65,9 +65,9 @@ def bench_compile(
     torch a first (warm-up) compile runs before the timed one; its time is `warmup_seconds`."""
     import os
 
-    _check_device(engine, device)
+    check_engine_device(engine, device)
     t0 = time.perf_counter()
-    scene = _load(src, map_name, scale, False, None, max_source_bytes(None))
+    scene = load_source(src, map_name, scale, False, None, max_source_bytes(None))
     load_seconds = time.perf_counter() - t0
     warmup: float | None = None
     if engine == EngineChoice.torch:
@@ -75,7 +75,7 @@ def bench_compile(
         compile_or_fail(scene, resolution, engine="torch", device=device)
         warmup = time.perf_counter() - t1
     _, stats = compile_or_fail(scene, resolution, engine=engine.value, threads=threads, device=device)
-    result = _summary(asdict(stats), None, load_seconds)
+    result = compile_summary(asdict(stats), None, load_seconds)
     result.update(
         {
             "source": src,

@@ -55,7 +55,7 @@ def _progress(enabled: bool) -> Callable[[str, float], None]:
     return report
 
 
-def _load(
+def load_source(
     src: str,
     map_name: str | None,
     scale: float | None,
@@ -63,6 +63,7 @@ def _load(
     seeds: list[str] | None,
     max_bytes: int,
 ) -> Scene:
+    """The scene a source holds (mesh, .bsp, .pk3 map), or a one-line error (exit 2)."""
     from navi_compiler.ingest import IngestError, load_scene
 
     points = [_parse_seed(s) for s in seeds or []]
@@ -88,11 +89,12 @@ def max_source_bytes(max_source_mb: float | None) -> int:
         raise fail(f"invalid NAVI_MAX_SOURCE_BYTES: {err.errors()[0]['msg']}") from None
 
 
-def _summary(stats: dict[str, object], out: str | None, load_seconds: float) -> dict[str, object]:
+def compile_summary(stats: dict[str, object], out: str | None, load_seconds: float) -> dict[str, object]:
+    """The JSON summary of one compile: where it was written, how long loading took, the stats."""
     return {"output": out, "load_seconds": load_seconds, **stats}
 
 
-def _check_device(engine: EngineChoice, device: str) -> None:
+def check_engine_device(engine: EngineChoice, device: str) -> None:
     """--device must name a usable torch device, and only goes with --engine torch."""
     if device == "cpu":
         return
@@ -261,7 +263,7 @@ def compile_cmd(
     from navi_compiler.gmdag import write_gmdag
     from navi_compiler.scene import write_surface_mesh
 
-    _check_device(engine, device)
+    check_engine_device(engine, device)
     if mesh_out is not None and (remote or mesh_out.suffix.lower() != ".npz"):
         raise fail("--mesh-out needs a local compile and a path ending in .npz")
     if mesh_out is not None and not mesh_out.parent.exists():
@@ -270,7 +272,7 @@ def compile_cmd(
         _compile_remote(src, out, resolution, scale, seed, repair, map_name, timeout, json_out)
         return
     t0 = time.perf_counter()
-    scene = _load(src, map_name, scale, repair, seed, max_source_bytes(max_source_mb))
+    scene = load_source(src, map_name, scale, repair, seed, max_source_bytes(max_source_mb))
     load_seconds = time.perf_counter() - t0
     show = sys.stderr.isatty() and not json_out
     g, stats = compile_or_fail(
@@ -287,7 +289,7 @@ def compile_cmd(
     write_gmdag(g, out)
     if mesh_out is not None:
         write_surface_mesh(scene, mesh_out)
-    summary = _summary(asdict(stats), str(out), load_seconds)
+    summary = compile_summary(asdict(stats), str(out), load_seconds)
     if json_out:
         typer.echo(json.dumps(summary))
         return

@@ -62,7 +62,8 @@ MetricsHostOpt = Annotated[
 ]
 
 
-def _settings() -> NaviSettings:
+def load_settings() -> NaviSettings:
+    """NaviSettings from NAVI_* variables and .env, or a one-line error naming the bad setting."""
     from pydantic import ValidationError
 
     from navi_contracts.settings import NaviSettings
@@ -132,7 +133,7 @@ def serve_router(
     """A Zenoh router in this process (for machines without zenohd)."""
     from navi_mesh.router import RouterConfig, run_router
 
-    settings = _settings()
+    settings = load_settings()
     endpoints = (
         tuple(e.strip() for e in listen.split(",") if e.strip())
         if listen
@@ -169,7 +170,7 @@ def serve_compiler(
     from navi_compiler.service import CompilerServiceConfig
     from navi_compiler.service import serve_compiler as serve
 
-    settings = _settings()
+    settings = load_settings()
     cfg = CompilerServiceConfig(
         workers=workers,
         threads=threads,
@@ -206,7 +207,7 @@ def serve_env(
     from navi_env.service import serve_env as serve
     from navi_env.sim.config import EnvConfig
 
-    settings = _settings()
+    settings = load_settings()
     env = EnvConfig(
         azimuth_bins=settings.azimuth_bins,
         elevation_bins=settings.elevation_bins,
@@ -347,7 +348,7 @@ def serve_learner(
         raise typer.BadParameter(f"--env must be sdfdag or toy, got {env_kind!r}")
     if corpus_build not in ("jobs", "local"):
         raise typer.BadParameter(f"--corpus-build must be jobs or local, got {corpus_build!r}")
-    settings = _settings()
+    settings = load_settings()
     try:
         rank, dev = dist.setup(pick_device(device))
     except ValueError as err:
@@ -407,6 +408,6 @@ def serve_auditor(
         from navi_auditor.server import serve
     except ImportError as err:
         raise fail(f"the auditor is not installed: {err}") from err
-    settings = _settings()
+    settings = load_settings()
     _logging()
     serve(host, settings.auditor_port if port is None else port, settings)

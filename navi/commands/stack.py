@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 
 from navi.commands.common import fail
-from navi.commands.serve import CorpusOpt, _settings
+from navi.commands.serve import CorpusOpt, load_settings
 
 app = typer.Typer(
     help="The whole stack as local processes: router, compiler, env, learner, auditor.", no_args_is_help=True
@@ -122,7 +122,7 @@ def stack_up(
     background over compile jobs; training starts when it is ready (`navi stack status` shows progress)."""
     from navi.stack import STACK_DIR, StackConfig, StackError, probe_host, up
 
-    settings = _settings()
+    settings = load_settings()
     cfg = StackConfig(
         root=STACK_DIR,
         host=host,
@@ -172,4 +172,4 @@ def stack_status(
     """Process states (pid files) and the live liveliness tokens (navi/alive/<service>/<id>)."""
     from navi.stack import STACK_DIR
 
-    _print_status(STACK_DIR, tuple(_settings().connect_endpoints), as_json, timeout_s)
+    _print_status(STACK_DIR, tuple(load_settings().connect_endpoints), as_json, timeout_s)

@@ -1,6 +1,6 @@
 """Training corpora: the scenes a run trains and evaluates on.
 
-  folder.py    a corpus folder (.gmdag files and manifest.json): build it transactionally, load it
-  qualify.py   spawn qualification: probe candidate positions, keep those with a useful view
-  jobs.py      the procedural default corpus built over compile jobs on the compiler workers
+folder.py    a corpus folder (.gmdag files and manifest.json): build it transactionally, load it
+qualify.py   spawn qualification: probe candidate positions, keep those with a useful view
+jobs.py      the procedural default corpus built over compile jobs on the compiler workers
 """
