@@ -15,7 +15,6 @@ from typing import Annotated, Any
 import typer
 
 MODELS_DIR = Path("artifacts/models")
-RUNS_DIR = Path("artifacts/runs")
 DEFAULT_CORPUS = Path("artifacts/corpus/default")
 UNSEEN_CORPUS = Path("artifacts/corpus/unseen")
 
