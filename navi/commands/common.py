@@ -28,7 +28,10 @@ ActorsOpt = Annotated[
     int, typer.Option("--actors", min=0, help="Parallel actors (0: 4 on CPU, 4096 on CUDA).")
 ]
 RolloutOpt = Annotated[
-    int, typer.Option("--rollout-length", min=0, help="Steps per rollout (0: 512, capped by memory).")
+    int,
+    typer.Option(
+        "--rollout-length", min=0, help="Steps per rollout (0: 512 on a GPU, 64 on a CPU, capped by memory)."
+    ),
 ]
 TotalStepsOpt = Annotated[int, typer.Option("--total-steps", min=1, help="Training: env-step budget.")]
 CheckpointEveryOpt = Annotated[

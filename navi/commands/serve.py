@@ -239,7 +239,7 @@ def wait_for_corpus(corpus: Path, stop: threading.Event, metrics_port: int, metr
     """Serve /metrics and wait until `corpus` has a manifest (True) or `stop` is set (False)."""
     from navi_mesh import metrics
 
-    metrics.serve_metrics(metrics_port, metrics_host)
+    metrics.serve_metrics(metrics_port, "env", metrics_host)
     manifest = corpus / "manifest.json"
     waited = 0.0
     while not manifest.is_file():

@@ -129,13 +129,23 @@ def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings,
             page.screenshot(path=str(SCREENSHOTS / "auditor_dashboard_waiting.png"))
 
             # The corpus is being built: OBSERVER (no actor telemetry yet) and its progress.
-            for key, value in (("scenes_planned", 4.0), ("scenes_ready", 3.0), ("scenes_rejected", 0.0)):
+            for key, value in (("scenes_planned", 4.0), ("scenes_ready", 2.0), ("scenes_rejected", 1.0)):
                 zenoh_client.put(TELEMETRY.key, telemetry(f"corpus.{key}", value, 0))
             zenoh_client.put(TELEMETRY.key, telemetry("corpus.ready", 0.0, 0))
             page.wait_for_function(
-                "document.getElementById('corpus').textContent === 'Corpus=3/4 building'", timeout=10_000
+                "document.getElementById('corpus').textContent === 'Corpus=2/4 building, 1 scenes rejected'",
+                timeout=10_000,
             )
             assert page.inner_text("#mode") == "OBSERVER"
+            # Rejected scenes and undecodable messages are counted apart: a scene is not a message.
+            assert page.inner_text("#decode-errors") == "Decode errors=0"
+            zenoh_client.put(TELEMETRY.key, b"\xc1")  # not msgpack
+            page.wait_for_function(
+                "document.getElementById('decode-errors').textContent === 'Decode errors=1'", timeout=10_000
+            )
+            assert "1 scenes rejected" in page.inner_text("#corpus")
+            assert page.inner_text("#bad-frames") == "Bad frames=0"
+            zenoh_client.put(TELEMETRY.key, telemetry("corpus.scenes_rejected", 0.0, 0))
             zenoh_client.put(TELEMETRY.key, telemetry("corpus.scenes_ready", 4.0, 0))
             zenoh_client.put(TELEMETRY.key, telemetry("corpus.ready", 1.0, 0))
             page.wait_for_function(
@@ -167,7 +177,8 @@ def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings,
             assert page.inner_text("#sps") == "SPS=1234"
             assert page.inner_text("#run") == "Run=browser-test"
             assert page.inner_text("#step") == "Step=160"
-            assert page.inner_text("#rejected") == "Rejected=0"
+            assert page.inner_text("#bad-frames") == "Bad frames=0"
+            assert page.inner_text("#decode-errors") == "Decode errors=1"
             for selector, _, label in CHOSEN.values():
                 assert page.inner_text(selector) == label, selector
             assert page.inner_text("#pose") == "Pose=10.00,8.00,4.00"
@@ -197,7 +208,7 @@ def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings,
                 "document.getElementById('mode').textContent === 'INFERENCE'", timeout=10_000
             )
             page.wait_for_function("document.getElementById('sps').textContent === 'SPS=50'", timeout=10_000)
-            assert state.snapshot().rejected == 0
+            assert (state.snapshot().bad_frames, state.snapshot().decode_errors) == (0, 1)
             browser.close()
     finally:
         server.stop()

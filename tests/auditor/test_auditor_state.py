@@ -183,7 +183,9 @@ def test_unusable_observations_are_counted_not_fatal() -> None:
     state.on_observation(matrix(az=6))  # Az not a multiple of 4: no centred forward half
     state.set_decode_errors(3)
     snap = state.snapshot()
-    assert snap.rejected == 4 and snap.frame is None and snap.mode is Mode.WAITING
+    assert (
+        (snap.bad_frames, snap.decode_errors) == (1, 3) and snap.frame is None and snap.mode is Mode.WAITING
+    )
 
 
 def test_client_queue_drops_oldest_and_never_blocks() -> None:

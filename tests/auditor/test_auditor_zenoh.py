@@ -82,10 +82,13 @@ def test_dashboard_feed_is_passive_and_survives_garbage(
             sent += 1
         zenoh_client.put(OBSERVATIONS.key, b"\x00" * 64)
         sent += 1
-        wait_for(lambda: client.get("/api/state").json()["rejected"] >= 5)
+        wait_for(lambda: client.get("/api/state").json()["decode_errors"] >= 5)
         state = client.get("/api/state").json()
         assert state["mode"] == "TRAINING" and state["frames"] == 20 and state["sps"] == 119.0
-        assert state["rejected"] == 5
+        assert (state["decode_errors"], state["bad_frames"]) == (
+            5,
+            0,
+        )  # every garbage payload, on both topics
         metrics = client.get("/metrics").text
         assert 'navi_decode_errors_total{topic="navi/telemetry"}' in metrics
         time.sleep(0.3)

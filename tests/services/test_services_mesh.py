@@ -202,3 +202,31 @@ def test_liveliness_tokens_come_and_go(mesh: tuple[zenoh.Session, zenoh.Session]
     token.undeclare()
     wait_for(lambda: not live_tokens(b, timeout_s=0.5), 5.0, "the token to disappear")
     assert parse_token("navi/alive/env/x") is not None and parse_token("navi/alive/env") is None
+
+
+def test_each_service_exports_the_mesh_families_and_its_own_only() -> None:
+    """A service's /metrics holds the mesh families (every service talks on the mesh) and the families it
+    owns, none of another service's: no learner gauge reads 0 on a compiler's page."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    def families(collectors: tuple[object, ...]) -> set[str]:
+        return {f.name for c in collectors for f in c.describe()}  # type: ignore[attr-defined]
+
+    mesh_families = families(metrics.MESH)
+    assert mesh_families == {
+        "navi_published_messages", "navi_received_messages", "navi_decode_errors", "navi_dropped_messages",
+        "navi_handler_errors",
+    }  # fmt: skip
+    every = set()
+    for service, owned in metrics.OWNERS.items():
+        text = metrics.exposition(service)[0].decode()
+        served = {f.name for f in text_string_to_metric_families(text) if f.name.startswith("navi_")}
+        assert served == mesh_families | families(owned), service
+        assert "process_cpu_seconds" in text  # and its own process
+        every |= served
+    assert every == {f.name for f in metrics.REGISTRY.collect() if f.name.startswith("navi_")}
+    for learner_only in ("navi_reward_ema", "navi_corpus_scenes_ready", "navi_loss", "navi_promotions"):
+        owners = [s for s in metrics.OWNERS if learner_only in families(metrics.OWNERS[s])]
+        assert owners == ["learner"], learner_only
+    with pytest.raises(ValueError, match="unknown service"):
+        metrics.registry("router")

@@ -88,7 +88,8 @@ def snapshot_message(snap: Snapshot) -> str:
         "run_id": snap.run_id,
         "step": snap.step,
         "frames": snap.frames,
-        "rejected": snap.rejected,
+        "bad_frames": snap.bad_frames,
+        "decode_errors": snap.decode_errors,
         "charts": snap.charts,
         "corpus": None if snap.corpus is None else asdict(snap.corpus),
         "pose": None

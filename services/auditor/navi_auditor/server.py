@@ -31,14 +31,14 @@ class AuditorConfig:
 
 
 def add_metrics_route(app: FastAPI) -> None:
-    """GET /metrics: the process's navi_* Prometheus metrics (decode errors, received messages, ...)."""
+    """GET /metrics: the auditor's Prometheus metrics (the mesh families: received messages, decode errors, ...)."""
     from fastapi.responses import Response
 
     from navi_mesh.metrics import exposition
 
     @app.get("/metrics", include_in_schema=False)
     async def metrics() -> Response:
-        body, content_type = exposition()
+        body, content_type = exposition("auditor")
         return Response(content=body, media_type=content_type)
 
 

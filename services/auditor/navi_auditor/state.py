@@ -194,7 +194,7 @@ class DashboardState:
     _seen: _Seen = field(default_factory=_Seen, repr=False)
     _frame: Frame | None = field(default=None, repr=False)
     _frames: int = 0
-    _rejected: int = 0
+    _bad_frames: int = 0
     _decode_errors: int = 0
     _charts: dict[str, dict[str, Series]] = field(default_factory=dict, repr=False)
     _trail: deque[tuple[float, float]] = field(default_factory=deque, repr=False)
@@ -250,7 +250,7 @@ class DashboardState:
         lag = max(0.0, (time.time() if wall is None else wall) - matrix.timestamp)
         if matrix.n_envs < 1 or matrix.azimuth_bins < 4 or matrix.azimuth_bins % 4:
             with self._lock:
-                self._rejected += 1
+                self._bad_frames += 1
             return
         with self._lock:
             self._seen.last_observation = at
@@ -303,7 +303,8 @@ class DashboardState:
                 )
 
     def set_decode_errors(self, count: int) -> None:
-        """The feed's count of payloads that failed to decode (added to `rejected` on the page)."""
+        """The feed's count of payloads that failed to decode (shown apart from bad frames and from the
+        corpus's rejected scenes)."""
         with self._lock:
             self._decode_errors = count
 
@@ -356,7 +357,8 @@ class DashboardState:
                 run_id=seen.run_id,
                 step=seen.step,
                 frames=self._frames,
-                rejected=self._rejected + self._decode_errors,
+                bad_frames=self._bad_frames,
+                decode_errors=self._decode_errors,
                 charts={c: {k: list(s.points) for k, s in t.items()} for c, t in self._charts.items()},
                 corpus=corpus,
                 pose=pose,
@@ -388,7 +390,8 @@ class Snapshot:
     run_id: str
     step: int
     frames: int
-    rejected: int  # unusable observations plus payloads that failed to decode
+    bad_frames: int  # observations decoded but unusable (no centred forward half to draw)
+    decode_errors: int  # payloads on the mesh that failed to decode
     charts: dict[str, dict[str, list[tuple[int, float]]]]  # chart id -> key -> (step, value), oldest first
     corpus: Corpus | None = None
     pose: RobotPose | None = None  # actor 0's newest pose (None when stale)

@@ -188,7 +188,7 @@ def serve_compiler(cfg: CompilerServiceConfig, stop: threading.Event) -> None:
     """Run `cfg.workers` worker threads over the process's session until `stop` is set."""
     if cfg.workers < 1:
         raise ValueError("workers must be >= 1")
-    metrics.serve_metrics(cfg.metrics_port, cfg.metrics_host)
+    metrics.serve_metrics(cfg.metrics_port, "compiler", cfg.metrics_host)
     sess = session(cfg.session)
     base = instance_id()
     workers = [

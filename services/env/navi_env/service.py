@@ -114,7 +114,7 @@ def apply_step(env: SdfDagEnv, req: StepRequest, step_id: int) -> tuple[StepResu
 
 def serve_env(cfg: EnvServiceConfig, stop: threading.Event) -> None:
     """Answer StepRequests until `stop` is set."""
-    metrics.serve_metrics(cfg.metrics_port, cfg.metrics_host)
+    metrics.serve_metrics(cfg.metrics_port, "env", cfg.metrics_host)
     env = load_env(cfg)
     obs = env.reset(seed=cfg.seed)  # (N, 3, Az, El)
     sess = session(cfg.session)

@@ -134,7 +134,8 @@ class TrainConfig:
     n_actors: int = 0
     """N parallel actors; 0 picks the device default (4 on CPU, 4096 on CUDA)."""
     rollout_length: int = 0
-    """T steps per actor per update; 0 picks 512, capped so the rollout fits `rollout_memory_gb`."""
+    """T steps per actor per update; 0 picks ROLLOUT_DEFAULT for the device, capped so the rollout fits
+    `rollout_memory_gb`."""
     total_steps: int = 100_000
     """Budget in env steps (actor-steps); the run ends with a final checkpoint."""
     time_limit_s: float = 0.0
@@ -184,6 +185,11 @@ class TrainConfig:
         )
 
 
+ROLLOUT_DEFAULT = {"cuda": 512, "cpu": 64}
+"""Rollout length when TrainConfig.rollout_length is 0: the original system's 512 on a GPU; 64 on a CPU,
+where 4 actors x 512 steps would make the first update (and a dashboard's first chart point) wait minutes."""
+
+
 def default_actors(device: torch.device) -> int:
     """Actor count that fits the device: 4 on CPU, 4096 on a GPU."""
     return 4096 if device.type == "cuda" else 4
@@ -218,8 +224,8 @@ def obs_bytes(obs_shape: tuple[int, int, int], compact: bool) -> int:
 def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = True) -> TrainConfig:
     """Fill the derived defaults (actor count, rollout length) once, right after parsing.
 
-    The rollout length defaults to 512 (the original system's value) but is capped, to a multiple of
-    the BPTT chunk, so that N·T stored observations (`compact` or float32, see obs_bytes) fit in
+    The rollout length defaults to ROLLOUT_DEFAULT for the device but is capped, to a multiple of the
+    BPTT chunk, so that N·T stored observations (`compact` or float32, see obs_bytes) fit in
     `rollout_memory_gb`: at 256×48 and 8,192 actors compact that is 64 steps. The minibatch count
     grows so no minibatch exceeds max_minibatch.
     """
@@ -228,7 +234,7 @@ def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = T
     rollout = cfg.rollout_length
     if rollout == 0:
         fit = int(cfg.rollout_memory_gb * 2**30 // (n_actors * obs_bytes(obs_shape, compact)))
-        rollout = max(8, min(512, fit // 8 * 8))
+        rollout = max(8, min(ROLLOUT_DEFAULT.get(device.type, 64), fit // 8 * 8))
     bptt = min(cfg.ppo.bptt_chunk, rollout)
     rollout = max(bptt, rollout // bptt * bptt)
     minibatches = max(cfg.ppo.num_minibatches, -(-n_actors * rollout // cfg.ppo.max_minibatch))

@@ -1,4 +1,10 @@
-"""Prometheus metrics of every Navi service: one registry, `navi_*` names, base units.
+"""Prometheus metrics of the Navi services: `navi_*` names, base units, each family exported by the
+service that owns it.
+
+Every service exports the mesh families (messages published, received, dropped, undecodable, failed in
+a handler; per topic) and its own (`OWNERS`): a compiler worker its compile jobs, the env service its
+step requests, the learner training, promotion and corpus progress. `registry(service)` is what a
+service's GET /metrics serves; `REGISTRY` holds every family, for readers inside one process (tests).
 
 Counters end in `_total`, durations in `_seconds`, sizes in `_bytes`. Labels are low-cardinality
 (topic, outcome, alias, loss name, memory kind): never an actor id.
@@ -27,8 +33,9 @@ if TYPE_CHECKING:
 
 disable_created_metrics()
 REGISTRY = CollectorRegistry()
-ProcessCollector(registry=REGISTRY)
-PlatformCollector(registry=REGISTRY)
+"""Every family below (the union of the services' registries), for in-process readers."""
+_served: set[int] = set()
+_served_lock = threading.Lock()
 
 STEPS_PER_SECOND = Gauge(
     "navi_steps_per_second",
@@ -118,6 +125,52 @@ CORPUS_READY = Gauge(
 )
 
 
+MESH: tuple[Counter, ...] = (
+    PUBLISHED_MESSAGES,
+    RECEIVED_MESSAGES,
+    DECODE_ERRORS,
+    DROPPED_MESSAGES,
+    HANDLER_ERRORS,
+)
+"""The families every service exports: its traffic on the mesh."""
+OWNERS: dict[str, tuple[Counter | Gauge | Histogram, ...]] = {
+    "compiler": (COMPILE_JOBS, COMPILE_DURATION),
+    "env": (STEPS, EPISODES, STEP_REQUESTS),
+    "learner": (
+        STEPS_PER_SECOND,
+        STEPS,
+        EPISODES,
+        REWARD_EMA,
+        LOSS,
+        GPU_MEMORY,
+        PUBLISH_SECONDS,
+        PROMOTIONS,
+        CORPUS_SCENES_READY,
+        CORPUS_SCENES_PLANNED,
+        CORPUS_SCENES_REJECTED,
+        CORPUS_READY,
+    ),
+    "auditor": (),
+}
+"""The families each service owns, besides MESH."""
+_registries: dict[str, CollectorRegistry] = {}
+
+
+def registry(service: str) -> CollectorRegistry:
+    """The registry a service's GET /metrics serves: its process, the mesh families and its own."""
+    if service not in OWNERS:
+        raise ValueError(f"unknown service {service!r}; one of {', '.join(OWNERS)}")
+    with _served_lock:
+        if service not in _registries:
+            reg = CollectorRegistry()
+            ProcessCollector(registry=reg)
+            PlatformCollector(registry=reg)
+            for family in (*MESH, *OWNERS[service]):
+                reg.register(family)
+            _registries[service] = reg
+        return _registries[service]
+
+
 def record_gpu_memory(device: torch.device) -> None:
     """Set navi_gpu_memory_bytes from torch's allocator counters (no device synchronisation)."""
     import torch
@@ -128,19 +181,16 @@ def record_gpu_memory(device: torch.device) -> None:
     GPU_MEMORY.labels("reserved").set(torch.cuda.memory_reserved(device))
 
 
-def exposition() -> tuple[bytes, str]:
-    """The registry in the Prometheus text format and its content type."""
-    return generate_latest(REGISTRY), CONTENT_TYPE_LATEST
+def exposition(service: str) -> tuple[bytes, str]:
+    """A service's registry in the Prometheus text format, and its content type."""
+    return generate_latest(registry(service)), CONTENT_TYPE_LATEST
 
 
-_served: set[int] = set()
-_served_lock = threading.Lock()
-
-
-def serve_metrics(port: int, host: str = "127.0.0.1") -> None:
-    """Expose GET /metrics on `port` from a daemon thread (services without their own HTTP API)."""
+def serve_metrics(port: int, service: str, host: str = "127.0.0.1") -> None:
+    """Expose a service's GET /metrics on `port` from a daemon thread (services without an HTTP API)."""
+    served = registry(service)
     with _served_lock:
         if port in _served:
             return
-        start_http_server(port, addr=host, registry=REGISTRY)
+        start_http_server(port, addr=host, registry=served)
         _served.add(port)

@@ -29,12 +29,14 @@ function render(msg) {
   $("run").textContent = "Run=" + (msg.run_id || "–");
   const corpus = $("corpus");
   if (msg.corpus) {
-    corpus.textContent = "Corpus=" + msg.corpus.ready + "/" + msg.corpus.planned + (msg.corpus.done ? " ready" : " building");
+    corpus.textContent = "Corpus=" + msg.corpus.ready + "/" + msg.corpus.planned + (msg.corpus.done ? " ready" : " building") +
+      (msg.corpus.rejected ? ", " + msg.corpus.rejected + " scenes rejected" : "");
     corpus.className = "";
   } else {
     corpus.className = "hidden";
   }
-  $("rejected").textContent = "Rejected=" + msg.rejected;
+  $("bad-frames").textContent = "Bad frames=" + msg.bad_frames;
+  $("decode-errors").textContent = "Decode errors=" + msg.decode_errors;
   $("waiting").className = msg.mode === "WAITING" ? "overlay" : "overlay hidden";
   if (msg.frame && String(msg.frame.seq) !== $("heatmap").dataset.seq) naviDrawFrame($("heatmap"), msg.frame);
   for (const chart of CHARTS) {

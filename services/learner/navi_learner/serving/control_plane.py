@@ -377,8 +377,8 @@ def healthz(state: StateDep) -> Health:
 
 @ops_router.get("/metrics", response_class=Response)
 def prometheus_metrics() -> Response:
-    """Prometheus text exposition of this process's navi_* metrics."""
-    body, content_type = metrics.exposition()
+    """Prometheus text exposition of the learner's metrics (training, promotions, corpus, the mesh)."""
+    body, content_type = metrics.exposition("learner")
     return Response(content=body, media_type=content_type)
 
 
