@@ -9,7 +9,12 @@ PY := $(VENV)/bin/python
 PIP := $(PY) -m pip --disable-pip-version-check -q
 # Kept as a range so that an installed CPU or CUDA build of torch is reused, never replaced.
 TORCH_SPEC ?= torch>=2.5
-PACKAGES := shared/contracts shared/mesh services/compiler services/env services/learner[plots,tensorboard] services/auditor
+# navi_env's optional extras (Gymnasium, TorchRL, skrl adapters) are installed too: their tests run in `make test`.
+PACKAGES := shared/contracts shared/mesh services/compiler services/env[gym,torchrl,skrl] \
+	services/learner[plots,tensorboard] services/auditor
+# The torch found (or just installed) is written here and passed to pip as a constraint, so that no
+# package of the workspace or its extras can upgrade or replace it: pip fails instead.
+TORCH_PIN := $(VENV)/torch-pin.txt
 PYTEST_ARGS ?=
 STAMP := $(VENV)/.navi-setup
 SOURCES := $(wildcard pyproject.toml requirements-dev.txt */*/pyproject.toml */*/setup.py */*/*/csrc/* */*/*/*/csrc/*)
@@ -31,8 +36,9 @@ $(STAMP): $(SOURCES)
 	@echo "[navi] installing build tools"
 	@$(PIP) install "setuptools>=68" "pybind11>=2.12" wheel
 	@$(PY) -c "import torch" 2>/dev/null || { echo "[navi] installing $(TORCH_SPEC)"; $(PIP) install "$(TORCH_SPEC)"; }
-	@echo "[navi] installing the workspace packages (builds the C++ extensions)"
-	@$(PIP) install --no-build-isolation $(foreach p,$(PACKAGES),-e $(p)) -e . -r requirements-dev.txt
+	@$(PY) -c "import torch; print('torch==' + torch.__version__)" > $(TORCH_PIN)
+	@echo "[navi] installing the workspace packages (builds the C++ extensions), keeping $$(cat $(TORCH_PIN))"
+	@$(PIP) install --no-build-isolation -c $(TORCH_PIN) $(foreach p,$(PACKAGES),-e $(p)) -e . -r requirements-dev.txt
 	@touch $(STAMP)
 
 run: setup

@@ -1,4 +1,4 @@
-"""`navi bench compile|trace|env|train|learn`: each measures one stage (or learning itself) and prints its
+"""`navi bench compile|trace|env|wrappers|train|learn`: each measures one stage (or learning itself) and prints its
 result; `--json` prints one JSON object and `--record DIR` appends it to DIR/DATE-GPU.jsonl
 (docs/PERFORMANCE.md). Targets are benchmarks, never timed tests."""
 
@@ -235,6 +235,45 @@ def bench_env_cmd(
     else:
         for key, value in result.items():
             typer.echo(f"{key:>22}: {value}")
+
+
+@app.command("wrappers")
+def bench_wrappers_cmd(
+    gmdag: Annotated[Path | None, typer.Option(help="One .gmdag scene.")] = None,
+    corpus: Annotated[Path | None, typer.Option(help="A corpus folder.")] = None,
+    actors: Annotated[int, typer.Option(help="Actors stepped together.", min=1)] = 4,
+    steps: Annotated[int, typer.Option(help="Timed steps per round.", min=1)] = 50,
+    repeats: Annotated[int, typer.Option(help="Rounds; each variant reports its best.", min=1)] = 3,
+    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
+    azimuth: Annotated[int, typer.Option(help="Azimuth bins.")] = 256,
+    elevation: Annotated[int, typer.Option(help="Elevation bins.")] = 48,
+    seed: Annotated[int, typer.Option(help="Seed of the environment and the random actions.")] = 0,
+    threads: Annotated[
+        int, typer.Option(help="CPU threads for torch and the CPU tracer (0: torch's default).", min=0)
+    ] = 0,
+    json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    record: RecordOpt = None,
+) -> None:
+    """Env-steps per second of the raw env, the Gymnasium, skrl and TorchRL adapters, in one job."""
+    from navi_env.ecosystem.bench import bench_wrappers
+
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+    if (gmdag is None) == (corpus is None):
+        raise fail("give exactly one of --gmdag FILE or --corpus DIR")
+    try:
+        result = bench_wrappers(gmdag, corpus, actors, steps, device, azimuth, elevation, seed, repeats)
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise fail(str(exc)) from exc
+    if record is not None:
+        record_result(result, "wrappers", device, record)
+    if json_out:
+        typer.echo(json.dumps(result))
+    else:
+        for key, value in result.items():
+            typer.echo(f"{key:>14}: {value}")
 
 
 @app.command(name="learn")

@@ -1,4 +1,5 @@
-"""The training core imports with torch + numpy (+ Navi's own extensions) alone."""
+"""The training core imports with torch + numpy (+ Navi's own extensions) alone: no service package and
+none of the RL libraries that only navi_env.ecosystem's adapters use."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import sys
 
 SERVICE_ONLY = ("pydantic", "pydantic_settings", "zenoh", "fastapi", "uvicorn", "zarr", "prometheus_client",
                 "trimesh", "msgpack", "typer")  # fmt: skip
+RL_LIBRARIES = ("gymnasium", "torchrl", "tensordict", "skrl")  # navi_env.ecosystem's optional extras
 HOT_PATH = (
     "navi_compiler.compile", "navi_compiler.gmdag", "navi_compiler.ingest", "navi_compiler.ingest.procedural",
     "navi_env.sim.env", "navi_env.tracer.trace", "navi_env.corpus.folder", "navi_env.corpus.qualify",
@@ -20,6 +22,8 @@ class Blocker(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path, target=None):
         if name.split(".")[0] in {SERVICE_ONLY!r}:
             raise ImportError("service-only package imported: " + name)
+        if name.split(".")[0] in {RL_LIBRARIES!r}:
+            raise ImportError("an RL library (an optional extra) imported: " + name)
 sys.meta_path.insert(0, Blocker())
 for module in {HOT_PATH!r}:
     importlib.import_module(module)

@@ -1,0 +1,23 @@
+"""Navi's batched drone environment for the RL ecosystem: Gymnasium, TorchRL and skrl adapters over
+navi_env.sim.env.SdfDagEnv that keep its tensors on its device.
+
+batch.py     make_batched_env (a corpus folder -> SdfDagEnv), the observation bounds, the observation
+             ring that hands out distinct tensors at consecutive steps (torch only)
+gym.py       NaviVectorEnv (gymnasium.vector.VectorEnv, torch tensors, SAME_STEP autoreset),
+             NumpyVectorEnv (host NumPy), NaviEnv (one drone, NumPy) and the id Navi/Explore-v0
+render.py    pictures: a drone's spherical depth as a panorama, a top-down slice of its scene
+torchrl.py   NaviTorchRLEnv, a torchrl EnvBase (TensorDict in and out, batch size N)
+skrl.py      SkrlEnv, skrl's torch Wrapper over NaviVectorEnv
+bench.py     `navi bench wrappers`: env-steps/s of the raw env and of each adapter in one job
+
+Importing this package registers Navi/Explore-v0 when Gymnasium is installed. The libraries are
+optional extras (navi-env[gym], navi-env[torchrl], navi-env[skrl]); navi_env.sim and navi_env.tracer
+import none of them. docs/ENVIRONMENT.md describes the adapters and how to train with each.
+"""
+
+from importlib.util import find_spec
+
+if find_spec("gymnasium") is not None:
+    from navi_env.ecosystem.gym import register_envs
+
+    register_envs()

@@ -1,0 +1,86 @@
+"""The batched env as the ecosystem adapters see it: built from a corpus folder, its bounds, and the
+observation ring that gives consecutive steps distinct tensors. Torch only (no RL library)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+
+import torch
+
+from navi_env.corpus.folder import load_corpus
+from navi_env.sim.config import EnvConfig
+from navi_env.sim.env import SdfDagEnv
+
+ACTION_DIM = 4
+"""Actions (N, 4) in [-1, 1]: forward, vertical, lateral, yaw rate (body frame, docs/SIMULATION.md)."""
+OBS_LOW = (0.0, 0.0, -1.0)
+"""Lowest value per channel: depth / horizon, semantic, delta depth."""
+OBS_HIGH = (1.0, 1.0, 1.0)
+"""Highest value per channel."""
+
+
+def make_batched_env(
+    corpus: str | os.PathLike[str],
+    num_envs: int,
+    device: str | torch.device = "cpu",
+    config: EnvConfig | None = None,
+    obstacles: int = 0,
+    squad: int = 0,
+    max_episode_steps: int = 0,
+    seed: int = 0,
+) -> SdfDagEnv:
+    """`num_envs` drones over the corpus folder's scenes (spawned at its qualified positions, with the
+    obstacles its scenes declare), on `device`. `obstacles` K > 0 gives every drone K scripted moving
+    obstacles, `squad` G >= 2 makes squads of G drones that see each other (they replace
+    config.obstacles' count and squad); `max_episode_steps` > 0 replaces config.max_steps_per_episode."""
+    cfg = config or EnvConfig()
+    if obstacles or squad:
+        cfg = replace(cfg, obstacles=replace(cfg.obstacles, count=obstacles, squad=squad))
+    if max_episode_steps > 0:
+        cfg = replace(cfg, max_steps_per_episode=max_episode_steps)
+    scenes, manifest = load_corpus(corpus, torch.device(device))
+    return SdfDagEnv(
+        scenes,
+        num_envs,
+        scenes.device,
+        cfg,
+        manifest.spawn_tensors(),
+        seed,
+        scene_obstacles=manifest.obstacle_settings(),
+    )
+
+
+def obs_bounds(env: SdfDagEnv) -> tuple[torch.Tensor, torch.Tensor]:
+    """(low, high) of one actor's observation, (3, Az, El) float32 each, on the host."""
+    shape = env.obs_shape
+    low = torch.tensor(OBS_LOW, dtype=torch.float32)[:, None, None].expand(shape)  # (3, Az, El)
+    high = torch.tensor(OBS_HIGH, dtype=torch.float32)[:, None, None].expand(shape)  # (3, Az, El)
+    return low.contiguous(), high.contiguous()
+
+
+class ObsRing:
+    """Two observation buffers (N, 3, Az, El) on the env's device, allocated once and filled in turn:
+    the observation handed out at one step is still intact after the next step (a trainer that records
+    `obs` after stepping sees the right one), and the previous one is the view the last actions were
+    chosen on, which the env uses as the final view of an actor whose episode ended (docs/SIMULATION.md,
+    "Episodes"). One device copy per step; no allocation, no host synchronisation."""
+
+    def __init__(self, env: SdfDagEnv) -> None:
+        self.buffers = (torch.zeros_like(env.obs), torch.zeros_like(env.obs))  # 2 x (N, 3, Az, El)
+        self.current = 0
+
+    def push(self, obs: torch.Tensor) -> torch.Tensor:
+        """Copy obs (N, 3, Az, El) into the other buffer and return it."""
+        self.current ^= 1
+        return self.buffers[self.current].copy_(obs)
+
+    @property
+    def latest(self) -> torch.Tensor:
+        """(N, 3, Az, El) the observation handed out last."""
+        return self.buffers[self.current]
+
+    @property
+    def previous(self) -> torch.Tensor:
+        """(N, 3, Az, El) the observation handed out before the latest one."""
+        return self.buffers[self.current ^ 1]

@@ -1,0 +1,120 @@
+"""`navi bench wrappers`: env-steps per second of the raw SdfDagEnv and of each ecosystem adapter over
+the same env, in one job, under the same uniform random actions.
+
+Variants: raw (SdfDagEnv.step), gym (NaviVectorEnv with its observation ring, the default), gym_zero_copy
+(NaviVectorEnv(final_obs=False)), skrl (SkrlEnv), torchrl (NaviTorchRLEnv.step_and_maybe_reset, what
+TorchRL's collectors call; it includes TorchRL's own work: TensorDicts, step_mdp, and the done check
+that reads the device once per step). Adapters whose library is not installed are left out. The
+variants take turns, `repeats` rounds of `steps` timed steps each, and each reports its best round, so
+a slow moment of the machine does not land on one variant only.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from importlib.util import find_spec
+from pathlib import Path
+
+import torch
+
+from navi_env.sim.config import EnvConfig
+from navi_env.sim.env import SdfDagEnv
+
+WARMUP_STEPS = 5
+"""Untimed steps of each variant before its first round (the CUDA graph is recorded by the third)."""
+
+
+def step_functions(env: SdfDagEnv, actions: torch.Tensor) -> dict[str, Callable[[], object]]:
+    """variant -> a function that takes one step of `env` with the (N, 4) actions; each variant has
+    been reset."""
+    env.reset(seed=0)
+    variants: dict[str, Callable[[], object]] = {"raw": lambda: env.step(actions)}
+    if find_spec("gymnasium") is not None:
+        from navi_env.ecosystem.gym import NaviVectorEnv
+
+        gym_env = NaviVectorEnv(env)
+        gym_env.reset(seed=0)
+        variants["gym"] = lambda: gym_env.step(actions)
+        lean = NaviVectorEnv(env, final_obs=False)
+        lean.reset(seed=0)
+        variants["gym_zero_copy"] = lambda: lean.step(actions)
+        if find_spec("skrl") is not None:
+            from navi_env.ecosystem.skrl import SkrlEnv
+
+            skrl_env = SkrlEnv(NaviVectorEnv(env))
+            skrl_env.reset()
+            variants["skrl"] = lambda: skrl_env.step(actions)
+    if find_spec("torchrl") is not None:
+        from navi_env.ecosystem.torchrl import NaviTorchRLEnv
+
+        rl_env = NaviTorchRLEnv(env)
+        carrier = [rl_env.reset()]
+
+        def torchrl_step() -> object:
+            td = carrier[0]
+            td.set("action", actions)
+            data, carrier[0] = rl_env.step_and_maybe_reset(td)
+            return data
+
+        variants["torchrl"] = torchrl_step
+    return variants
+
+
+def bench_wrappers(
+    gmdag: Path | None,
+    corpus: Path | None,
+    actors: int,
+    steps: int,
+    device: str,
+    azimuth: int,
+    elevation: int,
+    seed: int = 0,
+    repeats: int = 3,
+) -> dict[str, object]:
+    """Time every variant over one env (see the module docstring); returns the bench JSON object:
+    steps_per_s and ms_per_step per variant, and overhead_pct (the wrapper's extra time per step over
+    the raw env's, in percent)."""
+    from navi_env.corpus.folder import load_corpus
+    from navi_env.tracer.scene import load_scene
+
+    spawns: list[torch.Tensor] | None = None
+    if corpus is not None:
+        scenes, manifest = load_corpus(corpus, device)
+        spawns = manifest.spawn_tensors()
+    elif gmdag is not None:
+        scenes = load_scene(gmdag, device)
+    else:
+        raise ValueError("give a .gmdag file or a corpus folder")
+    env = SdfDagEnv(
+        scenes, actors, device, EnvConfig(azimuth_bins=azimuth, elevation_bins=elevation), spawns, seed
+    )
+    g = torch.Generator(device=env.device).manual_seed(seed)
+    actions = torch.empty(actors, 4, device=env.device).uniform_(-1.0, 1.0, generator=g)  # (N, 4)
+    variants = step_functions(env, actions)
+    sync = torch.cuda.synchronize if env.device.type == "cuda" else (lambda: None)
+    for step in variants.values():
+        for _ in range(WARMUP_STEPS):
+            step()
+    best = {name: float("inf") for name in variants}
+    for _ in range(repeats):
+        for name, step in variants.items():
+            sync()
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                step()
+            sync()
+            best[name] = min(best[name], time.perf_counter() - t0)
+    raw = best["raw"]
+    return {
+        "device": str(env.device),
+        "actors": actors,
+        "steps": steps,
+        "repeats": repeats,
+        "scenes": len(scenes),
+        "obs_shape": [actors, *env.obs_shape],
+        "threads": torch.get_num_threads(),
+        "steps_per_s": {k: round(actors * steps / s, 1) for k, s in best.items()},
+        "ms_per_step": {k: round(1000.0 * s / steps, 4) for k, s in best.items()},
+        "overhead_pct": {k: round(100.0 * (s - raw) / raw, 2) for k, s in best.items() if k != "raw"},
+    }

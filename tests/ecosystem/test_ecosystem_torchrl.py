@@ -1,0 +1,93 @@
+"""The TorchRL adapter: specs that TorchRL's own checker accepts, the batched env's values under the
+same seed and actions, TorchRL's autoreset convention (final view in "next", next episode's first
+observation after the partial reset) and rollouts whose steps stay intact."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from navi_env.ecosystem.batch import make_batched_env
+from navi_env.ecosystem.torchrl import FLAGS, VALUES, make_torchrl_env
+from navi_env.sim.rewards import TERMS
+
+from .conftest import SMALL_VIEW
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+N = 8
+SHORT = replace(SMALL_VIEW, max_steps_per_episode=12)
+
+
+def random_actions(steps: int, seed: int = 0) -> torch.Tensor:
+    """(T, N, 4) uniform in [-1, 1]."""
+    return torch.rand(steps, N, 4, generator=torch.Generator().manual_seed(seed)) * 2 - 1
+
+
+@pytest.mark.parametrize(("info", "obstacles"), [(True, 0), (False, 0), (True, 2)])
+def test_check_env_specs_passes(corpus: Path, info: bool, obstacles: int) -> None:
+    env = make_torchrl_env(N, corpus, config=SHORT, info=info, obstacles=obstacles)
+    check_env_specs(env, seed=3)
+    assert env.batch_size == torch.Size([N]) and env.action_spec.shape == (N, 4)
+    assert (
+        ("info", "collision") in env.observation_spec.keys(True)
+        if info
+        else "info" not in env.observation_spec
+    )
+
+
+def test_step_and_maybe_reset_matches_the_batched_env_and_keeps_torchrl_conventions(corpus: Path) -> None:
+    env = make_torchrl_env(N, corpus, config=SHORT, seed=9)
+    raw = make_batched_env(corpus, N, "cpu", SHORT)
+    td = env.reset()
+    assert torch.equal(td["observation"], raw.reset(seed=9))
+    ended_total = 0
+    for actions in random_actions(30, seed=4):
+        td.set("action", actions)
+        before = td["observation"].clone()
+        data, td = env.step_and_maybe_reset(td)
+        out = raw.step(actions)
+        ended = out.truncated
+        nxt = data["next"]
+        assert torch.equal(nxt["reward"][:, 0], out.reward) and torch.equal(nxt["truncated"][:, 0], ended)
+        assert torch.equal(nxt["done"][:, 0], ended) and not nxt["terminated"].any()
+        for key in FLAGS + VALUES:
+            assert torch.equal(nxt["info", key], out.info[key]), key
+        assert torch.allclose(sum(nxt["reward_terms", k] for k in TERMS), out.reward, atol=1e-6)
+        keep = ~ended[:, None, None, None]
+        assert torch.equal(nxt["observation"], torch.where(keep, out.obs, before))  # final view where ended
+        assert torch.equal(td["observation"], out.obs)  # the next episode's first where ended
+        assert not td["done"].any()
+        ended_total += int(ended.sum())
+    assert ended_total >= 2 * N
+
+
+def test_rollout_steps_stay_intact_and_seeds_replay(corpus: Path) -> None:
+    env = make_torchrl_env(N, corpus, config=SHORT)
+    actions = random_actions(20, seed=6)
+    step = iter(actions)
+
+    def policy(td: TensorDict) -> TensorDict:
+        return td.set("action", next(step))
+
+    env.set_seed(21)
+    rollout = env.rollout(
+        20, policy, break_when_any_done=False
+    )  # (N, T): TorchRL stacks the steps at the end
+    raw = make_batched_env(corpus, N, "cpu", SHORT)
+    raw.reset(seed=21)
+    for t in range(20):
+        out = raw.step(actions[t])
+        assert torch.equal(rollout["next", "reward"][:, t, 0], out.reward)
+        where = ~out.truncated[:, None, None, None]
+        assert torch.equal(
+            rollout["next", "observation"][:, t][where.expand_as(out.obs)], out.obs[where.expand_as(out.obs)]
+        )
+    step = iter(actions)
+    env.set_seed(21)
+    again = env.rollout(20, policy, break_when_any_done=False)
+    assert torch.equal(again["next", "observation"], rollout["next", "observation"])
