@@ -42,6 +42,18 @@ from navi.commands.learner import (
 )
 from navi_env.sim.config import EnvConfig
 
+GmdagOpt = Annotated[Path | None, typer.Option(help="One .gmdag scene.")]
+SceneCorpusOpt = Annotated[Path | None, typer.Option(help="A corpus folder.")]
+EnvActorsOpt = Annotated[int, typer.Option(help="Actors stepped together.", min=1)]
+EnvDeviceOpt = Annotated[str, typer.Option(help="cpu or cuda.")]
+AzimuthOpt = Annotated[int, typer.Option(help="Azimuth bins.")]
+ElevationOpt = Annotated[int, typer.Option(help="Elevation bins.")]
+EnvSeedOpt = Annotated[int, typer.Option(help="Seed of the environment and the random actions.")]
+ThreadsOpt = Annotated[
+    int, typer.Option(help="CPU threads for torch and the CPU tracer (0: torch's default).", min=0)
+]
+JsonOutOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
+
 app = typer.Typer(
     help="Benchmarks; each prints its result (--json: one JSON object; --record DIR: appended to "
     "DIR/DATE-GPU.jsonl, docs/PERFORMANCE.md).",
@@ -197,33 +209,36 @@ def bench_trace_cmd(
         typer.echo(f"{key:>20}: {value}")
 
 
-@app.command("env")
-def bench_env_cmd(
-    gmdag: Annotated[Path | None, typer.Option(help="One .gmdag scene.")] = None,
-    corpus: Annotated[Path | None, typer.Option(help="A corpus folder.")] = None,
-    actors: Annotated[int, typer.Option(help="Actors stepped together.", min=1)] = 4,
-    steps: Annotated[int, typer.Option(help="Timed steps (after 5 warm-up steps).", min=1)] = 50,
-    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
-    azimuth: Annotated[int, typer.Option(help="Azimuth bins.")] = 256,
-    elevation: Annotated[int, typer.Option(help="Elevation bins.")] = 48,
-    seed: Annotated[int, typer.Option(help="Seed of the environment and the random actions.")] = 0,
-    threads: Annotated[
-        int, typer.Option(help="CPU threads for torch and the CPU tracer (0: torch's default).", min=0)
-    ] = 0,
-    obstacles: ObstaclesOpt = 0,
-    squad: SquadOpt = 0,
-    json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
-    record: RecordOpt = None,
-) -> None:
-    """Env-steps per second of SdfDagEnv with random actions, and milliseconds per stage."""
-    from navi_env.sim.bench import bench_env
-
+def use_scene_options(gmdag: Path | None, corpus: Path | None, threads: int) -> None:
+    """Check that exactly one of --gmdag and --corpus is given, and apply --threads."""
     if threads:
         import torch
 
         torch.set_num_threads(threads)
     if (gmdag is None) == (corpus is None):
         raise fail("give exactly one of --gmdag FILE or --corpus DIR")
+
+
+@app.command("env")
+def bench_env_cmd(
+    gmdag: GmdagOpt = None,
+    corpus: SceneCorpusOpt = None,
+    actors: EnvActorsOpt = 4,
+    steps: Annotated[int, typer.Option(help="Timed steps (after 5 warm-up steps).", min=1)] = 50,
+    device: EnvDeviceOpt = "cpu",
+    azimuth: AzimuthOpt = 256,
+    elevation: ElevationOpt = 48,
+    seed: EnvSeedOpt = 0,
+    threads: ThreadsOpt = 0,
+    obstacles: ObstaclesOpt = 0,
+    squad: SquadOpt = 0,
+    json_out: JsonOutOpt = False,
+    record: RecordOpt = None,
+) -> None:
+    """Env-steps per second of SdfDagEnv with random actions, and milliseconds per stage."""
+    from navi_env.sim.bench import bench_env
+
+    use_scene_options(gmdag, corpus, threads)
     try:
         result = bench_env(gmdag, corpus, actors, steps, device, azimuth, elevation, seed, obstacles, squad)
     except (OSError, RuntimeError, ValueError) as exc:
@@ -239,30 +254,23 @@ def bench_env_cmd(
 
 @app.command("wrappers")
 def bench_wrappers_cmd(
-    gmdag: Annotated[Path | None, typer.Option(help="One .gmdag scene.")] = None,
-    corpus: Annotated[Path | None, typer.Option(help="A corpus folder.")] = None,
-    actors: Annotated[int, typer.Option(help="Actors stepped together.", min=1)] = 4,
+    gmdag: GmdagOpt = None,
+    corpus: SceneCorpusOpt = None,
+    actors: EnvActorsOpt = 4,
     steps: Annotated[int, typer.Option(help="Timed steps per round.", min=1)] = 50,
     repeats: Annotated[int, typer.Option(help="Rounds; each variant reports its best.", min=1)] = 3,
-    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
-    azimuth: Annotated[int, typer.Option(help="Azimuth bins.")] = 256,
-    elevation: Annotated[int, typer.Option(help="Elevation bins.")] = 48,
-    seed: Annotated[int, typer.Option(help="Seed of the environment and the random actions.")] = 0,
-    threads: Annotated[
-        int, typer.Option(help="CPU threads for torch and the CPU tracer (0: torch's default).", min=0)
-    ] = 0,
-    json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    device: EnvDeviceOpt = "cpu",
+    azimuth: AzimuthOpt = 256,
+    elevation: ElevationOpt = 48,
+    seed: EnvSeedOpt = 0,
+    threads: ThreadsOpt = 0,
+    json_out: JsonOutOpt = False,
     record: RecordOpt = None,
 ) -> None:
     """Env-steps per second of the raw env, the Gymnasium, skrl and TorchRL adapters, in one job."""
     from navi_env.ecosystem.bench import bench_wrappers
 
-    if threads:
-        import torch
-
-        torch.set_num_threads(threads)
-    if (gmdag is None) == (corpus is None):
-        raise fail("give exactly one of --gmdag FILE or --corpus DIR")
+    use_scene_options(gmdag, corpus, threads)
     try:
         result = bench_wrappers(gmdag, corpus, actors, steps, device, azimuth, elevation, seed, repeats)
     except (OSError, RuntimeError, ValueError) as exc:

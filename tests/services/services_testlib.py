@@ -111,3 +111,36 @@ def services_fixture(tmp_path: Path) -> Iterator[Services]:
         yield svc
     finally:
         svc.stop_all()
+
+
+def small_cpu_stack(folder: Path, mp: Any) -> Any:
+    """A `navi stack` config for the tests: every port free on loopback, no corpus yet (2 procedural
+    scenes at 64^3 get built), 32x8 rays, 2 learner actors and 1 env actor on the CPU. `mp` (a pytest
+    MonkeyPatch) moves into `folder` and sets the environment the services read."""
+    from navi.stack import StackConfig
+
+    mp.chdir(folder)
+    for name, value in {
+        "NAVI_API_TOKEN": "",
+        "NAVI_ARTIFACTS_DIR": str(folder / "artifacts"),
+        "NAVI_AZIMUTH_BINS": "32",
+        "NAVI_ELEVATION_BINS": "8",
+        "OMP_NUM_THREADS": "1",
+    }.items():
+        mp.setenv(name, value)
+    return StackConfig(
+        root=folder / "artifacts" / "stack",  # where `navi stack status` looks from `folder`
+        router_port=free_port(),
+        api_port=free_port(),
+        auditor_port=free_port(),
+        compiler_metrics_port=free_port(),
+        env_metrics_port=free_port(),
+        corpus=folder / "artifacts" / "corpus" / "default",
+        corpus_scenes=2,
+        corpus_resolution=64,
+        actors=2,
+        env_actors=1,
+        device="cpu",
+        auditor=True,
+        navi=NAVI,
+    )

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import torch
 from prometheus_client.parser import text_string_to_metric_families
-from services_testlib import NAVI, free_port, wait_for
+from services_testlib import NAVI, free_port, small_cpu_stack, wait_for
 
 from navi.stack import StackConfig, has_auditor, stop_all, up
 from navi_contracts.codec import decode_any, encode
@@ -68,31 +68,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningStack]:
     """A CPU stack from no corpus (2 procedural scenes at 64^3, 32x8 rays), a telemetry listener on it."""
     folder = tmp_path_factory.mktemp("stack")
     with pytest.MonkeyPatch.context() as mp:
-        mp.chdir(folder)
-        for name, value in {
-            "NAVI_API_TOKEN": "",
-            "NAVI_ARTIFACTS_DIR": str(folder / "artifacts"),
-            "NAVI_AZIMUTH_BINS": "32",
-            "NAVI_ELEVATION_BINS": "8",
-            "OMP_NUM_THREADS": "1",
-        }.items():
-            mp.setenv(name, value)
-        cfg = StackConfig(
-            root=folder / "artifacts" / "stack",
-            router_port=free_port(),
-            api_port=free_port(),
-            auditor_port=free_port(),
-            compiler_metrics_port=free_port(),
-            env_metrics_port=free_port(),
-            corpus=folder / "artifacts" / "corpus" / "default",
-            corpus_scenes=2,
-            corpus_resolution=64,
-            actors=2,
-            env_actors=1,
-            device="cpu",
-            auditor=True,
-            navi=NAVI,
-        )
+        cfg = small_cpu_stack(folder, mp)
         services = ["compiler", "env", "learner", *(["auditor"] if has_auditor() else [])]
         try:
             up(cfg, 60.0, lambda line: None, lambda line: None)

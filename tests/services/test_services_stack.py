@@ -21,7 +21,7 @@ from typing import Any
 import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
-from services_testlib import NAVI, free_port, wait_for
+from services_testlib import NAVI, free_port, small_cpu_stack, wait_for
 
 from navi.stack import (
     StackConfig,
@@ -89,32 +89,8 @@ def healthz(port: int) -> dict[str, Any]:
 def test_stack_up_without_a_corpus_builds_it_over_compile_jobs(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.chdir(tmp_path)
-    for name, value in {
-        "NAVI_API_TOKEN": "",
-        "NAVI_ARTIFACTS_DIR": str(tmp_path / "artifacts"),
-        "NAVI_AZIMUTH_BINS": "32",
-        "NAVI_ELEVATION_BINS": "8",
-        "OMP_NUM_THREADS": "1",
-    }.items():
-        monkeypatch.setenv(name, value)
-    corpus = tmp_path / "artifacts" / "corpus" / "default"
-    cfg = StackConfig(
-        root=tmp_path / "artifacts" / "stack",  # where `navi stack status` looks from tmp_path
-        router_port=free_port(),
-        api_port=free_port(),
-        auditor_port=free_port(),
-        compiler_metrics_port=free_port(),
-        env_metrics_port=free_port(),
-        corpus=corpus,
-        corpus_scenes=2,
-        corpus_resolution=64,
-        actors=2,
-        env_actors=1,
-        device="cpu",
-        auditor=True,
-        navi=NAVI,
-    )
+    cfg = small_cpu_stack(tmp_path, monkeypatch)
+    corpus = cfg.corpus
     with_auditor = has_auditor()
     names = ["router", "compiler", "env", "learner", *(["auditor"] if with_auditor else [])]
     said: list[str] = []

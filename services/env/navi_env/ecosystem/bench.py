@@ -75,17 +75,9 @@ def bench_wrappers(
     """Time every variant over one env (see the module docstring); returns the bench JSON object:
     steps_per_s and ms_per_step per variant, and overhead_pct (the wrapper's extra time per step over
     the raw env's, in percent)."""
-    from navi_env.corpus.folder import load_corpus
-    from navi_env.tracer.scene import load_scene
+    from navi_env.sim.bench import bench_scenes
 
-    spawns: list[torch.Tensor] | None = None
-    if corpus is not None:
-        scenes, manifest = load_corpus(corpus, device)
-        spawns = manifest.spawn_tensors()
-    elif gmdag is not None:
-        scenes = load_scene(gmdag, device)
-    else:
-        raise ValueError("give a .gmdag file or a corpus folder")
+    scenes, spawns = bench_scenes(gmdag, corpus, device)
     env = SdfDagEnv(
         scenes, actors, device, EnvConfig(azimuth_bins=azimuth, elevation_bins=elevation), spawns, seed
     )

@@ -3,6 +3,28 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
+
+    from navi_env.tracer.scene import SceneCorpus
+
+
+def bench_scenes(
+    gmdag: Path | None, corpus: Path | None, device: str
+) -> tuple[SceneCorpus, list[torch.Tensor] | None]:
+    """The scenes a benchmark flies, on `device`: one .gmdag file, or a corpus folder and its qualified
+    spawns (per scene, (S, 3) world meters)."""
+    from navi_env.corpus.folder import load_corpus
+    from navi_env.tracer.scene import load_scene
+
+    if corpus is not None:
+        scenes, manifest = load_corpus(corpus, device)
+        return scenes, manifest.spawn_tensors()
+    if gmdag is not None:
+        return load_scene(gmdag, device), None
+    raise ValueError("give a .gmdag file or a corpus folder")
 
 
 def bench_env(
@@ -24,19 +46,10 @@ def bench_env(
 
     import torch
 
-    from navi_env.corpus.folder import load_corpus
     from navi_env.sim.config import EnvConfig, ObstacleConfig
     from navi_env.sim.env import SdfDagEnv, StageTimer
-    from navi_env.tracer.scene import load_scene
 
-    spawns: list[torch.Tensor] | None = None
-    if corpus is not None:
-        scenes, manifest = load_corpus(corpus, device)
-        spawns = manifest.spawn_tensors()
-    elif gmdag is not None:
-        scenes = load_scene(gmdag, device)
-    else:
-        raise ValueError("give a .gmdag file or a corpus folder")
+    scenes, spawns = bench_scenes(gmdag, corpus, device)
     config = EnvConfig(
         azimuth_bins=azimuth, elevation_bins=elevation, obstacles=ObstacleConfig(count=obstacles, squad=squad)
     )
