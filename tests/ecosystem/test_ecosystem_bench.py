@@ -19,7 +19,7 @@ def test_bench_wrappers_prints_one_consistent_json_object(corpus: Path) -> None:
     result = CliRunner().invoke(build_app(), [*args, "--azimuth", "16", "--elevation", "4", "--json"])
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout)  # the whole of stdout is one JSON object
-    variants = {"raw", "gym", "gym_zero_copy", "skrl", "torchrl"}
+    variants = {"raw", "raw_torchrl_copies", "gym", "gym_no_final_obs", "skrl", "torchrl"}
     assert set(out["steps_per_s"]) == set(out["ms_per_step"]) == variants
     assert set(out["overhead_pct"]) == variants - {"raw"}
     assert out["obs_shape"] == [8, 3, 16, 4] and out["device"] == "cpu"

@@ -35,5 +35,5 @@ def test_skrl_env_hands_out_flat_views_that_survive_the_next_step(corpus: Path) 
         assert obs.shape == (N, 3 * 16 * 4) and torch.equal(obs, out.obs.reshape(N, -1))
         assert reward.shape == truncated.shape == terminated.shape == (N, 1)
         assert torch.equal(reward[:, 0], out.reward) and torch.equal(truncated[:, 0], out.truncated)
-    with pytest.raises(ValueError, match="observation ring"):
+    with pytest.raises(ValueError, match="intact through the next step"):
         SkrlEnv(NaviVectorEnv(raw, final_obs=False))

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import check_env_specs
 
 from navi_env.ecosystem.batch import make_batched_env
@@ -91,3 +92,28 @@ def test_rollout_steps_stay_intact_and_seeds_replay(corpus: Path) -> None:
     env.set_seed(21)
     again = env.rollout(20, policy, break_when_any_done=False)
     assert torch.equal(again["next", "observation"], rollout["next", "observation"])
+
+
+def test_maybe_reset_gives_what_the_generic_partial_reset_gives(corpus: Path) -> None:
+    """The adapter's maybe_reset (one copy of the env's observation) against EnvBase.maybe_reset
+    (TorchRL's reset through _reset and its masked merge) on the same steps: every root entry equal
+    (but the action, which the generic merge zeroes where it reset and the policy replaces), and the
+    step's "next" entries untouched."""
+    fast = make_torchrl_env(N, corpus, config=SHORT, seed=5)
+    generic = make_torchrl_env(N, corpus, config=SHORT, seed=5)
+    td_fast, td_generic = fast.reset(), generic.reset()
+    for env in (fast, generic):
+        env.env.steps.copy_(torch.arange(N) % 12)  # episodes at every stage: partial resets
+    merged = 0
+    for actions in random_actions(26, seed=8):
+        data_fast = fast.step(td_fast.set("action", actions))
+        data_generic = generic.step(td_generic.set("action", actions))
+        kept = data_fast["next"].clone()
+        td_fast = fast.maybe_reset(fast._step_mdp(data_fast))
+        td_generic = EnvBase.maybe_reset(generic, generic._step_mdp(data_generic))
+        keys = set(td_generic.keys(True, True)) - {"action"}  # the policy writes the next action anyway
+        assert keys == set(td_fast.keys(True, True)) - {"action"}
+        assert all(torch.equal(td_fast[k], td_generic[k]) for k in keys), keys
+        assert (data_fast["next"] == kept).all()
+        merged += int(kept["done"].any() and not kept["done"].all())
+    assert merged >= 10

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -161,6 +162,30 @@ def test_fused_stages_compile_whole_and_change_nothing(
     monkeypatch.setattr(env_module, "_eager", lambda fn: env_module.fused(fn, "aot_eager", fullgraph=True))
     compiled = rollout(SdfDagEnv(corpus, 4, "cpu", cfg, spawns=spawns), 3, 14)
     assert all(torch.equal(x, y) for x, y in zip(eager, compiled, strict=True))
+
+
+def test_two_observation_buffers_change_no_value_and_keep_the_last_frame(room: SceneCorpus) -> None:
+    """obs_buffers=2: the same observations, rewards and positions as one buffer, bit for bit (the delta
+    channel reads the previous frame from the other buffer); each step's observation is still intact
+    after the next step, as previous_obs."""
+    base = EnvConfig(azimuth_bins=16, elevation_bins=4, max_steps_per_episode=5)
+    spawns = [torch.tensor([[8.0, 8.0, 4.0], [5.0, 5.0, 2.0], [12.0, 9.0, 6.0]])]
+    one = SdfDagEnv(room, 4, "cpu", base, spawns=spawns)
+    two = SdfDagEnv(room, 4, "cpu", replace(base, obs_buffers=2), spawns=spawns)
+    assert two.bytes_per_actor() - one.bytes_per_actor() == 3 * 16 * 4 * 4  # one more observation
+    a, b = rollout(one, 5, 12), rollout(two, 5, 12)
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+    two.reset(seed=5)
+    g = torch.Generator().manual_seed(1)
+    handed = two.step(torch.rand(4, 4, generator=g) * 2 - 1).obs
+    kept = handed.clone()
+    after = two.step(torch.rand(4, 4, generator=g) * 2 - 1).obs
+    assert after.data_ptr() != handed.data_ptr() and torch.equal(handed, kept)
+    assert two.previous_obs.data_ptr() == handed.data_ptr()
+    with pytest.raises(ValueError, match="obs_buffers=2"):
+        _ = one.previous_obs
+    with pytest.raises(ValueError, match="obs_buffers"):
+        EnvConfig(obs_buffers=3)
 
 
 def test_truncation_and_scene_rotation_counts() -> None:

@@ -43,8 +43,10 @@ def rollout(
     obstacles: int = 0,
     squad: int = 0,
     fused_step: bool = True,
+    obs_buffers: int = 1,
 ) -> list[torch.Tensor]:
     cfg = EnvConfig(
+        obs_buffers=obs_buffers,
         obstacles=ObstacleConfig(count=obstacles, speed_max=8.0, squad=squad),
         cuda_graph=graph,
         fused_observation=fused,
@@ -109,6 +111,14 @@ def test_cuda_graph_replay_matches_eager_steps(obstacles: int, squad: int) -> No
     graphed = rollout("cuda", 20, graph=True, obstacles=obstacles, squad=squad)
     eager = rollout("cuda", 20, graph=False, obstacles=obstacles, squad=squad)
     assert all(torch.equal(a, b) for a, b in zip(graphed, eager, strict=True))
+
+
+@needs_cuda
+def test_two_observation_buffers_with_two_graphs_change_no_value() -> None:
+    """obs_buffers=2 records one CUDA graph per buffer: the rollout is bit-identical to one buffer's."""
+    two = rollout("cuda", 20, obs_buffers=2, obstacles=4)
+    one = rollout("cuda", 20, obs_buffers=1, obstacles=4)
+    assert all(torch.equal(a, b) for a, b in zip(two, one, strict=True))
 
 
 @needs_cuda

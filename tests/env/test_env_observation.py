@@ -169,6 +169,24 @@ def test_fused_observation_matches_the_reference_on_cpu() -> None:
         fast.copy_(ref)  # the next delta starts from the same previous frame
 
 
+def test_fused_observation_into_the_other_buffer_matches_one_buffer() -> None:
+    """observe with prev (an env that writes two buffers in turn) against observe_ref over one buffer:
+    each frame written into the other buffer, with the delta read from the last one, is bit-identical."""
+    n, az, el = 6, 16, 4
+    table = semantic_table("cpu")
+    ref = torch.rand(n, 3, az, el, generator=torch.Generator().manual_seed(9))
+    ring = (ref.clone(), torch.zeros_like(ref))  # the frame before the first is in ring[0]
+    fresh = torch.tensor([True, False] * 3)
+    for step in range(4):
+        depth, sem = random_frame(n, az, el, step)
+        out, prev = ring[(step + 1) % 2], ring[step % 2]
+        a = observe(out, depth, sem, fresh, depth, sem, table, CFG.horizon, CFG.reward, prev)
+        b = observe_ref(ref, depth, sem, fresh, depth, sem, CFG.horizon, CFG.reward)
+        assert torch.equal(out, ref) and bool((out[~fresh, 2] != 0.0).any())
+        for name in ("void", "near", "mid", "front_mid", "clearance"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
 def test_semantic_table_is_channel_one() -> None:
     codes = torch.arange(256, dtype=torch.uint8)[None]  # (1, 256)
     obs = torch.zeros(1, 3, 64, 4)

@@ -1,12 +1,13 @@
 """Navi's batched drone environment for the RL ecosystem: Gymnasium, TorchRL and skrl adapters over
 navi_env.sim.env.SdfDagEnv that keep its tensors on its device.
 
-batch.py     make_batched_env (a corpus folder -> SdfDagEnv), the observation bounds, the observation
-             ring that hands out distinct tensors at consecutive steps (torch only)
+batch.py     make_batched_env (a corpus folder -> SdfDagEnv writing two observation buffers in turn, so
+             consecutive steps hand out distinct tensors without a copy), the observation bounds
 gym.py       NaviVectorEnv (gymnasium.vector.VectorEnv, torch tensors, SAME_STEP autoreset),
              NumpyVectorEnv (host NumPy), NaviEnv (one drone, NumPy) and the id Navi/Explore-v0
 render.py    pictures: a drone's spherical depth as a panorama, a top-down slice of its scene
 torchrl.py   NaviTorchRLEnv, a torchrl EnvBase (TensorDict in and out, batch size N)
+rows.py      copy_rows: the selected rows of a batch, one Triton kernel on CUDA (ended actors' final views)
 skrl.py      SkrlEnv, skrl's torch Wrapper over NaviVectorEnv
 bench.py     `navi bench wrappers`: env-steps/s of the raw env and of each adapter in one job
 

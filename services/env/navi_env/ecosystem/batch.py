@@ -1,5 +1,6 @@
-"""The batched env as the ecosystem adapters see it: built from a corpus folder, its bounds, and the
-observation ring that gives consecutive steps distinct tensors. Torch only (no RL library)."""
+"""The batched env as the ecosystem adapters see it: built from a corpus folder with two observation
+buffers written in turn (consecutive steps hand out distinct tensors, no copy), and its bounds. Torch
+only (no RL library)."""
 
 from __future__ import annotations
 
@@ -31,10 +32,10 @@ def make_batched_env(
     seed: int = 0,
 ) -> SdfDagEnv:
     """`num_envs` drones over the corpus folder's scenes (spawned at its qualified positions, with the
-    obstacles its scenes declare), on `device`. `obstacles` K > 0 gives every drone K scripted moving
+    obstacles its scenes declare), on `device`, writing its two observation buffers in turn. `obstacles` K > 0 gives every drone K scripted moving
     obstacles, `squad` G >= 2 makes squads of G drones that see each other (they replace
     config.obstacles' count and squad); `max_episode_steps` > 0 replaces config.max_steps_per_episode."""
-    cfg = config or EnvConfig()
+    cfg = replace(config or EnvConfig(), obs_buffers=2)  # a step's observation outlives the next step
     if obstacles or squad:
         cfg = replace(cfg, obstacles=replace(cfg.obstacles, count=obstacles, squad=squad))
     if max_episode_steps > 0:
@@ -57,30 +58,3 @@ def obs_bounds(env: SdfDagEnv) -> tuple[torch.Tensor, torch.Tensor]:
     low = torch.tensor(OBS_LOW, dtype=torch.float32)[:, None, None].expand(shape)  # (3, Az, El)
     high = torch.tensor(OBS_HIGH, dtype=torch.float32)[:, None, None].expand(shape)  # (3, Az, El)
     return low.contiguous(), high.contiguous()
-
-
-class ObsRing:
-    """Two observation buffers (N, 3, Az, El) on the env's device, allocated once and filled in turn:
-    the observation handed out at one step is still intact after the next step (a trainer that records
-    `obs` after stepping sees the right one), and the previous one is the view the last actions were
-    chosen on, which the env uses as the final view of an actor whose episode ended (docs/SIMULATION.md,
-    "Episodes"). One device copy per step; no allocation, no host synchronisation."""
-
-    def __init__(self, env: SdfDagEnv) -> None:
-        self.buffers = (torch.zeros_like(env.obs), torch.zeros_like(env.obs))  # 2 x (N, 3, Az, El)
-        self.current = 0
-
-    def push(self, obs: torch.Tensor) -> torch.Tensor:
-        """Copy obs (N, 3, Az, El) into the other buffer and return it."""
-        self.current ^= 1
-        return self.buffers[self.current].copy_(obs)
-
-    @property
-    def latest(self) -> torch.Tensor:
-        """(N, 3, Az, El) the observation handed out last."""
-        return self.buffers[self.current]
-
-    @property
-    def previous(self) -> torch.Tensor:
-        """(N, 3, Az, El) the observation handed out before the latest one."""
-        return self.buffers[self.current ^ 1]

@@ -1,10 +1,15 @@
 """`navi bench wrappers`: env-steps per second of the raw SdfDagEnv and of each ecosystem adapter over
 the same env, in one job, under the same uniform random actions.
 
-Variants: raw (SdfDagEnv.step), gym (NaviVectorEnv with its observation ring, the default), gym_zero_copy
-(NaviVectorEnv(final_obs=False)), skrl (SkrlEnv), torchrl (NaviTorchRLEnv.step_and_maybe_reset, what
-TorchRL's collectors call; it includes TorchRL's own work: TensorDicts, step_mdp, and the done check
-that reads the device once per step). Adapters whose library is not installed are left out. The
+Variants over one env with two observation buffers (EnvConfig.obs_buffers=2, as the adapters build it):
+raw (SdfDagEnv.step), gym (NaviVectorEnv, the default: final_obs from the env's previous buffer),
+gym_no_final_obs (NaviVectorEnv(final_obs=False)), skrl (SkrlEnv), torchrl
+(NaviTorchRLEnv.step_and_maybe_reset, what TorchRL's collectors call; it includes TorchRL's own work:
+TensorDicts, step_mdp, the done check that reads the device once per step, and the merge of reset
+observations into a new tensor), and raw_torchrl_copies (the raw step plus the observation copies
+TorchRL's data model asks for: its collectors keep every step's tensors, so a new observation each step
+and a second one, the next root, after a step where an episode ended; the least any TorchRL adapter
+pays). Adapters whose library is not installed are left out. The
 variants take turns, `repeats` rounds of `steps` timed steps each, and each reports its best round, so
 a slow moment of the machine does not land on one variant only.
 """
@@ -29,7 +34,20 @@ def step_functions(env: SdfDagEnv, actions: torch.Tensor) -> dict[str, Callable[
     """variant -> a function that takes one step of `env` with the (N, 4) actions; each variant has
     been reset."""
     env.reset(seed=0)
-    variants: dict[str, Callable[[], object]] = {"raw": lambda: env.step(actions)}
+
+    def torchrl_copies() -> object:
+        """The raw step plus the observation tensors TorchRL's data keeps: a new one every step, a second
+        after a step where an episode ended (read on the host, as TorchRL's done check does)."""
+        out = env.step(actions)
+        kept = [out.obs.clone()]  # (N, 3, Az, El)
+        if bool(out.truncated.any()):
+            kept.append(out.obs.clone())  # (N, 3, Az, El)
+        return kept
+
+    variants: dict[str, Callable[[], object]] = {
+        "raw": lambda: env.step(actions),
+        "raw_torchrl_copies": torchrl_copies,
+    }
     if find_spec("gymnasium") is not None:
         from navi_env.ecosystem.gym import NaviVectorEnv
 
@@ -38,7 +56,7 @@ def step_functions(env: SdfDagEnv, actions: torch.Tensor) -> dict[str, Callable[
         variants["gym"] = lambda: gym_env.step(actions)
         lean = NaviVectorEnv(env, final_obs=False)
         lean.reset(seed=0)
-        variants["gym_zero_copy"] = lambda: lean.step(actions)
+        variants["gym_no_final_obs"] = lambda: lean.step(actions)
         if find_spec("skrl") is not None:
             from navi_env.ecosystem.skrl import SkrlEnv
 
@@ -79,11 +97,18 @@ def bench_wrappers(
 
     scenes, spawns = bench_scenes(gmdag, corpus, device)
     env = SdfDagEnv(
-        scenes, actors, device, EnvConfig(azimuth_bins=azimuth, elevation_bins=elevation), spawns, seed
+        scenes,
+        actors,
+        device,
+        EnvConfig(azimuth_bins=azimuth, elevation_bins=elevation, obs_buffers=2),
+        spawns,
+        seed,
     )
     g = torch.Generator(device=env.device).manual_seed(seed)
     actions = torch.empty(actors, 4, device=env.device).uniform_(-1.0, 1.0, generator=g)  # (N, 4)
     variants = step_functions(env, actions)
+    # episodes at every stage, as in training (so actors end at every step, not all at once)
+    env.steps.random_(0, env.config.max_steps_per_episode, generator=g)
     sync = torch.cuda.synchronize if env.device.type == "cuda" else (lambda: None)
     for step in variants.values():
         for _ in range(WARMUP_STEPS):
@@ -97,6 +122,9 @@ def bench_wrappers(
                 step()
             sync()
             best[name] = min(best[name], time.perf_counter() - t0)
+    ended = torch.zeros((), dtype=torch.int64, device=env.device)  # () episodes ended over `steps` steps
+    for _ in range(steps):
+        ended += env.step(actions).truncated.sum()
     raw = best["raw"]
     return {
         "device": str(env.device),
@@ -106,6 +134,7 @@ def bench_wrappers(
         "scenes": len(scenes),
         "obs_shape": [actors, *env.obs_shape],
         "threads": torch.get_num_threads(),
+        "ended_per_step": round(int(ended) / steps, 2),  # how often TorchRL merges reset observations
         "steps_per_s": {k: round(actors * steps / s, 1) for k, s in best.items()},
         "ms_per_step": {k: round(1000.0 * s / steps, 4) for k, s in best.items()},
         "overhead_pct": {k: round(100.0 * (s - raw) / raw, 2) for k, s in best.items() if k != "raw"},

@@ -24,7 +24,7 @@ from gymnasium.spaces import Box
 from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
-from navi_env.ecosystem.batch import ACTION_DIM, ObsRing, make_batched_env, obs_bounds
+from navi_env.ecosystem.batch import ACTION_DIM, make_batched_env, obs_bounds
 from navi_env.ecosystem.render import render_frame
 from navi_env.sim.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
@@ -74,11 +74,12 @@ class NaviVectorEnv(VectorEnv[torch.Tensor, torch.Tensor, torch.Tensor]):
     (always False: contact never ends an episode), truncated (N,) bool, info. Reward, terminated,
     truncated and info's tensors are the env's own buffers, overwritten by the next step.
 
-    With final_obs (the default) each step copies the observation into one of two buffers allocated once
-    (ObsRing): the observation handed out stays intact through the next step (skrl records it after
-    stepping) and info["final_obs"] is the previous one, the final view of the actors that ended. With
-    final_obs=False the observation is the env's own buffer (no copy at all) and info has no final_obs:
-    for loops that store the observation before they step. No step allocates device memory or waits for
+    The observation is the env's own buffer, never copied. With final_obs (the default) the env writes
+    its two observation buffers in turn (EnvConfig.obs_buffers=2, as make_batched_env builds it): the
+    observation handed out stays intact through the next step (skrl records it after stepping) and
+    info["final_obs"] is the previous one (SdfDagEnv.previous_obs), the final view of the actors that
+    ended. With final_obs=False info has no final_obs and one buffer will do: for loops that store the
+    observation before they step. No step copies the observation, allocates device memory or waits for
     the device.
 
     info: every key of SdfDagEnv's StepOut.info ((N,) or (N, 3) tensors of the step that just ended:
@@ -105,7 +106,12 @@ class NaviVectorEnv(VectorEnv[torch.Tensor, torch.Tensor, torch.Tensor]):
         self.single_observation_space, self.single_action_space = spaces_of(env)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self.ring = ObsRing(env) if final_obs else None
+        if final_obs and env.config.obs_buffers < 2:
+            raise ValueError(
+                "final_obs needs an env that keeps its previous observation: EnvConfig(obs_buffers=2), as "
+                "make_batched_env builds it (or final_obs=False)"
+            )
+        self.final_obs = final_obs
         self.ended = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)  # (N,) done | truncated
         self._info: dict[str, Any] = {
             **env.info,
@@ -113,8 +119,8 @@ class NaviVectorEnv(VectorEnv[torch.Tensor, torch.Tensor, torch.Tensor]):
             "final_info": dict(env.info),
             "_final_info": self.ended,
         }
-        if self.ring is not None:
-            self._info |= {"final_obs": self.ring.previous, "_final_obs": self.ended}
+        if final_obs:
+            self._info |= {"_final_obs": self.ended}
 
     def actions(self, actions: torch.Tensor | np.ndarray) -> torch.Tensor:
         """(N, 4) float32 on the env's device: a tensor already there passes as it is."""
@@ -131,8 +137,6 @@ class NaviVectorEnv(VectorEnv[torch.Tensor, torch.Tensor, torch.Tensor]):
         env_seed = seed if seed is not None else int(self.np_random.integers(2**31))
         obs = self.env.reset(seed=env_seed)  # (N, 3, Az, El)
         self.ended.zero_()
-        if self.ring is not None:
-            obs = self.ring.push(obs)
         return obs, {}
 
     def step(
@@ -142,9 +146,8 @@ class NaviVectorEnv(VectorEnv[torch.Tensor, torch.Tensor, torch.Tensor]):
         torch.logical_or(out.done, out.truncated, out=self.ended)
         obs = out.obs  # (N, 3, Az, El)
         info = dict(self._info)
-        if self.ring is not None:
-            obs = self.ring.push(obs)
-            info["final_obs"] = self.ring.previous
+        if self.final_obs:
+            info["final_obs"] = self.env.previous_obs  # (N, 3, Az, El) the view the actions were chosen on
         return obs, out.reward, out.done, out.truncated, info
 
     def render(self) -> ActorFrames | None:  # type: ignore[override]
@@ -231,8 +234,8 @@ class NaviEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
-        if seed is None and self._started and self.vector.ring is not None:
-            obs = self.vector.ring.latest  # (1, 3, Az, El): the episode the env started at the last step
+        if seed is None and self._started:
+            obs = self.vector.env.obs  # (1, 3, Az, El): the episode the env started at the last step
         else:
             env_seed = seed if seed is not None else int(self.np_random.integers(2**31))
             obs, _ = self.vector.reset(seed=env_seed, options=options)

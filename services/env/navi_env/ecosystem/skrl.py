@@ -2,7 +2,7 @@
 agents and trainers run on Navi's tensors where they live (no NumPy round trip, no host sync).
 
 skrl flattens observations: step and reset return obs (N, 3·Az·El) (a view of the vector env's
-observation, which its ring keeps intact through the next step, as skrl's trainer records it after
+observation, which the env keeps intact through the next step, as skrl's trainer records it after
 stepping), reward (N, 1), terminated (N, 1), truncated (N, 1) and the vector env's info. Autoreset is
 the vector env's SAME_STEP: skrl never resets a vectorised env after the first reset.
 """
@@ -19,12 +19,13 @@ from navi_env.ecosystem.gym import NaviVectorEnv
 
 
 class SkrlEnv(Wrapper):
-    """A NaviVectorEnv (with its observation ring: final_obs=True) as a skrl environment."""
+    """A NaviVectorEnv (final_obs=True: each observation intact through the next step) as a skrl
+    environment."""
 
     def __init__(self, env: NaviVectorEnv, seed: int = 0) -> None:
-        if env.ring is None:
+        if not env.final_obs:
             raise ValueError(
-                "SkrlEnv needs the vector env's observation ring (NaviVectorEnv(final_obs=True))"
+                "SkrlEnv needs observations that stay intact through the next step (NaviVectorEnv(final_obs=True))"
             )
         super().__init__(env)
         self.vector = env

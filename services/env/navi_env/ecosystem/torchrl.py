@@ -13,9 +13,14 @@ TorchRL's step_and_maybe_reset then asks for hands out the first observation of 
 without stepping anything. A full reset (no "_reset" mask) restarts every actor from the seed.
 
 TorchRL keeps every step's TensorDict until it stacks a batch, so each step returns new tensors: one
-pass over the observation (the final-view selection), one more (a copy) in the partial reset after a
-step where an episode ended, and small per-actor copies; no host synchronisation here (TorchRL's
-step_and_maybe_reset reads its done flags on the host to decide whether to reset).
+copy of the observation per step (the final views of the actors that ended are then written over their
+rows), and small per-actor copies. After a step where an episode ended, TorchRL's data holds a second
+observation tensor (the root of the next step, with the next episodes' first views): maybe_reset makes
+it as one more copy of the env's observation, where TorchRL's generic partial reset would merge two
+observations in a full masked pass. The env writes two observation buffers in turn (make_batched_env),
+so the view an action was chosen on is intact while the env steps. The step writes the final views
+without reading the other rows or the host (navi_env.ecosystem.rows); maybe_reset reads the done flags
+on the host, as TorchRL's own does at every step.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from navi_env.ecosystem.batch import ACTION_DIM, make_batched_env, obs_bounds
+from navi_env.ecosystem.rows import copy_rows
 from navi_env.sim.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 from navi_env.sim.rewards import TERMS
@@ -91,7 +97,7 @@ class NaviTorchRLEnv(EnvBase):
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
         n = self.env.n_actors
         partial = tensordict is not None and "_reset" in tensordict
-        if partial:
+        if partial:  # reset() with a "_reset" mask (step_and_maybe_reset goes through maybe_reset)
             obs = self.env.obs.clone()  # (N, 3, Az, El): the env already began the ended actors' episodes
         else:
             obs = self.env.reset(seed=self.next_seed).clone()  # (N, 3, Az, El)
@@ -104,9 +110,8 @@ class NaviTorchRLEnv(EnvBase):
         before = tensordict.get("observation")  # (N, 3, Az, El) the view the actions were chosen on
         out = self.env.step(tensordict.get("action"))
         ended = out.done | out.truncated  # (N,) bool
-        obs = torch.where(
-            ended[:, None, None, None], before, out.obs
-        )  # (N, 3, Az, El) final view where ended
+        obs = out.obs.clone()  # (N, 3, Az, El) a new tensor: TorchRL keeps it until it stacks a batch
+        copy_rows(obs, before, ended)  # the final view where ended (only those rows read, no host sync)
         result = {
             "observation": obs,
             "reward": out.reward[:, None].clone(),  # (N, 1)
@@ -115,6 +120,26 @@ class NaviTorchRLEnv(EnvBase):
             "truncated": out.truncated[:, None].clone(),  # (N, 1)
         }
         return TensorDict(result | self._extras(zero=False), batch_size=self.batch_size, device=self.device)
+
+    def maybe_reset(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """EnvBase.maybe_reset for an env that has already begun the next episode of every actor whose
+        episode ended: the same root TensorDict as a partial reset through _reset gives (the env's
+        current observation, done flags cleared, zero info and reward terms where ended), built as one
+        copy of the observation instead of TorchRL's generic reset and its masked merge (a full pass
+        over both observations). Entries are replaced, never written in place: the step's "next" keeps
+        its own."""
+        done = tensordict.get("done")  # (N, 1) bool
+        if not bool(done.any()):  # TorchRL's own check reads the flags on the host here too
+            return tensordict
+        tensordict.set("observation", self.env.obs.clone())  # (N, 3, Az, El) the next episode's first view
+        for key in ("done", "terminated", "truncated"):
+            tensordict.set(key, torch.zeros_like(done))  # (N, 1): nobody is done after the reset
+        ended = done[:, 0]  # (N,) bool
+        for group in ("info", "reward_terms") if self.info else ():
+            node = tensordict.get(group)
+            for key, value in node.items():
+                node.set(key, value.masked_fill(ended, 0))  # (N,) zero where the episode restarted
+        return tensordict
 
     def _set_seed(self, seed: int | None) -> None:
         """The next full reset restarts every actor from `seed` (each later full reset from the next

@@ -210,6 +210,10 @@ class EnvConfig:
     """Starvation truncation is suppressed for this many steps after a reset."""
     starvation_threshold: float = 0.9
     """A view is starving when at least this fraction of its rays miss (see the horizon)."""
+    obs_buffers: int = 1
+    """Observation buffers the env writes in turn: 1 (each step overwrites the last observation) or 2 (a
+    step's observation stays intact through the next step, and the one before it is `previous_obs`: what
+    Gymnasium-style adapters hand out without copying; one more (N, 3, Az, El) float32 buffer)."""
     cuda_graph: bool = True
     """On CUDA, record one step as a CUDA graph after two eager steps and replay it (same results,
     far less launch overhead). Steps with a StageTimer attached always run eagerly."""
@@ -250,6 +254,8 @@ class EnvConfig:
             raise ValueError("clearance_range must lie between limiter_distance and the horizon")
         if self.limiter_distance <= self.drone_radius:
             raise ValueError("limiter_distance must exceed drone_radius")
+        if self.obs_buffers not in (1, 2):
+            raise ValueError(f"obs_buffers must be 1 or 2, got {self.obs_buffers}")
         if self.max_steps_per_episode < 1 or self.episodes_per_scene < 1 or self.void_grace_steps < 0:
             raise ValueError("episode limits must be positive")
         if not 0.0 < self.starvation_threshold <= 1.0:

@@ -128,7 +128,7 @@ class SdfDagEnv:
         self.device = dev = corpus.device
         self.n = self.n_actors = n = n_actors
         self.timer: StageTimer | None = None
-        self._graph: torch.cuda.CUDAGraph | None = None
+        self._graphs: list[torch.cuda.CUDAGraph | None] = [None, None]  # one per observation buffer
         self._eager_steps = 0
         n_scenes = len(corpus)
         for info in corpus.infos:
@@ -218,7 +218,11 @@ class SdfDagEnv:
         )  # (N,) previous frame is from another episode
         self.depth = f32(n, r)  # (N, R) traced distance, meters
         self.semantic = torch.zeros(n, r, dtype=torch.uint8, device=dev)  # (N, R) 0 miss, 1 + class on a hit
-        self.obs = f32(n, CHANNELS, cfg.azimuth_bins, cfg.elevation_bins)  # (N, 3, Az, El)
+        self._obs_ring = tuple(
+            f32(n, CHANNELS, cfg.azimuth_bins, cfg.elevation_bins) for _ in range(cfg.obs_buffers)
+        )
+        self._slot = 0  # the ring's buffer this step writes (and, on CUDA, its own graph)
+        self.obs = self._obs_ring[0]  # (N, 3, Az, El)
         self._fused_observation = cfg.fused_observation and dev.type == "cuda"
         self._fused_obstacles = cfg.fused_obstacles and dev.type == "cuda"
         fuse = fused if cfg.fused_step and dev.type == "cuda" else _eager
@@ -252,14 +256,18 @@ class SdfDagEnv:
             "obstacle_collision": flag(n),  # (N,) the collision was with a moving obstacle
             "drone_collision": flag(n),  # (N,) the collision was with another drone of the squad
         }
-        self.out = StepOut(
-            obs=self.obs,
-            reward=self.reward,
-            done=self.done,
-            truncated=self.truncated,
-            reward_terms=self.terms,
-            info=self.info,
+        self._outs = tuple(
+            StepOut(
+                obs=obs,
+                reward=self.reward,
+                done=self.done,
+                truncated=self.truncated,
+                reward_terms=self.terms,
+                info=self.info,
+            )
+            for obs in self._obs_ring
         )
+        self.out = self._outs[0]
 
     compact_obs = True
     """Observations are DistanceMatrix v2 as navi_env.sim.observation writes them (see its pack / unpack)."""
@@ -274,7 +282,7 @@ class SdfDagEnv:
         tensors = [
             v for v in vars(self).values() if isinstance(v, torch.Tensor) and v.ndim and v.shape[0] == self.n
         ]
-        tensors += list(self.terms.values()) + list(self.info.values())
+        tensors += list(self.terms.values()) + list(self.info.values()) + list(self._obs_ring[1:])
         if self.obstacles is not None:  # its records are a view of self.prims, counted above
             state = vars(self.obstacles).items()
             tensors += [v for k, v in state if k != "prims" and v.ndim and v.shape[0] == self.n]
@@ -300,23 +308,36 @@ class SdfDagEnv:
     def step(self, actions: torch.Tensor) -> StepOut:
         """Advance every actor by one step with actions (N, 4) in [-1, 1] (clipped).
 
-        Returns the same StepOut (the environment's buffers) every time.
+        Returns the environment's buffers: the same StepOut every time, or with EnvConfig.obs_buffers=2
+        one of two whose observations alternate (the other is `previous_obs`).
         """
         if actions.shape != (self.n, 4):
             raise ValueError(f"actions must be ({self.n}, 4), got {tuple(actions.shape)}")
         self.actions.copy_(actions)
-        if self._graph is not None and self.timer is None:
-            self._graph.replay()
+        if len(self._obs_ring) > 1:
+            self._slot ^= 1
+            self.obs, self.out = self._obs_ring[self._slot], self._outs[self._slot]
+        graph = self._graphs[self._slot]
+        if graph is not None and self.timer is None:
+            graph.replay()
         elif self._graph_ready():
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
                 self._step()
             graph.replay()
-            self._graph = graph
+            self._graphs[self._slot] = graph
         else:
             self._step()
             self._eager_steps += 1
         return self.out
+
+    @property
+    def previous_obs(self) -> torch.Tensor:
+        """(N, 3, Az, El) the observation handed out before `obs` (by the last step or reset), intact until
+        the next step writes it again. Needs EnvConfig.obs_buffers == 2."""
+        if len(self._obs_ring) < 2:
+            raise ValueError("previous_obs needs an env built with EnvConfig(obs_buffers=2)")
+        return self._obs_ring[self._slot ^ 1]
 
     def _graph_ready(self) -> bool:
         """Record the step as a CUDA graph now? (CUDA, enabled, no timer, after two eager steps)."""
@@ -551,6 +572,7 @@ class SdfDagEnv:
         """Sensor model, then obs from the sensed rays and the view statistics from the exact ones."""
         cfg = self.config
         depth, semantic = self.depth, self.semantic  # (N, R) float32, (N, R) uint8
+        prev = self._obs_ring[self._slot ^ 1] if len(self._obs_ring) > 1 else None  # the last frame
         if cfg.sensor.enabled:
             depth, semantic = apply_sensor(depth, semantic, cfg.sensor, cfg.horizon, self.seed, self.tick)
         if self._fused_observation:
@@ -564,10 +586,19 @@ class SdfDagEnv:
                 self._semantic_table,
                 cfg.horizon,
                 cfg.reward,
+                prev,
             )
         else:
             stats = observe_ref(
-                self.obs, depth, semantic, self.fresh, self.depth, self.semantic, cfg.horizon, cfg.reward
+                self.obs,
+                depth,
+                semantic,
+                self.fresh,
+                self.depth,
+                self.semantic,
+                cfg.horizon,
+                cfg.reward,
+                prev,
             )
         self.void.copy_(stats.void)
         self.near.copy_(stats.near)

@@ -49,17 +49,21 @@ def write_observation(
     hit: torch.Tensor,
     fresh: torch.Tensor,
     horizon: float,
+    prev: torch.Tensor | None = None,
 ) -> None:
     """Write obs (N, 3, Az, El) in place from depth (N, R) meters in [0, horizon], the tracer's semantic
     output (N, R) uint8 (0 miss, 1 + class id on a hit) and hit (N, R) bool, which must be semantic > 0.
 
     `fresh` (N,) bool marks actors whose previous frame belongs to another episode: delta is 0 there.
-    Written as few full passes over (N, R) as eager PyTorch allows: this runs every step for every ray.
+    `prev` (N, 3, Az, El) holds the previous frame (an env that writes two buffers in turn); by default
+    it is obs itself, overwritten here. Written as few full passes over (N, R) as eager PyTorch allows:
+    this runs every step for every ray.
     """
     n, r = depth.shape
     ch0, ch1, ch2 = obs[:, 0].view(n, r), obs[:, 1].view(n, r), obs[:, 2].view(n, r)  # (N, R) views
+    before = ch0 if prev is None else prev[:, 0].view(n, r)  # (N, R) the previous frame's channel 0
     now = round_to_half(torch.mul(depth, 1.0 / horizon))  # (N, R) channel 0
-    torch.sub(now, ch0, out=ch2)  # now - previous, exact (float16 values in [0, 1])
+    torch.sub(now, before, out=ch2)  # now - previous, exact (float16 values in [0, 1])
     ch2.masked_fill_(fresh[:, None], 0.0)
     ch0.copy_(now)
     _semantic_channel(ch1, semantic, hit)
@@ -156,12 +160,14 @@ def observe_ref(
     stats_semantic: torch.Tensor,
     horizon: float,
     cfg: RewardConfig,
+    prev: torch.Tensor | None = None,
 ) -> ViewStats:
     """One step's observation stage with eager kernels: obs (N, 3, Az, El) in place from the sensed
-    depth (N, R) float32 and semantic (N, R) uint8 (see write_observation), and the view statistics of
-    the exact trace, stats_depth (N, R) float32 and stats_semantic (N, R) uint8 (see view_stats)."""
+    depth (N, R) float32 and semantic (N, R) uint8 (see write_observation; `prev` as there), and the
+    view statistics of the exact trace, stats_depth (N, R) float32 and stats_semantic (N, R) uint8 (see
+    view_stats)."""
     hit = semantic > 0  # (N, R) bool
-    write_observation(obs, depth, semantic, hit, fresh, horizon)
+    write_observation(obs, depth, semantic, hit, fresh, horizon, prev)
     stats_hit = hit if stats_semantic is semantic else stats_semantic > 0  # (N, R) bool
     return view_stats(stats_depth, stats_hit, obs.shape[2], cfg)
 
@@ -176,6 +182,7 @@ def observe(
     table: torch.Tensor,
     horizon: float,
     cfg: RewardConfig,
+    prev: torch.Tensor | None = None,
 ) -> ViewStats:
     """observe_ref in one compiled pass over (N, R) (plus a few (N,) kernels); `table` is
     semantic_table(device). Compiled on the first call for each shape (seconds to a minute): make that
@@ -183,11 +190,14 @@ def observe(
     n, r = depth.shape
     az = obs.shape[2]
     ch = obs.view(n, CHANNELS, r)  # (N, 3, R) view of obs
+    # a one-buffer env reads channel 0 before overwriting it; a two-buffer env reads the other buffer's.
+    # Two compiled functions: passing ch0 a second time would make its inputs alias (slower code)
+    first: tuple[torch.Tensor, ...] = (ch[:, 0], ch[:, 1], ch[:, 2])  # 3 x (N, R) views of obs
+    if prev is not None:
+        first += (prev.view(n, CHANNELS, r)[:, 0],)  # (N, R) the previous frame's channel 0
     with torch.no_grad():  # one grad mode for every call: the compiled code is never re-specialised
-        counts, clearance = _compiled_pass()(
-            ch[:, 0],
-            ch[:, 1],
-            ch[:, 2],
+        counts, clearance = _compiled_pass(prev is not None)(
+            *first,
             depth,
             semantic,
             fresh,
@@ -204,11 +214,12 @@ def observe(
 
 
 @functools.cache
-def _compiled_pass() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
-    """_fused_pass compiled once per process (shapes specialised first, dynamic once a second env size
-    appears). Not fullgraph: past dynamo's recompile limit it runs eagerly, with the same values,
-    instead of failing the ninth differently sized env of a process."""
-    return torch.compile(_fused_pass)
+def _compiled_pass(two_buffers: bool) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
+    """_fused_pass (or _fused_pass_from, for an env with two observation buffers) compiled once per
+    process (shapes specialised first, dynamic once a second env size appears). Not fullgraph: past
+    dynamo's recompile limit it runs eagerly, with the same values, instead of failing the ninth
+    differently sized env of a process."""
+    return torch.compile(_fused_pass_from if two_buffers else _fused_pass)
 
 
 def _fused_pass(
@@ -227,14 +238,53 @@ def _fused_pass(
     mid_min: float,
     mid_max: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Writes the channels ch0, ch1, ch2 (N, R) float32 (views into obs) in place and returns the ray
+    """_fused_pass_from for a one-buffer env: the previous frame's channel 0 is ch0 itself, read before
+    it is overwritten."""
+    return _fused_pass_from(
+        ch0,
+        ch1,
+        ch2,
+        ch0,
+        depth,
+        semantic,
+        fresh,
+        stats_depth,
+        stats_semantic,
+        table,
+        horizon,
+        azimuth_bins,
+        near_distance,
+        mid_min,
+        mid_max,
+    )
+
+
+def _fused_pass_from(
+    ch0: torch.Tensor,
+    ch1: torch.Tensor,
+    ch2: torch.Tensor,
+    before: torch.Tensor,
+    depth: torch.Tensor,
+    semantic: torch.Tensor,
+    fresh: torch.Tensor,
+    stats_depth: torch.Tensor,
+    stats_semantic: torch.Tensor,
+    table: torch.Tensor,
+    horizon: float,
+    azimuth_bins: int,
+    near_distance: float,
+    mid_min: float,
+    mid_max: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Writes the channels ch0, ch1, ch2 (N, R) float32 (views into obs; `before` (N, R) is the previous
+    frame's channel 0, from the other buffer of a two-buffer env) in place and returns the ray
     counts (N, 4) int32 [hits, near, mid, mid in the front half] of stats_depth and stats_semantic and
     the shortest depth (N,) float32 of stats_depth. Every value is computed by the same float32
     operation as in write_observation and view_stats."""
     r = depth.shape[1]
     el = r // azimuth_bins
     now = round_to_half(depth * (1.0 / horizon))  # (N, R) channel 0
-    ch2.copy_(torch.where(fresh[:, None], 0.0, now - ch0))
+    ch2.copy_(torch.where(fresh[:, None], 0.0, now - before))
     ch0.copy_(now)
     ch1.copy_(table[semantic.to(torch.int64)])
     azimuth = torch.arange(r, device=depth.device) // el  # (R,) int64 azimuth bin of each ray
