@@ -105,7 +105,12 @@ def test_a_killed_node_ends_the_other_with_a_clear_error(
     port = free_port()
     args = ("--total-steps", "100000000", "--checkpoint-every", "1000000000", "--fresh")
     procs = [node(r, port, tmp_path / f"node{r}", *args, NAVI_DIST_TIMEOUT_S="20") for r in range(NODES)]
-    request.addfinalizer(lambda: [stop(p) for p in procs])
+
+    def stop_both() -> None:
+        for proc in procs:
+            stop(proc)
+
+    request.addfinalizer(stop_both)
     deadline = time.monotonic() + 90
     while not list(tmp_path.glob("node*/artifacts/runs/*/metrics/metrics.jsonl")):  # both ranks train
         assert all(p.poll() is None for p in procs) and time.monotonic() < deadline, procs[0].communicate()
