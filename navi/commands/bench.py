@@ -284,6 +284,42 @@ def bench_wrappers_cmd(
             typer.echo(f"{key:>14}: {value}")
 
 
+@app.command("freespace")
+def bench_freespace_cmd(
+    corpus: Annotated[Path, typer.Option("--corpus", help="Corpus folder (manifest.json and its scenes).")],
+    device: Annotated[str, typer.Option(help="cpu, cuda or cuda:N.")] = "cpu",
+    cell: Annotated[float, typer.Option(help="Lattice spacing in meters.", min=0.05)] = 0.5,
+    radius: Annotated[
+        float | None, typer.Option(help="Clearance a free voxel needs, meters (default: the drone radius).")
+    ] = None,
+    episode_steps: Annotated[
+        int, typer.Option(help="Episode length the coverage bound is for (the evaluation's 500).", min=1)
+    ] = 500,
+    json_out: JsonOutOpt = False,
+    record: RecordOpt = None,
+) -> None:
+    """Each scene as free space at the drone's radius: voxels, connected parts, a geodesic field from a
+    spawn (times and bytes), and the coverage per 1,000 steps its spawns can reach at most (speed limit
+    and the spawn's free part)."""
+    from navi_env.corpus.survey import survey_corpus
+
+    try:
+        result = survey_corpus(corpus, device, cell, radius, episode_steps)
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise fail(str(exc)) from exc
+    if record is not None:
+        record_result(result, "freespace", device, record)
+    if json_out:
+        typer.echo(json.dumps(result))
+        return
+    for row in result["scenes"]:
+        typer.echo(
+            f"{row['name']:>24}: grid {row['grid']}, free {row['free_share']:.1%}, {row['parts']} parts, "
+            f"reachable {row['reachable_cells_median']} cells, coverage <= {row['coverage_bound_per_1k']}/1k, "
+            f"{sum(row['seconds'].values()):.2f} s"
+        )
+
+
 @app.command(name="learn")
 def bench_learn_cmd(
     seeds: Annotated[

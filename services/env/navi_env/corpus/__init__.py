@@ -3,4 +3,6 @@
 folder.py    a corpus folder (.gmdag files and manifest.json): build it transactionally, load it
 qualify.py   spawn qualification: probe candidate positions, keep those with a useful view
 jobs.py      the procedural default corpus built over compile jobs on the compiler workers
+freespace.py a scene's free space at the drone's radius as voxels, its connected parts, geodesic fields
+survey.py    `navi bench freespace`: those per scene, timed, and the coverage its spawns can reach
 """

@@ -1,0 +1,188 @@
+"""Free space of a scene as a voxel grid, its connected parts and true path lengths through it.
+
+A scene's free space at the drone's radius is sampled from its distance field on a lattice of `cell`
+meters over the scene's bounds: voxel (i, j, k) has its centre at bounds_min + (i + 0.5, j + 0.5,
+k + 0.5) * cell and is free when the distance there is at least the radius. Voxels connect to their 26
+neighbours (faces, edges and corners, 1, sqrt 2 and sqrt 3 cells long) when both are free.
+
+- `components` labels the connected parts (each by the smallest flat index in it; -1 where blocked) by
+  repeated min-pooling over the 26-neighbourhood, as many passes as the longest part is wide.
+- `geodesic` gives every free voxel's path length in meters to the nearest source voxel through free
+  voxels (inf where no path), by repeated relaxation over the 26 neighbours: the exact shortest path on
+  the voxel graph, what Dijkstra gives (`geodesic_ref`), up to float32 rounding.
+
+Both are torch only, one pass over the grid per iteration, on the scene's device. `components_ref` and
+`geodesic_ref` are the plain-Python twins (breadth-first search, Dijkstra) for small grids.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from navi_env.tracer.scene import SceneCorpus
+from navi_env.tracer.trace import sample_distance
+
+OFFSETS: tuple[tuple[int, int, int], ...] = tuple(
+    (i, j, k) for i, j, k in itertools.product((-1, 0, 1), repeat=3) if (i, j, k) != (0, 0, 0)
+)
+"""The 26 neighbours of a voxel, (di, dj, dk)."""
+SAMPLE_CHUNK = 1 << 20
+"""Points per distance-field call while sampling the lattice."""
+
+
+@dataclass(frozen=True)
+class FreeSpace:
+    """A scene's free space: `free` (X, Y, Z) bool and `clearance` (X, Y, Z) float32 meters on the
+    lattice whose voxel (0, 0, 0) is centred at origin + cell / 2 (world meters)."""
+
+    origin: tuple[float, float, float]
+    cell: float
+    radius: float
+    free: torch.Tensor  # (X, Y, Z) bool
+    clearance: torch.Tensor  # (X, Y, Z) float32
+
+    def centres(self) -> torch.Tensor:
+        """World positions (X, Y, Z, 3) float32 of every voxel centre."""
+        axes = [
+            self.origin[a] + (torch.arange(n, device=self.free.device, dtype=torch.float64) + 0.5) * self.cell
+            for a, n in enumerate(self.free.shape)
+        ]  # 3 x (n_a,) float64
+        return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).float()  # (X, Y, Z, 3)
+
+    def voxel(self, points: torch.Tensor) -> torch.Tensor:
+        """Voxel indices (M, 3) int64 holding world points (M, 3), clamped into the grid."""
+        origin = torch.tensor(self.origin, dtype=torch.float64, device=points.device)  # (3,)
+        shape = torch.tensor(self.free.shape, device=points.device)  # (3,) int64
+        index = torch.floor((points.double() - origin) / self.cell).long()  # (M, 3)
+        return torch.minimum(index.clamp(min=0), shape - 1)
+
+
+def free_space(corpus: SceneCorpus, scene: int, cell: float = 0.5, radius: float = 0.3) -> FreeSpace:
+    """Sample scene `scene` of the corpus on a lattice of `cell` meters (see the module docstring)."""
+    if cell <= 0.0 or radius < 0.0:
+        raise ValueError(f"cell must be positive and radius non-negative, got {cell}, {radius}")
+    info = corpus.infos[scene]
+    lo, hi = info.bounds_min, info.bounds_max
+    shape = tuple(max(1, math.ceil((hi[a] - lo[a]) / cell)) for a in range(3))
+    grid = FreeSpace(
+        lo, cell, radius, torch.zeros(shape, dtype=torch.bool, device=corpus.device), torch.empty(0)
+    )
+    points = grid.centres().reshape(-1, 3)  # (V, 3)
+    clearance = torch.empty(points.shape[0], dtype=torch.float32, device=corpus.device)  # (V,)
+    for start in range(0, points.shape[0], SAMPLE_CHUNK):
+        part = points[start : start + SAMPLE_CHUNK].contiguous()  # (C, 3)
+        ids = torch.full((part.shape[0],), scene, dtype=torch.int64, device=corpus.device)  # (C,)
+        sample_distance(corpus, ids, part, out=clearance[start : start + SAMPLE_CHUNK])
+    clearance = clearance.reshape(shape)  # (X, Y, Z)
+    return FreeSpace(lo, cell, radius, clearance >= radius, clearance)
+
+
+def components(free: torch.Tensor) -> torch.Tensor:
+    """Labels (X, Y, Z) int64 of the 26-connected parts of free (X, Y, Z) bool: the smallest flat index of
+    the part, -1 where blocked."""
+    blocked = float(free.numel())
+    flat = torch.arange(free.numel(), device=free.device, dtype=torch.float64).reshape(free.shape)
+    label = torch.where(free, flat, blocked)  # (X, Y, Z) float64: exact below 2^53
+    while True:
+        pooled = -F.max_pool3d(-label[None, None], 3, stride=1, padding=1)[
+            0, 0
+        ]  # (X, Y, Z) neighbourhood min
+        nxt = torch.where(free, torch.minimum(label, pooled), blocked)  # (X, Y, Z)
+        if torch.equal(nxt, label):
+            return torch.where(free, label.long(), -1)
+        label = nxt
+
+
+def geodesic(free: torch.Tensor, sources: torch.Tensor, cell: float) -> torch.Tensor:
+    """Path length (X, Y, Z) float32 meters from every voxel to the nearest of the source voxels
+    (S, 3) int64 through 26-connected free voxels; inf where blocked or cut off. Sources must be free."""
+    if sources.numel() and not bool(free[sources[:, 0], sources[:, 1], sources[:, 2]].all()):
+        raise ValueError("every source voxel must be free")
+    inf = torch.tensor(math.inf, device=free.device)
+    dist = torch.full(free.shape, math.inf, device=free.device)  # (X, Y, Z) float32
+    dist[sources[:, 0], sources[:, 1], sources[:, 2]] = 0.0
+    x, y, z = free.shape
+    steps = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]  # offset, its length
+    while True:
+        padded = F.pad(dist[None, None], (1, 1, 1, 1, 1, 1), value=math.inf)[0, 0]  # (X+2, Y+2, Z+2)
+        best = dist
+        for (di, dj, dk), length in steps:
+            near = padded[1 + di : 1 + di + x, 1 + dj : 1 + dj + y, 1 + dk : 1 + dk + z]  # (X, Y, Z)
+            best = torch.minimum(best, near + length)
+        nxt = torch.where(free, best, inf)  # (X, Y, Z)
+        if torch.equal(nxt, dist):
+            return dist
+        dist = nxt
+
+
+def components_ref(free: torch.Tensor) -> torch.Tensor:
+    """components by breadth-first search in Python (small grids)."""
+    mask = free.cpu()
+    shape = tuple(mask.shape)
+    label = torch.full(shape, -1, dtype=torch.int64)
+    for start in itertools.product(*(range(n) for n in shape)):
+        if not mask[start] or label[start] >= 0:
+            continue
+        members = [start]
+        label[start] = 0
+        todo = deque([start])
+        while todo:
+            v = todo.popleft()
+            for o in OFFSETS:
+                w = (v[0] + o[0], v[1] + o[1], v[2] + o[2])
+                if all(0 <= w[a] < shape[a] for a in range(3)) and mask[w] and label[w] < 0:
+                    label[w] = 0
+                    members.append(w)
+                    todo.append(w)
+        smallest = min((v[0] * shape[1] + v[1]) * shape[2] + v[2] for v in members)
+        for v in members:
+            label[v] = smallest
+    return label
+
+
+def geodesic_ref(free: torch.Tensor, sources: torch.Tensor, cell: float) -> torch.Tensor:
+    """geodesic by Dijkstra in Python, float64 sums (small grids)."""
+    mask = free.cpu()
+    shape = tuple(mask.shape)
+    dist = torch.full(shape, math.inf, dtype=torch.float64)
+    heap: list[tuple[float, tuple[int, int, int]]] = []
+    for s in sources.cpu().tolist():
+        dist[tuple(s)] = 0.0
+        heapq.heappush(heap, (0.0, (s[0], s[1], s[2])))
+    lengths = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]
+    while heap:
+        d, v = heapq.heappop(heap)
+        if d > dist[v]:
+            continue
+        for o, length in lengths:
+            w = (v[0] + o[0], v[1] + o[1], v[2] + o[2])
+            if all(0 <= w[a] < shape[a] for a in range(3)) and mask[w] and d + length < dist[w]:
+                dist[w] = d + length
+                heapq.heappush(heap, (d + length, w))
+    return dist.float()
+
+
+def reachable_cells(space: FreeSpace, labels: torch.Tensor, point: torch.Tensor, cell_m: float = 1.0) -> int:
+    """Distinct world cells of `cell_m` meters (floor(position / cell_m), the evaluation's coverage cells)
+    holding a free voxel centre of the part that contains world point (3,)."""
+    label = labels[tuple(space.voxel(point[None])[0].tolist())]  # () int64
+    if int(label) < 0:
+        return 0
+    centres = space.centres()[labels == label]  # (V, 3) the part's voxel centres
+    return int(torch.unique(torch.floor(centres / cell_m).long(), dim=0).shape[0])
+
+
+def coverage_bound(reachable: int, episode_steps: int, step_m: float, cell_m: float = 1.0) -> float:
+    """An upper bound on coverage per 1,000 steps (distinct cells of `cell_m` meters entered) for episodes
+    of `episode_steps` steps of at most `step_m` meters: no more cells than the part holds (`reachable`),
+    and no more than a path of that length can enter (it crosses at most sqrt 3 cell faces per cell
+    length flown, plus the cell it starts in)."""
+    path_cells = math.floor(episode_steps * step_m * math.sqrt(3.0) / cell_m) + 1
+    return 1000.0 * min(reachable, path_cells) / episode_steps

@@ -1,0 +1,119 @@
+"""Free space, its connected parts and true path lengths: the torch passes against breadth-first search
+and Dijkstra on random grids, the 26-neighbourhood metric in open space, a wall with a doorway, and the
+lattice sampled from a scene's distance field."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from navi.cli import build_app
+from navi_env.corpus.freespace import components, components_ref, free_space, geodesic, geodesic_ref
+from navi_env.tracer.scene import load_corpus
+
+from .test_env_env import room_gmdag
+
+
+def random_free(seed: int, shape: tuple[int, int, int] = (9, 7, 5), share: float = 0.55) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(shape, generator=g) < share  # (X, Y, Z) bool
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_components_match_breadth_first_search(seed: int) -> None:
+    free = random_free(seed, share=0.2)  # several parts
+    labels = components(free)
+    assert torch.equal(labels, components_ref(free))
+    assert int(labels.unique().numel()) > 2  # blocked plus at least two parts
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_geodesic_matches_dijkstra(seed: int) -> None:
+    free = random_free(seed)
+    g = torch.Generator().manual_seed(100 + seed)
+    candidates = free.nonzero()  # (F, 3)
+    sources = candidates[torch.randperm(candidates.shape[0], generator=g)[:2]]  # (2, 3)
+    fast, ref = geodesic(free, sources, 0.5), geodesic_ref(free, sources, 0.5)
+    assert torch.equal(torch.isinf(fast), torch.isinf(ref)) and bool(torch.isinf(fast[~free]).all())
+    finite = torch.isfinite(ref)
+    assert torch.allclose(fast[finite], ref[finite], rtol=1e-5, atol=1e-5)
+    assert bool(finite.sum() > sources.shape[0])
+
+
+def test_geodesic_in_open_space_is_the_26_neighbour_metric() -> None:
+    """With nothing in the way the path length is sqrt3 c + sqrt2 (b - c) + (a - b) cells, a >= b >= c the
+    sorted offsets."""
+    free = torch.ones(8, 6, 5, dtype=torch.bool)
+    dist = geodesic(free, torch.tensor([[1, 2, 0]]), 0.25)
+    for i, j, k in [(0, 0, 0), (7, 5, 4), (4, 2, 3), (1, 2, 0)]:
+        a, b, c = sorted((abs(i - 1), abs(j - 2), abs(k)), reverse=True)
+        want = 0.25 * (math.sqrt(3) * c + math.sqrt(2) * (b - c) + (a - b))
+        assert float(dist[i, j, k]) == pytest.approx(want, rel=1e-6)
+
+
+def test_a_wall_with_a_doorway_lengthens_the_path_and_a_closed_one_cuts_it() -> None:
+    free = torch.ones(11, 9, 1, dtype=torch.bool)
+    free[5, :, 0] = False  # a wall across x = 5
+    free[5, 8, 0] = True  # its doorway at the far end
+    start, goal = (2, 0, 0), (8, 0, 0)
+    dist = geodesic(free, torch.tensor([start]), 1.0)
+    assert float(dist[goal]) > 6.0 + 8.0  # up to the doorway and back down: longer than the 6 straight
+    assert float(dist[goal]) == pytest.approx(float(geodesic_ref(free, torch.tensor([start]), 1.0)[goal]))
+    free[5, 8, 0] = False
+    assert math.isinf(float(geodesic(free, torch.tensor([start]), 1.0)[goal]))
+    labels = components(free)
+    assert int(labels[start]) != int(labels[goal]) and int(labels[5, 3, 0]) == -1
+    with pytest.raises(ValueError, match="must be free"):
+        geodesic(free, torch.tensor([[5, 3, 0]]), 1.0)
+
+
+def test_free_space_of_a_room_is_its_inside_less_the_radius() -> None:
+    """The analytic room spans (1, 1, 1)-(15, 15, 7): voxel centres at least the radius from its walls are
+    free, the rest not, and every free voxel is one part."""
+    corpus = load_corpus([room_gmdag()], "cpu")
+    space = free_space(corpus, 0, cell=0.5, radius=0.3)
+    centres = space.centres()  # (X, Y, Z, 3)
+    lo, hi = torch.tensor([1.0, 1.0, 1.0]), torch.tensor([15.0, 15.0, 7.0])
+    inside = torch.minimum(centres - lo, hi - centres).amin(dim=-1)  # (X, Y, Z) distance to the nearest wall
+    assert space.free.shape == (28, 28, 12)
+    sure = (inside - 0.3).abs() > 0.05  # away from the radius, where trilinear rounding cannot flip it
+    assert torch.equal(space.free[sure], (inside >= 0.3)[sure])
+    assert bool(
+        (space.clearance <= inside + 0.05).all()
+    )  # the field is exact near walls, a lower bound beyond
+    assert components(space.free).unique().numel() == 2  # blocked, and one room
+    assert torch.equal(
+        space.voxel(torch.tensor([[8.0, 8.0, 4.0], [-5.0, 99.0, 4.2]])),
+        torch.tensor([[14, 14, 6], [0, 27, 6]]),
+    )
+
+
+def test_bench_freespace_reports_every_scene_with_a_sound_bound(tmp_path: Path) -> None:
+    """`navi bench freespace` over a small procedural corpus: one row per scene, one part holding the
+    spawns, a coverage bound no higher than the speed limit allows and no lower than one cell."""
+    runner = CliRunner()
+    scenes, corpus = tmp_path / "scenes", tmp_path / "corpus"
+    made = runner.invoke(build_app(), ["scenes", "generate", "--out", str(scenes), "--count", "2",
+                                       "--families", "rooms", "--seed", "3"])  # fmt: skip
+    assert made.exit_code == 0, made.output
+    built = runner.invoke(
+        build_app(), ["corpus", "build", str(scenes), "--out", str(corpus), "--resolution", "64"]
+    )
+    assert built.exit_code == 0, built.output
+    result = runner.invoke(build_app(), ["bench", "freespace", "--corpus", str(corpus), "--json"])
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout)
+    speed = 1000.0 * (math.floor(500 * 0.5 * math.sqrt(3.0)) + 1) / 500
+    assert out["step_m"] == pytest.approx(0.5) and len(out["scenes"]) == 2
+    for row in out["scenes"]:
+        assert row["parts"] >= 1 and 0.0 < row["free_share"] < 1.0
+        assert 2.0 <= row["coverage_bound_per_1k"] <= speed
+        assert row["coverage_bound_per_1k"] == pytest.approx(
+            1000.0 * min(row["reachable_cells_median"], speed / 2) / 500, abs=0.11
+        )
+        assert row["farthest_path_m"] > 1.0 and row["grid_bytes"] == 17 * math.prod(row["grid"])
