@@ -316,6 +316,7 @@ def bench_freespace_cmd(
         typer.echo(
             f"{row['name']:>24}: grid {row['grid']}, free {row['free_share']:.1%}, {row['parts']} parts, "
             f"reachable {row['reachable_cells_median']} cells, coverage <= {row['coverage_bound_per_1k']}/1k, "
+            f"planner {row['planner_coverage_per_1k']}/1k at {row['planner_speed_m_s']} m/s, "
             f"{sum(row['seconds'].values()):.2f} s"
         )
 

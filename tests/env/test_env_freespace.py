@@ -13,7 +13,15 @@ import torch
 from typer.testing import CliRunner
 
 from navi.cli import build_app
-from navi_env.corpus.freespace import components, components_ref, free_space, geodesic, geodesic_ref
+from navi_env.corpus.freespace import (
+    FreeSpace,
+    components,
+    components_ref,
+    free_space,
+    geodesic,
+    geodesic_ref,
+    greedy_coverage,
+)
 from navi_env.tracer.scene import load_corpus
 
 from .test_env_env import room_gmdag
@@ -117,3 +125,41 @@ def test_bench_freespace_reports_every_scene_with_a_sound_bound(tmp_path: Path) 
             1000.0 * min(row["reachable_cells_median"], speed / 2) / 500, abs=0.11
         )
         assert row["farthest_path_m"] > 1.0 and row["grid_bytes"] == 17 * math.prod(row["grid"])
+        assert 0.0 < row["planner_coverage_per_1k"] <= row["coverage_bound_per_1k"]
+        assert 5.0 * 0.2 <= row["planner_speed_m_s"] <= 5.0  # between the limiter's floor and full speed
+
+
+def line(shape: tuple[int, int, int], clearance: float) -> FreeSpace:
+    """A free line of voxels along the first axis with a wide axis (0.5 m voxels from the origin)."""
+    free = torch.zeros(shape, dtype=torch.bool)
+    free[(slice(None), 0, 0) if shape[0] > 1 else (0, 0, slice(None))] = True
+    return FreeSpace((0.0, 0.0, 0.0), 0.5, 0.3, free, torch.full(shape, clearance))
+
+
+def test_the_planner_flies_a_corridor_at_the_speed_its_clearance_allows() -> None:
+    """Along x at 5 m/s a 0.5 m move takes 0.1 s and a new 1 m cell comes every second move; at half
+    the speed (the limiter) it takes twice as long; up a shaft the 2 m/s climb rate is the limit."""
+    full = greedy_coverage(
+        line((40, 1, 1), 9.0), torch.tensor([0.1, 0.1, 0.1]), 1.05, lambda c: 1.0, 5.0, 2.0
+    )
+    assert (full.cells, full.meters) == (6, pytest.approx(5.0)) and full.seconds == pytest.approx(1.0)
+    half = greedy_coverage(
+        line((40, 1, 1), 9.0), torch.tensor([0.1, 0.1, 0.1]), 1.05, lambda c: 0.5, 5.0, 2.0
+    )
+    assert (half.cells, half.meters) == (3, pytest.approx(2.5))
+    shaft = greedy_coverage(
+        line((1, 1, 40), 9.0), torch.tensor([0.1, 0.1, 0.1]), 1.05, lambda c: 1.0, 5.0, 2.0
+    )
+    assert shaft.cells == 3 and shaft.meters == pytest.approx(2.0)  # 4 climbs of 0.25 s
+
+
+def test_the_planner_stops_when_every_cell_is_entered_and_never_beats_the_bound() -> None:
+    short = greedy_coverage(
+        line((6, 1, 1), 9.0), torch.tensor([0.1, 0.1, 0.1]), 60.0, lambda c: 1.0, 5.0, 2.0
+    )
+    assert short.cells == 3 and short.meters == pytest.approx(2.0)  # 3 m of corridor: every cell, then done
+    corpus = load_corpus([room_gmdag()], "cpu")
+    space = free_space(corpus, 0, cell=0.5, radius=0.3)
+    flight = greedy_coverage(space, torch.tensor([8.0, 8.0, 4.0]), 50.0, lambda c: 1.0, 5.0, 2.0)
+    assert 0 < flight.cells <= math.floor(flight.meters * math.sqrt(3.0)) + 1 and flight.seconds <= 50.0
+    assert flight.meters <= 5.0 * 50.0 + 1e-6

@@ -21,6 +21,7 @@ import heapq
 import itertools
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -186,3 +187,87 @@ def coverage_bound(reachable: int, episode_steps: int, step_m: float, cell_m: fl
     length flown, plus the cell it starts in)."""
     path_cells = math.floor(episode_steps * step_m * math.sqrt(3.0) / cell_m) + 1
     return 1000.0 * min(reachable, path_cells) / episode_steps
+
+
+@dataclass(frozen=True)
+class Flight:
+    """What `greedy_coverage` flew: distinct cells entered, the seconds and meters it took."""
+
+    cells: int
+    seconds: float
+    meters: float
+
+
+def greedy_coverage(
+    space: FreeSpace,
+    start: torch.Tensor,
+    seconds: float,
+    scale: Callable[[float], float],
+    max_speed: float,
+    max_vertical_speed: float,
+    cell_m: float = 1.0,
+) -> Flight:
+    """A planner with the map: from the free voxel holding world point `start` (3,), fly voxel centre to
+    voxel centre, each time to the voxel of a not yet entered world cell of `cell_m` meters that is
+    quickest to reach (Dijkstra on flight time), for `seconds` of flight. A move between neighbours flies
+    at most max_speed and its height at most max_vertical_speed (m/s), both times scale(c), c the smaller
+    clearance of its two ends: the env's proximity limiter, with the clearance standing in for the view's
+    shortest depth. Kinematic (no yaw, no acceleration): a ceiling for flights over this lattice."""
+    free = space.free.cpu()
+    shape = tuple(free.shape)
+    sx, sy = shape[1] * shape[2], shape[2]
+    clear = space.clearance.cpu().reshape(-1).tolist()
+    ok = free.reshape(-1).tolist()
+    centres = space.centres().cpu().reshape(-1, 3)  # (V, 3)
+    world_cell = torch.floor(centres / cell_m).long()  # (V, 3)
+    _, cell_of_t = torch.unique(world_cell, dim=0, return_inverse=True)  # (V,) dense cell id per voxel
+    cell_of = cell_of_t.tolist()
+    moves = []  # (offset, flat step, seconds at full speed, meters) per neighbour
+    for o in OFFSETS:
+        length = space.cell * math.sqrt(sum(abs(c) for c in o))
+        full = max(length / max_speed, space.cell * abs(o[2]) / max_vertical_speed)
+        moves.append((o, o[0] * sx + o[1] * sy + o[2], full, length))
+    here = int(((space.voxel(start.reshape(1, 3).cpu())[0]) * torch.tensor([sx, sy, 1])).sum())
+    if not ok[here]:
+        return Flight(0, 0.0, 0.0)
+    entered = {cell_of[here]}
+    clock = meters = 0.0
+    while clock < seconds:
+        # Dijkstra on flight time from `here` to the nearest voxel of a cell not entered yet
+        best = {here: (0.0, 0.0, -1)}  # voxel -> (seconds, meters, previous voxel)
+        heap = [(0.0, here)]
+        goal = -1
+        while heap:
+            t, v = heapq.heappop(heap)
+            if t > best[v][0]:
+                continue
+            if cell_of[v] not in entered:
+                goal = v
+                break
+            i, j, k = v // sx, (v // sy) % shape[1], v % sy
+            for (di, dj, dk), step, full, length in moves:
+                if not (0 <= i + di < shape[0] and 0 <= j + dj < shape[1] and 0 <= k + dk < shape[2]):
+                    continue
+                w = v + step
+                if not ok[w]:
+                    continue
+                dt = full / scale(min(clear[v], clear[w]))
+                if w not in best or t + dt < best[w][0]:
+                    best[w] = (t + dt, best[v][1] + length, v)
+                    heapq.heappush(heap, (t + dt, w))
+        if goal < 0:  # every cell of the part entered
+            break
+        path = [goal]
+        while best[path[-1]][2] >= 0:
+            path.append(best[path[-1]][2])
+        for a, b in zip(
+            path[-1:0:-1], path[-2::-1], strict=True
+        ):  # the moves from here to the goal, in order
+            dt = best[b][0] - best[a][0]
+            if clock + dt > seconds:
+                return Flight(len(entered), clock, meters)
+            clock += dt
+            meters += best[b][1] - best[a][1]
+            entered.add(cell_of[b])
+        here = goal
+    return Flight(len(entered), clock, meters)

@@ -1,32 +1,52 @@
 """`navi bench freespace`: each scene of a corpus as free space at the drone's radius (its voxels, its
-connected parts, a geodesic field from a spawn), timed and sized, and the coverage its spawns can reach:
-an upper bound on the evaluation's coverage per 1,000 steps from the drone's speed limit and the free
-space of the spawn's part (navi_env.corpus.freespace)."""
+connected parts, a geodesic field from a spawn), timed and sized, and the coverage its spawns can reach
+in the evaluation's episodes, per 1,000 steps: an upper bound from the drone's speed limit and the free
+space of the spawn's part, and what a planner with the map flies under the env's speed limits and
+proximity limiter (navi_env.corpus.freespace.greedy_coverage)."""
 
 from __future__ import annotations
 
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from navi_env.corpus.folder import load_corpus
-from navi_env.corpus.freespace import components, coverage_bound, free_space, geodesic, reachable_cells
+from navi_env.corpus.freespace import (
+    components,
+    coverage_bound,
+    free_space,
+    geodesic,
+    greedy_coverage,
+    reachable_cells,
+)
 from navi_env.sim.config import EnvConfig
+from navi_env.tracer.scene import SceneCorpus
+
+PLANNER_SPAWNS = 3
+"""Spawns per scene the planner flies from (the median is reported)."""
+
+
+def limiter(cfg: EnvConfig) -> Callable[[float], float]:
+    """The env's proximity speed limiter (navi_env.sim.physics.limiter_scale) as a function of the
+    clearance in meters, capped at clearance_range as the env caps the view clearance."""
+
+    def scale(clearance: float) -> float:
+        span = cfg.limiter_distance - cfg.drone_radius
+        ramp = (min(clearance, cfg.clearance_range) - cfg.drone_radius) / span
+        return min(1.0, max(cfg.limiter_min_fraction, ramp))
+
+    return scale
 
 
 def survey_scene(
-    corpus: Any,
-    scene: int,
-    spawns: torch.Tensor,
-    cell: float,
-    radius: float,
-    episode_steps: int,
-    step_m: float,
+    corpus: SceneCorpus, scene: int, spawns: torch.Tensor, cell: float, radius: float, episode_steps: int
 ) -> dict[str, Any]:
-    """One scene's row (see the module docstring); spawns (K, 3) world meters."""
+    """One scene's row (see the module docstring); spawns (K, 3) world meters; the env's defaults."""
+    cfg = EnvConfig()
     sync = torch.cuda.synchronize if corpus.device.type == "cuda" else (lambda: None)
     t0 = time.perf_counter()
     space = free_space(corpus, scene, cell, radius)
@@ -41,27 +61,36 @@ def survey_scene(
     sync()
     t3 = time.perf_counter()
     reach = [reachable_cells(space, labels, p) for p in spawns[:8]]
-    parts = labels[labels >= 0].unique()
+    t4 = time.perf_counter()
+    flights = [
+        greedy_coverage(space, p, episode_steps * cfg.dt, limiter(cfg), cfg.max_speed, cfg.max_vertical_speed)
+        for p in spawns[:PLANNER_SPAWNS]
+    ]
+    t5 = time.perf_counter()
+    parts = labels[labels >= 0].unique()  # (P,) the part labels, sorted
+    sizes = torch.bincount(torch.searchsorted(parts, labels[labels >= 0]))  # (P,) voxels per part
     finite = field[torch.isfinite(field)] if field is not None else torch.empty(0)
+    reachable = int(statistics.median(reach))
     return {
         "name": corpus.infos[scene].name,
         "grid": list(space.free.shape),
         "free_share": round(float(space.free.float().mean()), 4),
         "parts": int(parts.numel()),
-        "largest_part_share": round(
-            float(torch.bincount(torch.searchsorted(parts, labels[labels >= 0])).max() / space.free.sum()), 4
-        ),
-        "reachable_cells_median": statistics.median(reach) if reach else 0,
-        "coverage_bound_per_1k": round(
-            coverage_bound(int(statistics.median(reach)), episode_steps, step_m), 1
-        )
-        if reach
+        "largest_part_share": round(float(sizes.max()) / max(int(space.free.sum()), 1), 4)
+        if parts.numel()
         else 0.0,
+        "reachable_cells_median": reachable,
+        "coverage_bound_per_1k": round(coverage_bound(reachable, episode_steps, cfg.max_speed * cfg.dt), 1),
+        "planner_coverage_per_1k": round(
+            statistics.median(1000.0 * f.cells / episode_steps for f in flights), 1
+        ),
+        "planner_speed_m_s": round(statistics.median(f.meters / max(f.seconds, 1e-9) for f in flights), 2),
         "farthest_path_m": round(float(finite.max()), 2) if finite.numel() else None,
         "seconds": {
             "sample": round(t1 - t0, 3),
             "components": round(t2 - t1, 3),
             "geodesic": round(t3 - t2, 3),
+            "planner": round(t5 - t4, 3),
         },
         "grid_bytes": space.free.numel() * (1 + 4 + 8 + 4),  # free, clearance, labels, one geodesic field
     }
@@ -70,22 +99,20 @@ def survey_scene(
 def survey_corpus(
     corpus_dir: Path, device: str, cell: float = 0.5, radius: float | None = None, episode_steps: int = 500
 ) -> dict[str, Any]:
-    """Every scene of the corpus folder; the drone's radius and step length from EnvConfig's defaults."""
+    """Every scene of the corpus folder (radius: the env's drone radius unless given)."""
     cfg = EnvConfig()
     radius = cfg.drone_radius if radius is None else radius
-    step_m = cfg.max_speed * cfg.dt
     scenes, manifest = load_corpus(corpus_dir, torch.device(device))
     spawns = manifest.spawn_tensors()
-    rows = [
-        survey_scene(scenes, s, spawns[s], cell, radius, episode_steps, step_m) for s in range(len(scenes))
-    ]
+    rows = [survey_scene(scenes, s, spawns[s], cell, radius, episode_steps) for s in range(len(scenes))]
     return {
         "corpus": str(corpus_dir),
         "device": str(scenes.device),
         "cell_m": cell,
         "radius_m": radius,
         "episode_steps": episode_steps,
-        "step_m": step_m,
+        "step_m": cfg.max_speed * cfg.dt,
         "scenes": rows,
         "coverage_bound_per_1k_min": min(r["coverage_bound_per_1k"] for r in rows),
+        "planner_coverage_per_1k_min": min(r["planner_coverage_per_1k"] for r in rows),
     }
