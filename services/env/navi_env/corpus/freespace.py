@@ -57,6 +57,11 @@ class FreeSpace:
         ]  # 3 x (n_a,) float64
         return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).float()  # (X, Y, Z, 3)
 
+    def centre_of(self, index: torch.Tensor) -> torch.Tensor:
+        """World positions (M, 3) float32 of the voxel centres at indices (M, 3) int64."""
+        origin = torch.tensor(self.origin, dtype=torch.float64, device=index.device)  # (3,)
+        return (origin + (index.double() + 0.5) * self.cell).float()
+
     def voxel(self, points: torch.Tensor) -> torch.Tensor:
         """Voxel indices (M, 3) int64 holding world points (M, 3), clamped into the grid."""
         origin = torch.tensor(self.origin, dtype=torch.float64, device=points.device)  # (3,)
@@ -72,15 +77,17 @@ def free_space(corpus: SceneCorpus, scene: int, cell: float = 0.5, radius: float
     info = corpus.infos[scene]
     lo, hi = info.bounds_min, info.bounds_max
     shape = tuple(max(1, math.ceil((hi[a] - lo[a]) / cell)) for a in range(3))
-    grid = FreeSpace(
-        lo, cell, radius, torch.zeros(shape, dtype=torch.bool, device=corpus.device), torch.empty(0)
-    )
-    points = grid.centres().reshape(-1, 3)  # (V, 3)
-    clearance = torch.empty(points.shape[0], dtype=torch.float32, device=corpus.device)  # (V,)
-    for start in range(0, points.shape[0], SAMPLE_CHUNK):
-        part = points[start : start + SAMPLE_CHUNK].contiguous()  # (C, 3)
+    grid = FreeSpace(lo, cell, radius, torch.zeros(0, dtype=torch.bool), torch.empty(0))
+    total = shape[0] * shape[1] * shape[2]
+    clearance = torch.empty(total, dtype=torch.float32, device=corpus.device)  # (V,)
+    for start in range(0, total, SAMPLE_CHUNK):
+        flat = torch.arange(start, min(start + SAMPLE_CHUNK, total), device=corpus.device)  # (C,) int64
+        index = torch.stack(
+            (flat // (shape[1] * shape[2]), (flat // shape[2]) % shape[1], flat % shape[2]), 1
+        )
+        part = grid.centre_of(index).contiguous()  # (C, 3)
         ids = torch.full((part.shape[0],), scene, dtype=torch.int64, device=corpus.device)  # (C,)
-        sample_distance(corpus, ids, part, out=clearance[start : start + SAMPLE_CHUNK])
+        sample_distance(corpus, ids, part, out=clearance[start : start + part.shape[0]])
     clearance = clearance.reshape(shape)  # (X, Y, Z)
     return FreeSpace(lo, cell, radius, clearance >= radius, clearance)
 
@@ -176,7 +183,7 @@ def reachable_cells(space: FreeSpace, labels: torch.Tensor, point: torch.Tensor,
     label = labels[tuple(space.voxel(point[None])[0].tolist())]  # () int64
     if int(label) < 0:
         return 0
-    centres = space.centres()[labels == label]  # (V, 3) the part's voxel centres
+    centres = space.centre_of((labels == label).nonzero())  # (V, 3) the part's voxel centres
     return int(torch.unique(torch.floor(centres / cell_m).long(), dim=0).shape[0])
 
 
@@ -216,12 +223,19 @@ def greedy_coverage(
     free = space.free.cpu()
     shape = tuple(free.shape)
     sx, sy = shape[1] * shape[2], shape[2]
-    clear = space.clearance.cpu().reshape(-1).tolist()
-    ok = free.reshape(-1).tolist()
-    centres = space.centres().cpu().reshape(-1, 3)  # (V, 3)
-    world_cell = torch.floor(centres / cell_m).long()  # (V, 3)
-    _, cell_of_t = torch.unique(world_cell, dim=0, return_inverse=True)  # (V,) dense cell id per voxel
-    cell_of = cell_of_t.tolist()
+    clear = space.clearance.cpu().reshape(-1).numpy()  # (V,) float32
+    ok = free.reshape(-1).numpy()  # (V,) bool
+    origin, cell = space.origin, space.cell
+
+    def cell_of(v: int) -> tuple[int, int, int]:
+        """The world cell of `cell_m` meters holding voxel v's centre."""
+        i, j, k = v // sx, (v // sy) % shape[1], v % sy
+        return (
+            math.floor((origin[0] + (i + 0.5) * cell) / cell_m),
+            math.floor((origin[1] + (j + 0.5) * cell) / cell_m),
+            math.floor((origin[2] + (k + 0.5) * cell) / cell_m),
+        )
+
     moves = []  # (offset, flat step, seconds at full speed, meters) per neighbour
     for o in OFFSETS:
         length = space.cell * math.sqrt(sum(abs(c) for c in o))
@@ -230,7 +244,7 @@ def greedy_coverage(
     here = int(((space.voxel(start.reshape(1, 3).cpu())[0]) * torch.tensor([sx, sy, 1])).sum())
     if not ok[here]:
         return Flight(0, 0.0, 0.0)
-    entered = {cell_of[here]}
+    entered = {cell_of(here)}
     clock = meters = 0.0
     while clock < seconds:
         # Dijkstra on flight time from `here` to the nearest voxel of a cell not entered yet
@@ -241,7 +255,7 @@ def greedy_coverage(
             t, v = heapq.heappop(heap)
             if t > best[v][0]:
                 continue
-            if cell_of[v] not in entered:
+            if cell_of(v) not in entered:
                 goal = v
                 break
             i, j, k = v // sx, (v // sy) % shape[1], v % sy
@@ -251,7 +265,7 @@ def greedy_coverage(
                 w = v + step
                 if not ok[w]:
                     continue
-                dt = full / scale(min(clear[v], clear[w]))
+                dt = full / scale(float(min(clear[v], clear[w])))
                 if w not in best or t + dt < best[w][0]:
                     best[w] = (t + dt, best[v][1] + length, v)
                     heapq.heappush(heap, (t + dt, w))
@@ -268,6 +282,6 @@ def greedy_coverage(
                 return Flight(len(entered), clock, meters)
             clock += dt
             meters += best[b][1] - best[a][1]
-            entered.add(cell_of[b])
+            entered.add(cell_of(b))
         here = goal
     return Flight(len(entered), clock, meters)
