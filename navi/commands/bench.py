@@ -295,6 +295,9 @@ def bench_freespace_cmd(
     episode_steps: Annotated[
         int, typer.Option(help="Episode length the coverage bound is for (the evaluation's 500).", min=1)
     ] = 500,
+    goals: Annotated[
+        int, typer.Option(help="Also build a point-goal table of this many goals per scene, timed.", min=0)
+    ] = 0,
     json_out: JsonOutOpt = False,
     record: RecordOpt = None,
 ) -> None:
@@ -304,7 +307,7 @@ def bench_freespace_cmd(
     from navi_env.corpus.survey import survey_corpus
 
     try:
-        result = survey_corpus(corpus, device, cell, radius, episode_steps)
+        result = survey_corpus(corpus, device, cell, radius, episode_steps, goals)
     except (OSError, RuntimeError, ValueError) as exc:
         raise fail(str(exc)) from exc
     if record is not None:

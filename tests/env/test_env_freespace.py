@@ -113,7 +113,9 @@ def test_bench_freespace_reports_every_scene_with_a_sound_bound(tmp_path: Path) 
         build_app(), ["corpus", "build", str(scenes), "--out", str(corpus), "--resolution", "64"]
     )
     assert built.exit_code == 0, built.output
-    result = runner.invoke(build_app(), ["bench", "freespace", "--corpus", str(corpus), "--json"])
+    result = runner.invoke(
+        build_app(), ["bench", "freespace", "--corpus", str(corpus), "--goals", "4", "--json"]
+    )
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout)
     speed = 1000.0 * (math.floor(500 * 0.5 * math.sqrt(3.0)) + 1) / 500
@@ -127,6 +129,8 @@ def test_bench_freespace_reports_every_scene_with_a_sound_bound(tmp_path: Path) 
         assert row["farthest_path_m"] > 1.0 and row["grid_bytes"] == 17 * math.prod(row["grid"])
         assert 0.0 < row["planner_coverage_per_1k"] <= row["coverage_bound_per_1k"]
         assert 5.0 * 0.2 <= row["planner_speed_m_s"] <= 5.0  # between the limiter's floor and full speed
+        assert row["goals"] == 4 and row["goal_pairs_per_spawn"] > 0 and row["cell_m"] == 0.5
+        assert row["goal_bytes"] >= 4 * 4 * math.prod(row["grid"])  # four float32 fields
 
 
 def line(shape: tuple[int, int, int], clearance: float) -> FreeSpace:
@@ -163,3 +167,14 @@ def test_the_planner_stops_when_every_cell_is_entered_and_never_beats_the_bound(
     flight = greedy_coverage(space, torch.tensor([8.0, 8.0, 4.0]), 50.0, lambda c: 1.0, 5.0, 2.0)
     assert 0 < flight.cells <= math.floor(flight.meters * math.sqrt(3.0)) + 1 and flight.seconds <= 50.0
     assert flight.meters <= 5.0 * 50.0 + 1e-6
+
+
+def test_a_lattice_too_large_is_refused_and_a_coarser_cell_found(monkeypatch: pytest.MonkeyPatch) -> None:
+    from navi_env.corpus import freespace
+
+    corpus = load_corpus([room_gmdag()], "cpu")  # 28 x 28 x 12 voxels of 0.5 m
+    monkeypatch.setattr(freespace, "MAX_VOXELS", 1000)
+    with pytest.raises(ValueError, match="9,408 voxels"):
+        free_space(corpus, 0, cell=0.5)
+    cell = freespace.lattice_cell(corpus, 0, 0.5, max_voxels=1000)
+    assert cell == pytest.approx(0.5 * 1.5**3) and free_space(corpus, 0, cell=cell).free.numel() <= 1000

@@ -36,6 +36,8 @@ OFFSETS: tuple[tuple[int, int, int], ...] = tuple(
 """The 26 neighbours of a voxel, (di, dj, dk)."""
 SAMPLE_CHUNK = 1 << 20
 """Points per distance-field call while sampling the lattice."""
+MAX_VOXELS = 1 << 25
+"""The largest lattice `free_space` builds (33.5M voxels; `lattice_cell` picks a coarser cell above it)."""
 
 
 @dataclass(frozen=True)
@@ -70,13 +72,33 @@ class FreeSpace:
         return torch.minimum(index.clamp(min=0), shape - 1)
 
 
+def lattice_shape(corpus: SceneCorpus, scene: int, cell: float) -> tuple[int, int, int]:
+    """Voxels per axis of scene `scene`'s lattice of `cell` meters over its bounds."""
+    lo, hi = corpus.infos[scene].bounds_min, corpus.infos[scene].bounds_max
+    x, y, z = (max(1, math.ceil((hi[a] - lo[a]) / cell)) for a in range(3))
+    return x, y, z
+
+
+def lattice_cell(corpus: SceneCorpus, scene: int, cell: float, max_voxels: int = MAX_VOXELS) -> float:
+    """`cell`, or the smallest multiple of it by 1.5^k whose lattice of the scene has at most max_voxels
+    voxels (a map whose bounds span hundreds of meters)."""
+    while math.prod(lattice_shape(corpus, scene, cell)) > max_voxels:
+        cell *= 1.5
+    return cell
+
+
 def free_space(corpus: SceneCorpus, scene: int, cell: float = 0.5, radius: float = 0.3) -> FreeSpace:
-    """Sample scene `scene` of the corpus on a lattice of `cell` meters (see the module docstring)."""
+    """Sample scene `scene` of the corpus on a lattice of `cell` meters (see the module docstring); a
+    lattice of more than MAX_VOXELS voxels is refused (see lattice_cell)."""
     if cell <= 0.0 or radius < 0.0:
         raise ValueError(f"cell must be positive and radius non-negative, got {cell}, {radius}")
-    info = corpus.infos[scene]
-    lo, hi = info.bounds_min, info.bounds_max
-    shape = tuple(max(1, math.ceil((hi[a] - lo[a]) / cell)) for a in range(3))
+    lo = corpus.infos[scene].bounds_min
+    shape = lattice_shape(corpus, scene, cell)
+    if math.prod(shape) > MAX_VOXELS:
+        raise ValueError(
+            f"scene {corpus.infos[scene].name!r} at {cell} m is a lattice of {math.prod(shape):,} voxels, more "
+            f"than {MAX_VOXELS:,}: use a coarser cell (lattice_cell gives one)"
+        )
     grid = FreeSpace(lo, cell, radius, torch.zeros(0, dtype=torch.bool), torch.empty(0))
     total = shape[0] * shape[1] * shape[2]
     clearance = torch.empty(total, dtype=torch.float32, device=corpus.device)  # (V,)

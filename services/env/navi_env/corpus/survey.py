@@ -2,7 +2,9 @@
 connected parts, a geodesic field from a spawn), timed and sized, and the coverage its spawns can reach
 in the evaluation's episodes, per 1,000 steps: an upper bound from the drone's speed limit and the free
 space of the spawn's part, and what a planner with the map flies under the env's speed limits and
-proximity limiter (navi_env.corpus.freespace.greedy_coverage)."""
+proximity limiter (navi_env.corpus.freespace.greedy_coverage). With goals G > 0 it also builds the
+scene's point-goal table (navi_env.corpus.goals: G goals 5-30 m from the spawns, their geodesic fields),
+timed and sized."""
 
 from __future__ import annotations
 
@@ -21,8 +23,10 @@ from navi_env.corpus.freespace import (
     free_space,
     geodesic,
     greedy_coverage,
+    lattice_cell,
     reachable_cells,
 )
+from navi_env.corpus.goals import goal_table
 from navi_env.sim.config import EnvConfig
 from navi_env.tracer.scene import SceneCorpus
 
@@ -43,11 +47,18 @@ def limiter(cfg: EnvConfig) -> Callable[[float], float]:
 
 
 def survey_scene(
-    corpus: SceneCorpus, scene: int, spawns: torch.Tensor, cell: float, radius: float, episode_steps: int
+    corpus: SceneCorpus,
+    scene: int,
+    spawns: torch.Tensor,
+    cell: float,
+    radius: float,
+    episode_steps: int,
+    goals: int = 0,
 ) -> dict[str, Any]:
     """One scene's row (see the module docstring); spawns (K, 3) world meters; the env's defaults."""
     cfg = EnvConfig()
     sync = torch.cuda.synchronize if corpus.device.type == "cuda" else (lambda: None)
+    cell = lattice_cell(corpus, scene, cell)  # coarser for a map whose bounds span hundreds of meters
     t0 = time.perf_counter()
     space = free_space(corpus, scene, cell, radius)
     sync()
@@ -67,12 +78,16 @@ def survey_scene(
         for p in spawns[:PLANNER_SPAWNS]
     ]
     t5 = time.perf_counter()
+    table = goal_table(space, spawns, count=goals) if goals > 0 else None  # point goals 5-30 m away
+    sync()
+    t6 = time.perf_counter()
     parts = labels[labels >= 0].unique()  # (P,) the part labels, sorted
     sizes = torch.bincount(torch.searchsorted(parts, labels[labels >= 0]))  # (P,) voxels per part
     finite = field[torch.isfinite(field)] if field is not None else torch.empty(0)
     reachable = int(statistics.median(reach))
     return {
         "name": corpus.infos[scene].name,
+        "cell_m": cell,
         "grid": list(space.free.shape),
         "free_share": round(float(space.free.float().mean()), 4),
         "parts": int(parts.numel()),
@@ -91,20 +106,33 @@ def survey_scene(
             "components": round(t2 - t1, 3),
             "geodesic": round(t3 - t2, 3),
             "planner": round(t5 - t4, 3),
+            "goals": round(t6 - t5, 3),
         },
+        "goals": table.goals.shape[0] if table is not None else 0,
+        "goal_pairs_per_spawn": round(float(table.pairs.sum(dim=1).float().mean()), 2)
+        if table is not None
+        else 0.0,
+        "goal_bytes": table.nbytes() if table is not None else 0,
         "grid_bytes": space.free.numel() * (1 + 4 + 8 + 4),  # free, clearance, labels, one geodesic field
     }
 
 
 def survey_corpus(
-    corpus_dir: Path, device: str, cell: float = 0.5, radius: float | None = None, episode_steps: int = 500
+    corpus_dir: Path,
+    device: str,
+    cell: float = 0.5,
+    radius: float | None = None,
+    episode_steps: int = 500,
+    goals: int = 0,
 ) -> dict[str, Any]:
     """Every scene of the corpus folder (radius: the env's drone radius unless given)."""
     cfg = EnvConfig()
     radius = cfg.drone_radius if radius is None else radius
     scenes, manifest = load_corpus(corpus_dir, torch.device(device))
     spawns = manifest.spawn_tensors()
-    rows = [survey_scene(scenes, s, spawns[s], cell, radius, episode_steps) for s in range(len(scenes))]
+    rows = [
+        survey_scene(scenes, s, spawns[s], cell, radius, episode_steps, goals) for s in range(len(scenes))
+    ]
     return {
         "corpus": str(corpus_dir),
         "device": str(scenes.device),
