@@ -575,31 +575,11 @@ class SdfDagEnv:
         prev = self._obs_ring[self._slot ^ 1] if len(self._obs_ring) > 1 else None  # the last frame
         if cfg.sensor.enabled:
             depth, semantic = apply_sensor(depth, semantic, cfg.sensor, cfg.horizon, self.seed, self.tick)
+        views = (self.obs, depth, semantic, self.fresh, self.depth, self.semantic)  # what both passes read
         if self._fused_observation:
-            stats = observe(
-                self.obs,
-                depth,
-                semantic,
-                self.fresh,
-                self.depth,
-                self.semantic,
-                self._semantic_table,
-                cfg.horizon,
-                cfg.reward,
-                prev,
-            )
+            stats = observe(*views, self._semantic_table, cfg.horizon, cfg.reward, prev)
         else:
-            stats = observe_ref(
-                self.obs,
-                depth,
-                semantic,
-                self.fresh,
-                self.depth,
-                self.semantic,
-                cfg.horizon,
-                cfg.reward,
-                prev,
-            )
+            stats = observe_ref(*views, cfg.horizon, cfg.reward, prev)
         self.void.copy_(stats.void)
         self.near.copy_(stats.near)
         self.mid.copy_(stats.mid)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -223,40 +224,11 @@ def _compiled_pass(two_buffers: bool) -> Callable[..., tuple[torch.Tensor, torch
 
 
 def _fused_pass(
-    ch0: torch.Tensor,
-    ch1: torch.Tensor,
-    ch2: torch.Tensor,
-    depth: torch.Tensor,
-    semantic: torch.Tensor,
-    fresh: torch.Tensor,
-    stats_depth: torch.Tensor,
-    stats_semantic: torch.Tensor,
-    table: torch.Tensor,
-    horizon: float,
-    azimuth_bins: int,
-    near_distance: float,
-    mid_min: float,
-    mid_max: float,
+    ch0: torch.Tensor, ch1: torch.Tensor, ch2: torch.Tensor, *rest: Any
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """_fused_pass_from for a one-buffer env: the previous frame's channel 0 is ch0 itself, read before
-    it is overwritten."""
-    return _fused_pass_from(
-        ch0,
-        ch1,
-        ch2,
-        ch0,
-        depth,
-        semantic,
-        fresh,
-        stats_depth,
-        stats_semantic,
-        table,
-        horizon,
-        azimuth_bins,
-        near_distance,
-        mid_min,
-        mid_max,
-    )
+    it is overwritten (`rest`: _fused_pass_from's arguments after `before`)."""
+    return _fused_pass_from(ch0, ch1, ch2, ch0, *rest)
 
 
 def _fused_pass_from(
