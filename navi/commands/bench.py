@@ -298,6 +298,16 @@ def bench_freespace_cmd(
     goals: Annotated[
         int, typer.Option(help="Also build a point-goal table of this many goals per scene, timed.", min=0)
     ] = 0,
+    evaluate_actors: Annotated[
+        int,
+        typer.Option(
+            "--evaluate",
+            help="Also fly the reactive baseline (and --checkpoint) on each scene alone with this many actors "
+            "for two episodes of --episode-steps (env seed 12345), beside the bound and the planner.",
+            min=0,
+        ),
+    ] = 0,
+    checkpoint: Annotated[Path | None, typer.Option(help="A checkpoint to evaluate with --evaluate.")] = None,
     json_out: JsonOutOpt = False,
     record: RecordOpt = None,
 ) -> None:
@@ -308,6 +318,16 @@ def bench_freespace_cmd(
 
     try:
         result = survey_corpus(corpus, device, cell, radius, episode_steps, goals)
+        if evaluate_actors:
+            from navi_learner.evaluation.competence import EvalProtocol, per_scene
+
+            protocol = EvalProtocol(evaluate_actors, 2 * episode_steps, episode_steps)  # two episodes each
+            flown = per_scene(corpus, len(result["scenes"]), protocol, device, checkpoint)
+            for row, metrics in zip(result["scenes"], flown, strict=True):
+                row["evaluated"] = {
+                    name: {"collisions_per_1k": m.collisions_per_1k, "coverage_per_1k": m.coverage_per_1k}
+                    for name, m in metrics.items()
+                }
     except (OSError, RuntimeError, ValueError) as exc:
         raise fail(str(exc)) from exc
     if record is not None:
@@ -321,6 +341,7 @@ def bench_freespace_cmd(
             f"reachable {row['reachable_cells_median']} cells, coverage <= {row['coverage_bound_per_1k']}/1k, "
             f"planner {row['planner_coverage_per_1k']}/1k at {row['planner_speed_m_s']} m/s, "
             f"{sum(row['seconds'].values()):.2f} s"
+            + "".join(f", {k} {v['coverage_per_1k']:.0f}/1k" for k, v in row.get("evaluated", {}).items())
         )
 
 

@@ -101,18 +101,25 @@ def test_free_space_of_a_room_is_its_inside_less_the_radius() -> None:
     )
 
 
-def test_bench_freespace_reports_every_scene_with_a_sound_bound(tmp_path: Path) -> None:
-    """`navi bench freespace` over a small procedural corpus: one row per scene, one part holding the
-    spawns, a coverage bound no higher than the speed limit allows and no lower than one cell."""
-    runner = CliRunner()
-    scenes, corpus = tmp_path / "scenes", tmp_path / "corpus"
+@pytest.fixture(scope="module")
+def small_corpus(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two procedural scenes (a room and a hall) at 64^3."""
+    runner, root = CliRunner(), tmp_path_factory.mktemp("freespace")
+    scenes, corpus = root / "scenes", root / "corpus"
     made = runner.invoke(build_app(), ["scenes", "generate", "--out", str(scenes), "--count", "2",
-                                       "--families", "rooms", "--seed", "3"])  # fmt: skip
+                                       "--families", "rooms,hall", "--seed", "3"])  # fmt: skip
     assert made.exit_code == 0, made.output
     built = runner.invoke(
         build_app(), ["corpus", "build", str(scenes), "--out", str(corpus), "--resolution", "64"]
     )
     assert built.exit_code == 0, built.output
+    return corpus
+
+
+def test_bench_freespace_reports_every_scene_with_a_sound_bound(small_corpus: Path) -> None:
+    """`navi bench freespace` over a small procedural corpus: one row per scene, one part holding the
+    spawns, a coverage bound no higher than the speed limit allows and no lower than one cell."""
+    runner, corpus = CliRunner(), small_corpus
     result = runner.invoke(
         build_app(), ["bench", "freespace", "--corpus", str(corpus), "--goals", "4", "--json"]
     )
@@ -178,3 +185,27 @@ def test_a_lattice_too_large_is_refused_and_a_coarser_cell_found(monkeypatch: py
         free_space(corpus, 0, cell=0.5)
     cell = freespace.lattice_cell(corpus, 0, 0.5, max_voxels=1000)
     assert cell == pytest.approx(0.5 * 1.5**3) and free_space(corpus, 0, cell=cell).free.numel() <= 1000
+
+
+def test_bench_freespace_flies_the_reactive_baseline_on_each_scene(small_corpus: Path) -> None:
+    """--evaluate: the reactive baseline flown on each scene alone, its coverage beside the bound."""
+    runner, corpus = CliRunner(), small_corpus
+    args = [
+        "bench",
+        "freespace",
+        "--corpus",
+        str(corpus),
+        "--evaluate",
+        "2",
+        "--episode-steps",
+        "50",
+        "--json",
+    ]
+    result = runner.invoke(build_app(), args)
+    assert result.exit_code == 0, result.output
+    rows = json.loads(result.stdout)["scenes"]
+    assert len(rows) == 2
+    for row in rows:
+        flown = row["evaluated"]["reactive"]
+        assert 0.0 < flown["coverage_per_1k"] <= row["coverage_bound_per_1k"]
+    assert rows[0]["evaluated"] != rows[1]["evaluated"]  # each scene flown alone

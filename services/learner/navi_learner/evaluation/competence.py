@@ -17,7 +17,7 @@ import torch
 
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.protocol import BatchedEnv
-from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
+from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, reactive_for_env
 from navi_learner.evaluation.evaluate import EvalMetrics, ModulePolicy, competent, evaluate
 
 CURVE_KEYS = (
@@ -175,3 +175,26 @@ def plot_curves(
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return None
+
+
+def per_scene(
+    corpus: Path,
+    scenes: int,
+    protocol: EvalProtocol,
+    device: str,
+    checkpoint: Path | None = None,
+) -> list[dict[str, EvalMetrics]]:
+    """The reactive baseline (and the checkpoint, when given) on each of the corpus's `scenes` scenes alone,
+    with `protocol` (its actors, steps, episode length and seed): one {policy name: metrics} per scene."""
+    from navi_learner.envs.factory import make_env
+    from navi_learner.evaluation.evaluate import CheckpointPolicy
+
+    rows = []
+    for s in range(scenes):
+        env = make_env(corpus, protocol.actors, device, protocol.seed, episode_steps=protocol.episode_steps,
+                       rank=s, world=scenes)  # fmt: skip
+        policies: list[EvalPolicy] = [reactive_for_env(env)]
+        if checkpoint is not None:
+            policies.append(CheckpointPolicy(checkpoint, env.device))
+        rows.append({p.name: evaluate(env, p, protocol.steps, protocol.seed) for p in policies})
+    return rows
