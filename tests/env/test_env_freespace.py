@@ -85,7 +85,8 @@ def test_free_space_of_a_room_is_its_inside_less_the_radius() -> None:
     free, the rest not, and every free voxel is one part."""
     corpus = load_corpus([room_gmdag()], "cpu")
     space = free_space(corpus, 0, cell=0.5, radius=0.3)
-    centres = space.centres()  # (X, Y, Z, 3)
+    every = torch.ones_like(space.free).nonzero()  # (V, 3) every voxel, in flat order
+    centres = space.centre_of(every).reshape(*space.free.shape, 3)  # (X, Y, Z, 3)
     lo, hi = torch.tensor([1.0, 1.0, 1.0]), torch.tensor([15.0, 15.0, 7.0])
     inside = torch.minimum(centres - lo, hi - centres).amin(dim=-1)  # (X, Y, Z) distance to the nearest wall
     assert space.free.shape == (28, 28, 12)

@@ -51,14 +51,6 @@ class FreeSpace:
     free: torch.Tensor  # (X, Y, Z) bool
     clearance: torch.Tensor  # (X, Y, Z) float32
 
-    def centres(self) -> torch.Tensor:
-        """World positions (X, Y, Z, 3) float32 of every voxel centre."""
-        axes = [
-            self.origin[a] + (torch.arange(n, device=self.free.device, dtype=torch.float64) + 0.5) * self.cell
-            for a, n in enumerate(self.free.shape)
-        ]  # 3 x (n_a,) float64
-        return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).float()  # (X, Y, Z, 3)
-
     def centre_of(self, index: torch.Tensor) -> torch.Tensor:
         """World positions (M, 3) float32 of the voxel centres at indices (M, 3) int64."""
         origin = torch.tensor(self.origin, dtype=torch.float64, device=index.device)  # (3,)
