@@ -19,6 +19,13 @@ DEFAULT_CORPUS = Path("artifacts/corpus/default")
 UNSEEN_CORPUS = Path("artifacts/corpus/unseen")
 
 EnvOpt = Annotated[str, typer.Option("--env", help="Environment: sdfdag (the drone env) or toy (tests).")]
+TaskOpt = Annotated[
+    str,
+    typer.Option(
+        "--task",
+        help="What episodes ask of the drone: explore, or pointgoal (reach a goal; docs/TASKS.md).",
+    ),
+]
 CorpusOpt = Annotated[Path | None, typer.Option("--corpus", help="Corpus folder of .gmdag scenes.")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="Torch device: auto, cpu, cuda, cuda:N.")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed for torch and the environment.")]

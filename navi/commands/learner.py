@@ -26,6 +26,7 @@ from navi.commands.common import (
     ResumeOpt,
     RolloutOpt,
     SeedOpt,
+    TaskOpt,
     TotalStepsOpt,
     check_choice,
     fail,
@@ -95,8 +96,10 @@ def build_env(
     world: int = 1,
     obstacles: int = 0,
     squad: int = 0,
+    task: str = "explore",
 ) -> Any:
     """The environment for a command (a data-parallel rank: its share of the scenes), or exit 2."""
+    from navi_env.sim.config import TASKS
     from navi_learner.envs.factory import EnvUnavailable, make_env
 
     kind: Literal["sdfdag", "toy"] = (
@@ -113,6 +116,7 @@ def build_env(
             world=world,
             obstacles=obstacles,
             squad=squad,
+            task=check_choice(task, TASKS, "--task"),
         )
     except (EnvUnavailable, ValueError) as err:
         raise fail(str(err)) from err
@@ -155,7 +159,8 @@ def train_config(
 
 
 def resume_choice(checkpoint: Path | None, fresh: bool, cfg: TrainConfig) -> tuple[Path | None, TrainConfig]:
-    """Explicit --checkpoint, else artifacts/models/latest.pt when compatible; the engine comes from it."""
+    """Explicit --checkpoint, else artifacts/models/latest.pt when compatible (same temporal core and
+    task); the engine comes from it."""
     from dataclasses import replace
 
     from navi_learner.config import EngineConfig
@@ -176,6 +181,12 @@ def resume_choice(checkpoint: Path | None, fresh: bool, cfg: TrainConfig) -> tup
             err=True,
         )
         return None, cfg
+    task = str(meta.config.get("task", "explore"))
+    if task != cfg.task:
+        if checkpoint is not None:
+            raise fail(f"{path} was trained with --task {task}")
+        typer.echo(f"note: {path} learned {task}; starting a fresh {cfg.task} run", err=True)
+        return None, cfg
     typer.echo(f"resuming from {path} (step {meta.step_id:,})", err=True)
     return path, replace(cfg, engine=EngineConfig.from_dict(meta.config["engine"]))
 
@@ -190,11 +201,16 @@ def print_metrics(rows: list[EvalMetrics], as_json: bool) -> None:
         typer.echo(comparison_table(rows))
 
 
+BASELINES = ("random", "reactive", "greedy", "oracle")
+"""Policies `evaluate --policy` and `compare` know by name; greedy and oracle fly point-goal episodes."""
+
+
 def eval_policy(spec: str, device: str, seed: int, deterministic: bool, env: object = None) -> EvalPolicy:
-    """'random', 'reactive' (tuned to env's horizon and ray pattern), or a checkpoint path / registry version."""
+    """'random', 'reactive' (tuned to env's horizon and ray pattern), 'greedy' or 'oracle' (point-goal),
+    or a checkpoint path / registry version."""
     import torch
 
-    from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
+    from navi_learner.evaluation.baselines import RandomPolicy, goal_seeker_for_env, reactive_for_env
     from navi_learner.evaluation.evaluate import CheckpointPolicy
     from navi_learner.serving.checkpoint import CheckpointError
     from navi_learner.serving.registry import ModelRegistry, RegistryError
@@ -203,18 +219,38 @@ def eval_policy(spec: str, device: str, seed: int, deterministic: bool, env: obj
         return RandomPolicy(seed)
     if spec == "reactive":
         return reactive_for_env(env)
+    if spec in ("greedy", "oracle"):
+        try:
+            return goal_seeker_for_env(spec, env)
+        except ValueError as err:
+            raise fail(f"--policy {spec}: {err}") from err
     path = Path(spec)
     if not path.is_file():
         try:
             path = ModelRegistry(MODELS_DIR).path(spec)
         except RegistryError as err:
             raise fail(
-                f"{spec} is neither random, reactive, a checkpoint file nor a registry version"
+                f"{spec} is neither {', '.join(BASELINES)}, a checkpoint file nor a registry version"
             ) from err
     try:
         return CheckpointPolicy(path, torch.device(device), deterministic)
     except CheckpointError as err:
         raise fail(str(err)) from err
+
+
+def checkpoint_task(spec: str) -> str:
+    """The task a checkpoint file or registry version learned (explore where it says none or is not
+    found: the policy loader reports a missing checkpoint)."""
+    from navi_learner.serving.checkpoint import CheckpointError, read_meta
+    from navi_learner.serving.registry import ModelRegistry, RegistryError
+
+    path = Path(spec)
+    try:
+        if not path.is_file():
+            path = ModelRegistry(MODELS_DIR).path(spec)
+        return str(read_meta(path).config.get("task", "explore"))
+    except (CheckpointError, RegistryError, OSError):
+        return "explore"
 
 
 PANEL = "Learner"
@@ -250,6 +286,7 @@ def train(
     squad: SquadOpt = 0,
     obs_storage: ObsStorageOpt = "auto",
     max_minibatch: MaxMinibatchOpt = 8_192,
+    task: TaskOpt = "explore",
 ) -> None:
     """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first. Under torchrun
     (or with --nproc N) every rank trains its own actors on its own device with synchronous
@@ -286,9 +323,9 @@ def train(
             max_minibatch,
             compile_encoder,
         )
-        resume, cfg = resume_choice(checkpoint, fresh, replace(cfg, time_limit_s=time_limit))
+        resume, cfg = resume_choice(checkpoint, fresh, replace(cfg, time_limit_s=time_limit, task=task))
         n = cfg.n_actors or default_actors(torch.device(dev))
-        environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles, squad)
+        environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles, squad, task)
         summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
         result = run_train(
             environment,
@@ -359,7 +396,7 @@ def infer(
             raise fail(str(err)) from err
         print_metrics([metrics], as_json)
         return
-    environment = build_env(env, corpus, actors, dev, seed)
+    environment = build_env(env, corpus, actors, dev, seed, task=checkpoint_task(str(checkpoint)))
     policy = eval_policy(str(checkpoint), dev, seed, deterministic, environment)
     print_metrics([evaluate(environment, policy, total_steps, seed, progress=True)], as_json)
 
@@ -368,7 +405,8 @@ def infer(
 def evaluate_cmd(
     checkpoint: Annotated[str | None, typer.Argument(help="Checkpoint file or registry version.")] = None,
     policy: Annotated[
-        str | None, typer.Option("--policy", help="Baseline instead: random or reactive.")
+        str | None,
+        typer.Option("--policy", help="Baseline instead: random, reactive, greedy or oracle (point-goal)."),
     ] = None,
     corpus: CorpusOpt = None,
     steps: Annotated[int, typer.Option("--steps", help="Batched steps.")] = 1000,
@@ -379,17 +417,28 @@ def evaluate_cmd(
     obstacles: ObstaclesOpt = 0,
     squad: SquadOpt = 0,
     as_json: JsonOpt = False,
+    task: Annotated[
+        str | None,
+        typer.Option(
+            "--task",
+            help="explore or pointgoal (default: the task the checkpoint learned; explore for a baseline).",
+        ),
+    ] = None,
 ) -> None:
     """Evaluate a checkpoint or a baseline: return, collisions (with moving obstacles among them),
-    clearance, coverage, distance, starvation."""
+    clearance, coverage, distance, starvation; point-goal episodes add success, SPL, soft SPL,
+    collisions per episode and time to goal."""
     from navi_learner.evaluation.evaluate import evaluate
 
     if (checkpoint is None) == (policy is None):
-        raise typer.BadParameter("give exactly one of CHECKPOINT or --policy random|reactive")
+        raise typer.BadParameter(f"give exactly one of CHECKPOINT or --policy {'|'.join(BASELINES)}")
     if policy is not None:
-        check_choice(policy, ("random", "reactive"), "--policy")
+        check_choice(policy, BASELINES, "--policy")
     dev = pick_device(device)
-    environment = build_env(env, corpus, actors, dev, seed, obstacles=obstacles, squad=squad)
+    chosen_task = task or (checkpoint_task(checkpoint) if checkpoint is not None else "explore")
+    environment = build_env(
+        env, corpus, actors, dev, seed, obstacles=obstacles, squad=squad, task=chosen_task
+    )
     chosen = eval_policy(policy or str(checkpoint), dev, seed, True, environment)
     print_metrics([evaluate(environment, chosen, steps, seed, progress=True)], as_json)
 
@@ -397,7 +446,10 @@ def evaluate_cmd(
 @app.command(rich_help_panel=PANEL)
 def compare(
     policies: Annotated[
-        list[str], typer.Argument(help="Checkpoints, registry versions, random or reactive.")
+        list[str],
+        typer.Argument(
+            help="Checkpoints, registry versions, random, reactive, greedy or oracle (point-goal)."
+        ),
     ],
     corpus: CorpusOpt = None,
     steps: Annotated[int, typer.Option("--steps", help="Batched steps per policy.")] = 1000,
@@ -406,14 +458,15 @@ def compare(
     seed: SeedOpt = 0,
     env: EnvOpt = "sdfdag",
     as_json: JsonOpt = False,
+    task: TaskOpt = "explore",
 ) -> None:
-    """Evaluate several policies on the same scenes, spawns and seeds."""
+    """Evaluate several policies on the same scenes, spawns and seeds (one task for all)."""
     from navi_learner.evaluation.evaluate import evaluate
 
     dev = pick_device(device)
     rows = []
     for spec in policies:
-        environment = build_env(env, corpus, actors, dev, seed)
+        environment = build_env(env, corpus, actors, dev, seed, task=task)
         chosen = eval_policy(spec, dev, seed, True, environment)
         rows.append(evaluate(environment, chosen, steps, seed, progress=True))
     print_metrics(rows, as_json)

@@ -161,6 +161,9 @@ class TrainConfig:
     the update sees bit for bit the observations the policy acted on."""
     rollout_memory_gb: float = 20.0
     """Memory budget for stored observations when rollout_length is 0 (64 steps at 8,192 actors compact)."""
+    task: str = "explore"
+    """What the env's episodes ask (EnvConfig.task): explore or pointgoal; stored so that evaluations of a
+    checkpoint fly the task it learned."""
     sync_timers: bool = False
     """Synchronise CUDA at stage boundaries so the per-stage timers are exact (benchmarks)."""
     engine: EngineConfig = field(default_factory=EngineConfig)

@@ -82,6 +82,12 @@ class RewardConfig:
     """Constant reward every step (negative: idling costs)."""
     shaping_gamma: float = 0.99
     """Discount of the potential-based terms; set it to the learner's gamma (PPOConfig.gamma)."""
+    progress_weight: float = 0.5
+    """Point-goal: goal potential per meter of path length gained toward the goal (weight * max(d0 - d,
+    0), d the true path length to the goal and d0 its value at the episode's start); its shaping pays for
+    each meter of progress and charges the same for each meter lost."""
+    success_weight: float = 5.0
+    """Point-goal: paid once, on the step that ends the episode at the goal."""
 
 
 OBSTACLE_SHAPES: tuple[str, ...] = ("sphere", "capsule", "box", "obb")
@@ -155,6 +161,49 @@ class ObstacleConfig:
             raise ValueError("obstacles.semantic_class and drone_class must be in [0, 253]")
         if not 0 <= self.squad <= 64:
             raise ValueError("obstacles.squad must be in [0, 64]")
+
+
+TASKS: tuple[str, ...] = ("explore", "pointgoal")
+"""What an episode asks of the drone: explore (cover the scene, no end but the time limit) or pointgoal
+(reach a goal drawn in the scene's free space; docs/TASKS.md)."""
+
+
+@dataclass(frozen=True)
+class GoalConfig:
+    """Point-goal episodes (EnvConfig.task == "pointgoal"): where goals lie, how far they are, when one is
+    reached, and how the observation shows it (docs/TASKS.md)."""
+
+    near: float = 5.0
+    """Shortest true path length (m) from an episode's spawn to its goal."""
+    far: float = 30.0
+    """Longest true path length (m) from an episode's spawn to its goal."""
+    per_scene: int = 16
+    """Goals drawn per scene, each with its path-length field."""
+    cell: float = 0.5
+    """Voxel edge (m) of the free-space lattice the path lengths are computed on."""
+    max_voxels: int = 1 << 21
+    """Largest lattice per scene: a bigger scene uses a coarser cell (1.5^k * cell)."""
+    clearance: float = 0.5
+    """A goal lies at least this far (m) from every surface."""
+    radius: float = 0.5
+    """The goal is reached within this path length (m) of it,"""
+    stop_speed: float = 1.0
+    """at no more than this speed (m/s): the drone has to arrive, not fly through."""
+    seed: int = 0
+    """Seed of the goal draw (per scene: seed + scene index)."""
+    mark_degrees: float = 4.5
+    """Half width (degrees) of the goal mark painted into the semantic channel around the goal's
+    direction: about 3 azimuth bins either side and 1 elevation bin above and below at 256 x 48."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.near < self.far:
+            raise ValueError(f"goal.near must be in [0, goal.far), got {self.near}, {self.far}")
+        if self.per_scene < 1 or self.cell <= 0.0 or self.max_voxels < 8:
+            raise ValueError("goal.per_scene must be >= 1, goal.cell positive and goal.max_voxels >= 8")
+        if self.radius <= 0.0 or self.stop_speed <= 0.0 or self.clearance < 0.0:
+            raise ValueError("goal.radius and goal.stop_speed must be positive, goal.clearance >= 0")
+        if not 0.0 < self.mark_degrees <= 45.0:
+            raise ValueError("goal.mark_degrees must be in (0, 45]")
 
 
 @dataclass(frozen=True)
@@ -238,8 +287,19 @@ class EnvConfig:
     """Reward weights."""
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     """Scripted moving obstacles; none by default."""
+    task: str = "explore"
+    """One of TASKS: explore (the default) or pointgoal (`goal` says how goals are drawn and reached)."""
+    goal: GoalConfig = field(default_factory=GoalConfig)
+    """Point-goal episodes; read only when task is pointgoal."""
 
     def __post_init__(self) -> None:
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {', '.join(TASKS)}, got {self.task!r}")
+        if self.task == "pointgoal" and max(self.obstacles.semantic_class, self.obstacles.drone_class) > 238:
+            raise ValueError(
+                "point-goal episodes keep semantic codes 240-255 for the goal mark: obstacle "
+                "classes must be at most 238"
+            )
         if self.azimuth_bins < 4 or self.elevation_bins < 2:
             raise ValueError("need at least 4 azimuth and 2 elevation bins")
         if self.horizon <= 0 or self.dt <= 0 or self.max_speed <= 0 or self.drone_radius <= 0:

@@ -25,10 +25,10 @@ from typing import Any, TypeVar, cast
 
 import torch
 
-from navi_env.sim import episodes, physics, rewards
+from navi_env.sim import episodes, goals, physics, rewards
 from navi_env.sim import obstacles as obstacle_motion
 from navi_env.sim.config import EnvConfig
-from navi_env.sim.observation import CHANNELS, observe, observe_ref, semantic_table
+from navi_env.sim.observation import CHANNELS, FIRST_MARK_CODE, observe, observe_ref, semantic_table
 from navi_env.sim.rays import tiled_ray_order
 from navi_env.sim.sensor import apply_sensor, ray_pattern
 from navi_env.tracer import primitives as ob
@@ -53,6 +53,11 @@ INFO_KEYS: tuple[str, ...] = (
 )
 """Keys of StepOut.info; every value is a tensor with leading dimension N."""
 
+GOAL_INFO_KEYS: tuple[str, ...] = ("success", "goal_distance", "start_distance", "path_length")
+"""Keys StepOut.info adds in point-goal episodes (EnvConfig.task == "pointgoal"): the episode ended at the
+goal; the true path length (m) to the goal after the move, at the episode's start, and the meters flown
+so far (final where the episode ended)."""
+
 VIEW_KEYS: tuple[str, ...] = ("clearance", "void", "near", "mid", "front_mid")
 """The view statistics the env keeps per actor (attributes of the same names), from navi_env.sim.observation."""
 
@@ -63,8 +68,8 @@ class StepOut:
 
     obs: torch.Tensor  # (N, 3, Az, El) float32
     reward: torch.Tensor  # (N,) float32, the sum of reward_terms
-    done: torch.Tensor  # (N,) bool terminated: always False (contact never ends an episode)
-    truncated: torch.Tensor  # (N,) bool ended by the time limit or starvation; auto-reset
+    done: torch.Tensor  # (N,) bool terminated: at the goal (point-goal); contact never ends an episode
+    truncated: torch.Tensor  # (N,) bool ended by the time limit or starvation, not done; auto-reset
     reward_terms: dict[str, torch.Tensor]  # name -> (N,) float32 weighted term
     info: dict[str, torch.Tensor]  # INFO_KEYS -> (N,) or (N, 3); values of the step that just ended
 
@@ -144,6 +149,16 @@ class SdfDagEnv:
         )
         if len(spawn_lists) != n_scenes:
             raise ValueError(f"got spawns for {len(spawn_lists)} scenes, the corpus has {n_scenes}")
+        self.goal_bank: goals.GoalBank | None = None  # every scene's goals and path lengths (point-goal)
+        if cfg.task == "pointgoal":
+            for info in corpus.infos:
+                if len(info.class_names) > FIRST_MARK_CODE - 1:
+                    raise ValueError(
+                        f"scene {info.name!r} has {len(info.class_names)} semantic classes; point-goal episodes "
+                        f"keep codes {FIRST_MARK_CODE}-255 for the goal mark (at most 239 classes)"
+                    )
+            tables = goals.build_tables(corpus, spawn_lists, cfg.goal, cfg.drone_radius)
+            self.goal_bank, spawn_lists = goals.goal_bank(tables, spawn_lists, dev)
         clearances = [self._clearance_at(s, p) for s, p in enumerate(spawn_lists)]
         self.spawns = episodes.spawn_table(spawn_lists, clearances, dev)
         lo = torch.tensor([info.bounds_min for info in corpus.infos], dtype=torch.float32)  # (S, 3)
@@ -213,6 +228,11 @@ class SdfDagEnv:
         self.episodes_on_scene = i64(n)  # (N,) ended episodes on the current scene
         self.episode_return = f32(n)  # (N,)
         self.visited = torch.zeros(n, table_bytes, dtype=torch.uint8, device=dev)  # (N, M/8) cell bitmap
+        self.goal = i64(n)  # (N,) goal j of the bank per actor (point-goal)
+        self.goal_position = f32(n, 3)  # (N, 3) world meters
+        self.goal_distance = f32(n)  # (N,) true path length to the goal, meters
+        self.start_distance = f32(n)  # (N,) its value at the episode's start
+        self.path_length = f32(n)  # (N,) meters flown this episode
         self.fresh = torch.ones(
             n, dtype=torch.bool, device=dev
         )  # (N,) previous frame is from another episode
@@ -232,6 +252,8 @@ class SdfDagEnv:
         self._next_scene = fuse(episodes.next_scene)
         self._draw_spawns = fuse(episodes.draw_spawns)
         self._reward_terms = fuse(rewards.reward_terms)
+        self._draw_goal = fuse(goals.draw_goal)
+        self._goal_distance = goals.goal_distance  # eager everywhere: inductor rounds its hop sums differently
         self._semantic_table = semantic_table(dev)  # (256,) float32 channel 1 per semantic code
         self.void = f32(n)  # (N,) view statistics of the current observation
         self.near = f32(n)  # (N,)
@@ -240,9 +262,11 @@ class SdfDagEnv:
         # (N,) each: the statistics of the view the last action was chosen on
         self.before = {k: f32(n) for k in VIEW_KEYS}
         self.reward = f32(n)  # (N,)
-        self.terms = {name: f32(n) for name in rewards.TERMS}  # name -> (N,)
-        self.done = flag(n)  # (N,) always False: there is no terminal state
+        self.terms = {name: f32(n) for name in rewards.task_terms(cfg.task)}  # name -> (N,)
+        self.done = flag(n)  # (N,) terminated: at the goal (point-goal); always False when exploring
         self.truncated = flag(n)  # (N,)
+        self.ended = flag(n)  # (N,) done or truncated: auto-reset this step
+        self._never = flag(n)  # (N,) always False
         self.info = {
             "clearance": f32(n),  # (N,) meters after the move
             "collision": flag(n),  # (N,)
@@ -256,6 +280,13 @@ class SdfDagEnv:
             "obstacle_collision": flag(n),  # (N,) the collision was with a moving obstacle
             "drone_collision": flag(n),  # (N,) the collision was with another drone of the squad
         }
+        if cfg.task == "pointgoal":
+            self.info |= {
+                "success": flag(n),  # (N,) the episode ended at the goal
+                "goal_distance": f32(n),  # (N,) path length to the goal after the move, meters
+                "start_distance": f32(n),  # (N,) path length to the goal at the episode's start
+                "path_length": f32(n),  # (N,) meters flown this episode so far (final where it ended)
+            }
         self._outs = tuple(
             StepOut(
                 obs=obs,
@@ -304,6 +335,11 @@ class SdfDagEnv:
         self._trace()
         self._observe_from_trace()
         return self.obs
+
+    @property
+    def goal_marks(self) -> bool:
+        """Channel 1 carries the goal mark (point-goal episodes): semantic codes 240-255 are marks."""
+        return self.goal_bank is not None
 
     def step(self, actions: torch.Tensor) -> StepOut:
         """Advance every actor by one step with actions (N, 4) in [-1, 1] (clipped).
@@ -375,7 +411,7 @@ class SdfDagEnv:
             novel = self._visit(
                 self.visited, move.position, cfg.reward.exploration_cell, cfg.reward.exploration_table_bits
             )  # (N,) bool
-            contact, obstacle_contact, drone_contact = move.contact, struck, self.done
+            contact, obstacle_contact, drone_contact = move.contact, struck, self._never
             if self.obstacles is not None:
                 nearest = obstacle_motion.obstacle_distance(
                     self.obstacles, move.position, self._fused_obstacles
@@ -384,30 +420,36 @@ class SdfDagEnv:
                 contact = move.contact | struck  # (N,) bool
             if self.squad > 1:
                 drone_contact = move.contact & (self._mate_distance(move.position) <= move.clearance + 1e-4)
+            progress: tuple[torch.Tensor, torch.Tensor] | None = None
+            if self.goal_bank is not None:
+                progress = self._goal_step(move)  # Phi_goal's progress (N,) in s and s', meters
         with stage("episode"):
             self.steps.add_(1)
             time_limit, starved = episodes.truncation(self.steps, self.void, cfg)  # (N,), (N,) bool
             torch.logical_or(time_limit, starved, out=self.truncated)
+            self.truncated.logical_and_(~self.done)
             if self.squad > 1:  # the squad changes scene together: every member's episode ends then
                 leader = self._mates[:, 0]  # (N,)
                 full = (
-                    self.episodes_on_scene[leader] + self.truncated[leader].long() >= cfg.episodes_per_scene
+                    self.episodes_on_scene[leader] + (self.done | self.truncated)[leader].long()
+                    >= cfg.episodes_per_scene
                 )
-                self.truncated.logical_or_(full)
+                self.truncated.logical_or_(full & ~self.done)
+            torch.logical_or(self.done, self.truncated, out=self.ended)
             self._record_info(move, contact, obstacle_contact, drone_contact, novel, starved)
             for name, value in self.before.items():
                 value.copy_(getattr(self, name))
             self.position.copy_(move.position)
             self.safe_distance.copy_(move.clearance)
             self.yaw.copy_(physics.wrap_angle(self.yaw + yaw_rate * cfg.dt))
-            self._end_episodes(self.truncated)
+            self._end_episodes(self.ended)
             self._drones_where_they_are()
         with stage("trace"):
             self._trace()
         with stage("observation"):
             self._observe_from_trace()
         with stage("reward"):
-            ended = self.truncated  # (N,) bool: not traced at the final pose, the last view stands in
+            ended = self.ended  # (N,) bool: not traced at the final pose, the last view stands in
 
             def after(now: torch.Tensor, before: torch.Tensor) -> torch.Tensor:
                 return torch.where(ended, before, now)  # (N,)
@@ -424,6 +466,9 @@ class SdfDagEnv:
                 front_mid=after(self.front_mid, self.before["front_mid"]),
                 void=after(self.void, self.before["void"]),
                 near=after(self.near, self.before["near"]),
+                progress_before=progress[0] if progress is not None else None,
+                progress=progress[1] if progress is not None else None,
+                success=self.done if progress is not None else None,
             )
             self.reward.zero_()
             for name, value in self._reward_terms(inputs, cfg).items():
@@ -433,6 +478,27 @@ class SdfDagEnv:
             self.info["episode_return"].copy_(self.episode_return)
             self.info["clearance"].copy_(inputs.clearance)
             self.episode_return.masked_fill_(ended, 0.0)
+
+    def _goal_step(self, move: physics.Move) -> tuple[torch.Tensor, torch.Tensor]:
+        """Point-goal bookkeeping of the move: path length to the goal and flown, success (self.done).
+        Returns the goal potential's progress max(d0 - d, 0), capped at goal.far, before and after (N,)."""
+        assert self.goal_bank is not None
+        cfg = self.config
+        dist = self._goal_distance(self.goal_bank, self.goal, self.scene, move.position)  # (N,)
+        dist = torch.where(
+            torch.isfinite(dist), dist, self.goal_distance
+        )  # no free centre round it: as before
+        flown = move.displacement.norm(dim=1)  # (N,) meters
+        self.done.copy_((dist <= cfg.goal.radius) & (flown <= cfg.goal.stop_speed * cfg.dt))
+        before = (self.start_distance - self.goal_distance).clamp(0.0, cfg.goal.far)  # (N,)
+        after = (self.start_distance - dist).clamp(0.0, cfg.goal.far)  # (N,)
+        self.goal_distance.copy_(dist)
+        self.path_length.add_(flown)
+        self.info["success"].copy_(self.done)
+        self.info["goal_distance"].copy_(dist)
+        self.info["start_distance"].copy_(self.start_distance)
+        self.info["path_length"].copy_(self.path_length)
+        return before, after
 
     def _record_info(
         self,
@@ -470,10 +536,19 @@ class SdfDagEnv:
 
     def _spawn(self, mask: torch.Tensor) -> None:
         """Place actors with `mask` (N,) bool at a fresh spawn of their scene; clear their visited cells."""
-        pos, clr, yaw = self._draw_spawns(
+        pos, clr, yaw, row = self._draw_spawns(
             self.spawns, self.scene, self.seed, self.tick, self.actor, self.squad
         )
         self.position.copy_(torch.where(mask[:, None], pos, self.position))
+        if self.goal_bank is not None:
+            bank = self.goal_bank
+            goal = self._draw_goal(bank, self.scene, row, self.seed, self.tick, self.actor)  # (N,)
+            self.goal.copy_(torch.where(mask, goal, self.goal))
+            self.goal_position.copy_(bank.position[self.goal])
+            start = self._goal_distance(bank, self.goal, self.scene, self.position)  # (N,)
+            self.start_distance.copy_(torch.where(mask, start, self.start_distance))
+            self.goal_distance.copy_(torch.where(mask, start, self.goal_distance))
+            self.path_length.masked_fill_(mask, 0.0)
         self.safe_distance.copy_(torch.where(mask, clr, self.safe_distance))
         self.yaw.copy_(torch.where(mask, yaw, self.yaw))
         self.visited.masked_fill_(mask[:, None], 0)
@@ -528,7 +603,7 @@ class SdfDagEnv:
         """The obstacles' scripted step (stopped at the drone). Returns (N,) bool: an obstacle ran into the
         drone."""
         if self.obstacles is None:
-            return self.done  # (N,) all False
+            return self._never  # (N,) all False
         cfg = self.config
         k = self.obstacles.count
         scene_k = self.scene.repeat_interleave(k)  # (N*K,)
@@ -585,6 +660,9 @@ class SdfDagEnv:
         self.mid.copy_(stats.mid)
         self.front_mid.copy_(stats.front_mid)
         torch.clamp(stats.clearance, max=cfg.clearance_range, out=self.clearance)
+        if self.goal_bank is not None:
+            offset = self.goal_position - self.position  # (N, 3)
+            goals.paint_goal(self.obs, offset, self.yaw, cfg, self.goal_bank.edges)
         self.fresh.zero_()
 
     def _distance(self, points: torch.Tensor) -> torch.Tensor:

@@ -61,8 +61,9 @@ def draw_spawns(
     tick: torch.Tensor,
     actor: torch.Tensor,
     squad: int = 1,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Spawn position (N, 3), its clearance (N,) and a heading (N,) in [-pi, pi) per actor. With squads
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Spawn position (N, 3), its clearance (N,), a heading (N,) in [-pi, pi) and the spawn's row (N,)
+    int64 of the table per actor. With squads
     of `squad` consecutive actors (one scene each), member m takes the squad's draw shifted by
     m * (count // squad) rows, so members start at different points when the scene has enough."""
     count = table.count[scene]  # (N,)
@@ -73,7 +74,7 @@ def draw_spawns(
     else:
         k = pick_index(rng.uniform(seed, rng.STREAM_SPAWN, tick, actor), count)  # (N,)
     yaw = (rng.uniform(seed, rng.STREAM_YAW, tick, actor) * 2.0 - 1.0) * math.pi  # (N,)
-    return table.position[scene, k], table.clearance[scene, k], yaw
+    return table.position[scene, k], table.clearance[scene, k], yaw, k
 
 
 def next_scene(

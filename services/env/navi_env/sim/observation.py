@@ -28,6 +28,11 @@ from navi_env.sim.config import RewardConfig
 
 CHANNELS = 3
 """C: depth, semantic, delta depth."""
+MARK_BANDS = 16
+"""Point-goal episodes paint the goal into channel 1 as -(b + 1) / MARK_BANDS for distance band b
+(navi_env.sim.goals); stored compact as semantic code FIRST_MARK_CODE + b."""
+FIRST_MARK_CODE = 256 - MARK_BANDS
+"""240: codes 240-255 are the goal mark where an env paints one (classes then stay at most 238)."""
 
 
 @dataclass(frozen=True)
@@ -87,22 +92,30 @@ def _semantic_channel(out: torch.Tensor, semantic: torch.Tensor, hit: torch.Tens
     out.add_(hit, alpha=0.5 - 0.5 / 255.0)
 
 
-def semantic_table(device: torch.device | str) -> torch.Tensor:
+def semantic_table(device: torch.device | str, goal_marks: bool = False) -> torch.Tensor:
     """Channel 1 of each of the 256 semantic codes, (256,) float32 on `device`, computed by the same
-    eager kernels as write_observation (so a lookup in it gives exactly their values)."""
+    eager kernels as write_observation (so a lookup in it gives exactly their values). With
+    `goal_marks`, codes FIRST_MARK_CODE + b read as the goal mark of band b instead (what `unpack` needs
+    for a point-goal env's observations)."""
     codes = torch.arange(256, dtype=torch.uint8, device=device)[None]  # (1, 256) uint8
     table = torch.empty(1, 256, dtype=torch.float32, device=device)  # (1, 256) float32
     _semantic_channel(table, codes, codes > 0)
+    if goal_marks:
+        bands = torch.arange(MARK_BANDS, device=device)  # (B,)
+        table[0, FIRST_MARK_CODE:] = -(bands + 1).to(torch.float32) / MARK_BANDS
     return table[0]
 
 
 def pack(obs: torch.Tensor, depth16: torch.Tensor, semantic: torch.Tensor) -> None:
     """The compact form of observations obs (B, 3, Az, El) float32: channel 0 into depth16 (B, Az, El)
     float16 and the semantic code of channel 1 into semantic (B, Az, El) uint8. Exact for observations
-    this module wrote (see unpack); anything else comes back different (train.collect checks once)."""
+    this module wrote (see unpack), goal marks included (negative channel 1, codes FIRST_MARK_CODE and
+    up); anything else comes back different (train.collect checks once)."""
     depth16.copy_(obs[:, 0])
-    ch1 = obs[:, 1]  # (B, Az, El): 0 (miss) or table[code] = code * 0.5/255 + (0.5 - 0.5/255)
-    code = torch.where(ch1 > 0.0, (ch1 - (0.5 - 0.5 / 255.0)) * 510.0, 0.0)  # (B, Az, El) within ulps of it
+    ch1 = obs[:, 1]  # (B, Az, El): 0 (miss), table[code] = code * 0.5/255 + (0.5 - 0.5/255), or a mark
+    hit = (ch1 - (0.5 - 0.5 / 255.0)) * 510.0  # (B, Az, El) within ulps of the code of a hit
+    mark = (FIRST_MARK_CODE - 1) - ch1 * MARK_BANDS  # (B, Az, El) the code of a goal mark
+    code = torch.where(ch1 > 0.0, hit, torch.where(ch1 < 0.0, mark, 0.0))  # (B, Az, El)
     semantic.copy_(code.round_().clamp_(0.0, 255.0))
 
 

@@ -14,6 +14,7 @@ docs/SIMULATION.md lists each term with its bound per step (`term_bounds` comput
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -32,7 +33,17 @@ TERMS: tuple[str, ...] = (
 """Names of the reward terms, in the order docs/SIMULATION.md lists them."""
 
 SHAPING_TERMS: tuple[str, ...] = ("escape", "structure")
-"""The potential-based terms."""
+"""The potential-based terms of exploration."""
+
+POINTGOAL_TERMS: tuple[str, ...] = ("collision", "proximity", "escape", "progress", "success", "existential")
+"""Names of the reward terms of point-goal episodes: the safety terms, progress toward the goal (potential-
+based on the true path length) and the success bonus; none of exploration's seeking terms."""
+
+
+def task_terms(task: str) -> tuple[str, ...]:
+    """The reward terms of a task (EnvConfig.task), in order."""
+    return POINTGOAL_TERMS if task == "pointgoal" else TERMS
+
 
 _HASH_PRIMES = (73856093, 19349663, 83492791)
 
@@ -53,6 +64,9 @@ class RewardInputs:
     front_mid: torch.Tensor  # (N,) float32 mid-range fraction of the front half in s'
     void: torch.Tensor  # (N,) float32 fraction of rays that missed in s'
     near: torch.Tensor  # (N,) float32 fraction of rays closer than near_distance in s'
+    progress_before: torch.Tensor | None = None  # (N,) float32 point-goal: max(d0 - d, 0) in s, m
+    progress: torch.Tensor | None = None  # (N,) float32 point-goal: max(d0 - d, 0) in s', m
+    success: torch.Tensor | None = None  # (N,) bool point-goal: s' is at the goal, slow enough
 
 
 def collision_term(
@@ -99,13 +113,29 @@ def foraging_term(void: torch.Tensor, near: torch.Tensor, cfg: RewardConfig) -> 
     return -(cfg.blind_weight * blind + cfg.near_weight * near)
 
 
+def goal_potential(progress: torch.Tensor, cfg: RewardConfig) -> torch.Tensor:
+    """Phi_goal (N,) = progress_weight * max(d0 - d, 0) from that progress (N,) meters: highest at the goal,
+    0 at the start distance and beyond."""
+    return cfg.progress_weight * progress
+
+
 def reward_terms(x: RewardInputs, config: EnvConfig) -> dict[str, torch.Tensor]:
-    """Every weighted term (N,) by name, in `TERMS` order; the reward is their sum."""
+    """Every weighted term (N,) by name, in `task_terms(config.task)` order; the reward is their sum."""
     cfg = config.reward
     step = config.max_speed * config.dt
     escape = shaping(
         escape_potential(x.clearance_before, step, cfg), escape_potential(x.clearance, step, cfg), cfg
     )
+    if config.task == "pointgoal":
+        assert x.progress_before is not None and x.progress is not None and x.success is not None
+        return {
+            "collision": collision_term(x.contact, x.speed, config.max_speed, cfg),
+            "proximity": proximity_term(x.clearance, cfg),
+            "escape": escape,
+            "progress": shaping(goal_potential(x.progress_before, cfg), goal_potential(x.progress, cfg), cfg),
+            "success": cfg.success_weight * x.success.to(x.clearance.dtype),
+            "existential": torch.full_like(x.clearance, cfg.existential_tax),
+        }
     structure = shaping(
         structure_potential(x.mid_before, x.front_mid_before, cfg),
         structure_potential(x.mid, x.front_mid, cfg),
@@ -128,6 +158,10 @@ def term_bounds(config: EnvConfig, clearance_change: float) -> dict[str, tuple[f
 
     Escape: |gamma * Phi' - Phi| <= w * min(change, d) / step + (1 - gamma) * Phi_max on either side.
     Structure: Phi in [0, Phi_max], so gamma * Phi' - Phi lies in [-Phi_max, gamma * Phi_max].
+    Progress (point-goal): the path length read between voxel centres changes by at most the clearance
+    change's bound plus one voxel diagonal, and Phi_goal lies in [0, w * goal.far] (the env clamps the
+    progress there), so the term lies within +-w * that change, minus (1 - gamma) * w * goal.far below.
+    Success: [0, success_weight].
     """
     cfg = config.reward
     step = config.max_speed * config.dt
@@ -135,7 +169,12 @@ def term_bounds(config: EnvConfig, clearance_change: float) -> dict[str, tuple[f
     escape_max = cfg.escape_weight * cfg.proximity_distance / step  # Phi_escape's largest value
     escape_swing = cfg.escape_weight * min(clearance_change, cfg.proximity_distance) / step
     structure_max = cfg.structure_weight + cfg.structure_front_weight
-    return {
+    goal_swing = cfg.progress_weight * (clearance_change + math.sqrt(3.0) * config.goal.cell)
+    goal = {
+        "progress": (-goal_swing - (1.0 - g) * cfg.progress_weight * config.goal.far, goal_swing),
+        "success": (0.0, cfg.success_weight),
+    }
+    bounds = {
         "collision": (-cfg.collision_weight * (cfg.collision_base + 1.0), 0.0),
         "proximity": (-cfg.proximity_weight, 0.0),
         "escape": (-escape_swing - (1.0 - g) * escape_max, escape_swing),
@@ -143,7 +182,8 @@ def term_bounds(config: EnvConfig, clearance_change: float) -> dict[str, tuple[f
         "foraging": (-(cfg.blind_weight + cfg.near_weight), 0.0),
         "structure": (-structure_max, g * structure_max),
         "existential": (cfg.existential_tax, cfg.existential_tax),
-    }
+    } | goal
+    return {name: bounds[name] for name in task_terms(config.task)}
 
 
 def cell_index(position: torch.Tensor, cell: float, bits: int) -> torch.Tensor:

@@ -31,6 +31,8 @@ STREAM_OBSTACLE_SHAPE = 7
 """Stream id of an obstacle's size, orientation, speed and path at placement."""
 STREAM_OBSTACLE_WALK = 8
 """Stream id of the random walk's heading changes."""
+STREAM_GOAL = 9
+"""Stream id of the point-goal draw at a spawn."""
 
 
 def mix32(x: torch.Tensor) -> torch.Tensor:

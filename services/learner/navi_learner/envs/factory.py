@@ -18,6 +18,9 @@ if TYPE_CHECKING:
 
 EnvKind = Literal["sdfdag", "toy"]
 
+POINTGOAL_EPISODE_STEPS = 500
+"""Steps of a point-goal episode (50 s): a 30 m path at 1 m/s fits with room to spare."""
+
 
 class EnvUnavailable(RuntimeError):
     """The drone environment (or its corpus) cannot be built here."""
@@ -78,13 +81,15 @@ def make_env(
     reward: Mapping[str, float] | None = None,
     obstacles: int = 0,
     squad: int = 0,
+    task: str = "explore",
 ) -> BatchedEnv:
     """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
     qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation). With
     world > 1 the drone env flies only this rank's scenes, scenes[rank::world] (data-parallel training).
     `reward` replaces RewardConfig fields by name (see `reward_config`). `obstacles` > 0 gives every actor
     that many scripted moving obstacles (EnvConfig.obstacles, default motions and sizes); `squad` >= 2
-    makes squads of that many actors share a scene and see and collide with each other."""
+    makes squads of that many actors share a scene and see and collide with each other. `task` is
+    EnvConfig.task; point-goal episodes last POINTGOAL_EPISODE_STEPS unless `episode_steps` says."""
     if kind == "toy":
         return ToyEnv(n_actors, device, seed=seed)
     if corpus is None:
@@ -101,7 +106,11 @@ def make_env(
         scenes, manifest = load_corpus(corpus, torch.device(device), rank, world)
     except CorpusError as err:
         raise EnvUnavailable(str(err)) from err
-    config = EnvConfig(max_steps_per_episode=episode_steps) if episode_steps > 0 else EnvConfig()
+    steps = episode_steps if episode_steps > 0 else POINTGOAL_EPISODE_STEPS if task == "pointgoal" else 0
+    try:
+        config = EnvConfig(task=task, max_steps_per_episode=steps) if steps else EnvConfig(task=task)
+    except ValueError as err:
+        raise EnvUnavailable(str(err)) from err
     if reward:
         config = replace(config, reward=reward_config(reward))
     if obstacles or squad:
@@ -109,13 +118,18 @@ def make_env(
             config = replace(config, obstacles=ObstacleConfig(count=obstacles, squad=squad))
         except ValueError as err:
             raise EnvUnavailable(str(err)) from err
-    env: BatchedEnv = SdfDagEnv(
-        scenes,
-        n_actors,
-        torch.device(device),
-        config,
-        manifest.spawn_tensors(),
-        seed,
-        scene_obstacles=manifest.obstacle_settings(),
-    )
+    try:
+        env: BatchedEnv = SdfDagEnv(
+            scenes,
+            n_actors,
+            torch.device(device),
+            config,
+            manifest.spawn_tensors(),
+            seed,
+            scene_obstacles=manifest.obstacle_settings(),
+        )
+    except ValueError as err:  # a scene without goals in range, or classes that clash with the goal mark
+        if task == "explore":
+            raise
+        raise EnvUnavailable(str(err)) from err
     return env

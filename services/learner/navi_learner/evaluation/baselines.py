@@ -1,4 +1,6 @@
-"""The baselines every trained drone is compared with: `random` and the scripted `reactive` avoider.
+"""The baselines every trained drone is compared with: `random` and the scripted `reactive` avoider; for
+point-goal episodes also `greedy` (straight at the goal mark, with the avoider, no map) and `oracle`
+(along the true shortest path from the env's map, with the avoider: the ceiling).
 
 Both act on the same observation as the trained policy (channel 0 of the DistanceMatrix, depth /
 horizon, azimuth bin 0 straight ahead and increasing to the left, elevation from bottom to top) and
@@ -7,8 +9,9 @@ are deterministic for a given seed. docs/TRAINING.md describes the reactive algo
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import torch
 import torch.nn.functional as F
@@ -154,3 +157,171 @@ def reactive_for_env(env: object) -> ReactivePolicy:
     if isinstance(horizon, (int, float)):
         return reactive_for(float(horizon), -90.0, 90.0)
     return ReactivePolicy()
+
+
+MARK_EDGES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0)
+"""Lower edges (m) of the 16 distance bands of the point-goal mark (navi_env.sim.goals.MARK_EDGES with 0
+in front): what the greedy baseline takes a band to mean, erring short so it slows down in time."""
+
+
+@dataclass(frozen=True)
+class GoalSeekerConfig:
+    """The point-goal baselines' controller: the reactive avoider's gap choice, pulled toward the goal."""
+
+    avoid: ReactiveConfig = ReactiveConfig()
+    """Horizon, ray pattern and avoidance distances (the reactive baseline's)."""
+    goal_preference: float = 12.0
+    """Meters of free distance a heading straight at the goal is worth over one straight away from it."""
+    approach_distance: float = 2.5
+    """Forward speed ramps down linearly within this distance (m) of the goal, to 10% at the goal."""
+    climb_distance: float = 1.0
+    """Vertical action is the goal's height difference over this (m), clamped to [-1, 1]."""
+
+
+class GoalSeekerPolicy:
+    """A point-goal controller for a goal direction and distance per actor (`goal(obs)`): the free
+    distance per azimuth as the reactive avoider reads it, the heading with the largest
+    min(free, distance + 1 m) + goal_preference * (1 + cos(angle to the goal)) / 2, yaw toward it; forward
+    speed from the avoider's governor, the cosine of the heading error and the approach ramp; vertical
+    speed toward the goal's height; the avoider's side pushes. Subclasses say where the goal is."""
+
+    name = "goal-seeker"
+
+    def __init__(self, cfg: GoalSeekerConfig | None = None) -> None:
+        self.cfg = cfg or GoalSeekerConfig()
+
+    def reset(self, n: int, device: torch.device) -> None:
+        return None
+
+    def goal(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(azimuth (N,) degrees in the body frame, left positive; elevation (N,) degrees; distance (N,) m)."""
+        raise NotImplementedError
+
+    def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
+        cfg, avoid = self.cfg, self.cfg.avoid
+        goal_az, goal_el, distance = self.goal(obs)  # (N,) each
+        depth = obs[:, 0].float() * avoid.horizon  # (N, Az, El) meters
+        n, az, el = depth.shape
+        dev = depth.device
+        elevation = avoid.elevation_min + (torch.arange(el, device=dev) + 0.5) * (
+            (avoid.elevation_max - avoid.elevation_min) / el
+        )  # (El,) degrees
+        azimuth = torch.remainder(torch.arange(az, device=dev) * (360.0 / az) + 180.0, 360.0) - 180.0  # (Az,)
+        band = elevation.abs() <= avoid.band  # (El,) bool
+        free = depth[:, :, band].amin(dim=2) if bool(band.any()) else depth.amin(dim=2)  # (N, Az)
+        k = max(0, round(avoid.body_half_angle * az / 360.0))
+        wide = -F.max_pool1d(F.pad(-free[:, None], (k, k), mode="circular"), 2 * k + 1, stride=1)[
+            :, 0
+        ]  # (N, Az)
+        toward = 0.5 * (1.0 + torch.cos(torch.deg2rad(azimuth[None, :] - goal_az[:, None])))  # (N, Az)
+        cap = (distance + 1.0).clamp(max=avoid.open_cap)[:, None]  # (N, 1)
+        best = (torch.minimum(wide, cap) + cfg.goal_preference * toward).argmax(dim=1)  # (N,)
+        error = azimuth[best]  # (N,) degrees
+        yaw = (error / avoid.turn_angle).clamp(-1.0, 1.0)  # (N,)
+        governor = ((wide[:, 0] - avoid.stop_distance) / avoid.brake_distance).clamp(0.0, 1.0)  # (N,)
+        horizontal = distance * torch.cos(torch.deg2rad(goal_el))  # (N,) meters
+        approach = (horizontal / cfg.approach_distance).clamp(0.1, 1.0)  # (N,)
+        forward = governor * torch.cos(torch.deg2rad(error)).clamp(min=0.0) * approach  # (N,)
+
+        def side(lo: float, hi: float) -> torch.Tensor:
+            mask = (azimuth >= lo) & (azimuth <= hi)  # (Az,) bool
+            return wide[:, mask].amin(dim=1).clamp(max=avoid.side_distance)  # (N,)
+
+        lateral = (side(60.0, 120.0) - side(-120.0, -60.0)) / avoid.side_distance  # (N,) + pushes left
+
+        def cone(mask: torch.Tensor) -> torch.Tensor:
+            if not bool(mask.any()):
+                return torch.full((n,), avoid.side_distance, device=dev)
+            return depth[:, :, mask].amin(dim=(1, 2)).clamp(max=avoid.side_distance)  # (N,)
+
+        push = (cone(elevation >= 40.0) - cone(elevation <= -40.0)) / avoid.side_distance  # (N,) + climbs
+        climb = distance * torch.sin(torch.deg2rad(goal_el)) / cfg.climb_distance  # (N,)
+        vertical = torch.where(push.abs() > 0.5, push, climb)  # (N,) the avoider's push wins near surfaces
+        return torch.stack(
+            [forward, vertical.clamp(-1.0, 1.0), lateral.clamp(-1.0, 1.0), yaw], dim=1
+        )  # (N, 4)
+
+
+class GreedyGoalPolicy(GoalSeekerPolicy):
+    """Map-less point-goal baseline: straight at the goal as the observation's goal mark shows it (the
+    mark's mean azimuth and elevation, its distance band), with the avoider."""
+
+    name = "greedy"
+
+    def goal(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        avoid = self.cfg.avoid
+        mark = obs[:, 1] < 0.0  # (N, Az, El) bool
+        _, az, el = mark.shape
+        dev = obs.device
+        weight = mark.float()  # (N, Az, El)
+        count = weight.sum(dim=(1, 2)).clamp(min=1.0)  # (N,)
+        angle = torch.arange(az, device=dev) * (2.0 * math.pi / az)  # (Az,) radians, left positive
+        per_az = weight.sum(dim=2)  # (N, Az)
+        goal_az = torch.rad2deg(torch.atan2(per_az @ torch.sin(angle), per_az @ torch.cos(angle)))  # (N,)
+        elevation = avoid.elevation_min + (torch.arange(el, device=dev) + 0.5) * (
+            (avoid.elevation_max - avoid.elevation_min) / el
+        )  # (El,) degrees
+        goal_el = weight.sum(dim=1) @ elevation / count  # (N,)
+        band = torch.round(-obs[:, 1].float().amin(dim=(1, 2)) * len(MARK_EDGES)).long() - 1  # (N,)
+        distance = torch.tensor(MARK_EDGES, device=dev)[band.clamp(0, len(MARK_EDGES) - 1)]  # (N,)
+        return goal_az, goal_el, distance
+
+
+class OracleGoalPolicy(GoalSeekerPolicy):
+    """Point-goal baseline with the map, the ceiling: along the true shortest path, read from the env's
+    path-length field (the step of `probe` meters among 26 directions that lowers the path length most;
+    straight at the goal within `straight` meters of it), with the avoider."""
+
+    name = "oracle"
+
+    def __init__(
+        self, env: Any, cfg: GoalSeekerConfig | None = None, probe: float = 0.5, straight: float = 1.5
+    ):
+        super().__init__(cfg)
+        if getattr(env, "goal_bank", None) is None:
+            raise ValueError("the oracle needs a point-goal SdfDagEnv (EnvConfig(task='pointgoal'))")
+        self.env, self.probe, self.straight = env, probe, straight
+        offsets = torch.tensor(
+            [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)],
+            dtype=torch.float32,
+        )  # (26, 3)
+        self.directions = (offsets / offsets.norm(dim=1, keepdim=True)).to(env.device)  # (26, 3) unit
+
+    def goal(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        from navi_env.sim.goals import goal_distance
+
+        env = self.env
+        n = env.n_actors
+        probes = env.position[:, None, :] + self.probe * self.directions[None]  # (N, 26, 3)
+        repeat = self.directions.shape[0]
+        ahead = goal_distance(
+            env.goal_bank,
+            env.goal.repeat_interleave(repeat),
+            env.scene.repeat_interleave(repeat),
+            probes.reshape(-1, 3),
+        ).reshape(n, repeat)  # (N, 26)
+        downhill = self.directions[ahead.argmin(dim=1)]  # (N, 3) world unit direction
+        offset = env.goal_position - env.position  # (N, 3)
+        near = (env.goal_distance < self.straight)[:, None]  # (N, 1)
+        heading = torch.where(near, offset, downhill)  # (N, 3)
+        world_az = torch.atan2(heading[:, 1], heading[:, 0])  # (N,)
+        goal_az = torch.rad2deg(
+            torch.remainder(world_az - env.yaw + math.pi, 2.0 * math.pi) - math.pi
+        )  # (N,)
+        goal_el = torch.rad2deg(torch.atan2(heading[:, 2], heading[:, :2].norm(dim=1)))  # (N,)
+        return goal_az, goal_el, env.goal_distance.clone()
+
+
+def goal_seeker_for_env(name: str, env: Any) -> GoalSeekerPolicy:
+    """The `greedy` or `oracle` point-goal baseline tuned to a point-goal drone env (its horizon and ray
+    pattern); ValueError for any other env."""
+    cfg = getattr(env, "config", None)
+    if cfg is None or getattr(cfg, "task", "explore") != "pointgoal":
+        raise ValueError("the point-goal baselines need a point-goal drone env (--task pointgoal)")
+    avoid = ReactiveConfig(
+        horizon=cfg.horizon,
+        elevation_min=cfg.sensor.elevation_min_deg,
+        elevation_max=cfg.sensor.elevation_max_deg,
+    )
+    seeker = GoalSeekerConfig(avoid=avoid)
+    return OracleGoalPolicy(env, seeker) if name == "oracle" else GreedyGoalPolicy(seeker)

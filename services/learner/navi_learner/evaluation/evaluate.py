@@ -11,6 +11,13 @@ sums, so the bootstrap resamples actors and recomputes the ratio):
   coverage_per_1k    distinct 1 m cells visited per actor-episode, per 1,000 actor-steps
   distance_per_1k    meters flown per 1,000 actor-steps
   starvation_rate    starved episodes / finished episodes
+Point-goal episodes (an env whose info has "success"; docs/TASKS.md), over the episodes that finished:
+  success_rate       episodes that ended at the goal / finished episodes
+  spl                success weighted by path length: S * l / max(p, l), l the shortest path length from
+                     the start, p the meters flown (Anderson et al. 2018)
+  soft_spl           max(0, 1 - d_T / l) * l / max(p, l), d_T the path length left at the end
+  collisions_per_episode  contact steps / finished episodes
+  time_to_goal_s     seconds of simulated time per successful episode
 Info keys that an env lacks give NaN for that metric.
 """
 
@@ -41,6 +48,11 @@ METRICS: tuple[str, ...] = (
     "coverage_per_1k",
     "distance_per_1k",
     "starvation_rate",
+    "success_rate",
+    "spl",
+    "soft_spl",
+    "collisions_per_episode",
+    "time_to_goal_s",
 )
 """The metrics of an evaluation, each with a confidence interval."""
 
@@ -99,6 +111,12 @@ class EvalMetrics:
     starvation_rate: float
     sps: float
     obstacle_collisions_per_1k: float = math.nan  # results saved before moving obstacles lack it
+    success_rate: float = math.nan  # point-goal metrics: NaN for exploration
+    spl: float = math.nan
+    soft_spl: float = math.nan
+    collisions_per_episode: float = math.nan
+    time_to_goal_s: float = math.nan
+    task: str = "explore"  # pointgoal when the env reported point-goal episodes
     ci: dict[str, list[float]] = field(default_factory=dict)
 
 
@@ -116,6 +134,10 @@ class ActorSums:
     starved: np.ndarray
     distance: np.ndarray
     cells: np.ndarray
+    success: np.ndarray
+    spl: np.ndarray
+    soft_spl: np.ndarray
+    goal_seconds: np.ndarray
 
     def ratios(self) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
         """metric -> (numerator (N,), denominator (N,), scale)."""
@@ -128,6 +150,11 @@ class ActorSums:
             "coverage_per_1k": (self.cells, self.steps, 1000.0),
             "distance_per_1k": (self.distance, self.steps, 1000.0),
             "starvation_rate": (self.starved, self.episodes, 1.0),
+            "success_rate": (self.success, self.episodes, 1.0),
+            "spl": (self.spl, self.episodes, 1.0),
+            "soft_spl": (self.soft_spl, self.episodes, 1.0),
+            "collisions_per_episode": (self.collision, self.episodes, 1.0),
+            "time_to_goal_s": (self.goal_seconds, self.success, 1.0),
         }
 
 
@@ -160,6 +187,11 @@ def summarise(name: str, sums: ActorSums, steps: int, has: dict[str, bool], elap
         "coverage_per_1k": "position",
         "distance_per_1k": "position",
         "starvation_rate": "starved",
+        "success_rate": "success",
+        "spl": "success",
+        "soft_spl": "success",
+        "collisions_per_episode": "success",
+        "time_to_goal_s": "success",
     }
     values: dict[str, float] = {}
     ci: dict[str, list[float]] = {}
@@ -175,6 +207,7 @@ def summarise(name: str, sums: ActorSums, steps: int, has: dict[str, bool], elap
         steps=steps,
         actors=n,
         episodes=int(sums.episodes.sum()),
+        task="pointgoal" if has.get("success", False) else "explore",
         sps=n * steps / max(elapsed, 1e-9),
         ci=ci,
         **values,
@@ -198,9 +231,16 @@ def evaluate(
         "clearance",
         "starved",
         "distance",
+        "success",
+        "spl",
+        "soft_spl",
+        "goal_seconds",
     )
+    dt = float(getattr(getattr(env, "config", None), "dt", 0.1))  # seconds per step
     acc = {k: torch.zeros(n, dtype=torch.float64, device=device) for k in names}  # (N,) float64 each
-    has = {k: False for k in ("collision", "obstacle_collision", "clearance", "starved", "position")}
+    has = {
+        k: False for k in ("collision", "obstacle_collision", "clearance", "starved", "position", "success")
+    }
     ret = torch.zeros(n, dtype=torch.float64, device=device)  # (N,) return of the running episode
     episode = torch.zeros(n, dtype=torch.long, device=device)  # (N,) episode index per actor
     ids = torch.arange(n, device=device)  # (N,)
@@ -219,6 +259,16 @@ def evaluate(
             if key in out.info:
                 has[key] = True
                 acc[key] += out.info[key].double()
+        if "success" in out.info:  # point-goal: score the episodes that ended here
+            has["success"] = True
+            success = out.info["success"].double()  # (N,) 1 where the episode ended at the goal
+            shortest = out.info["start_distance"].double()  # (N,)
+            efficiency = shortest / torch.maximum(out.info["path_length"].double(), shortest).clamp(min=1e-9)
+            gained = (1.0 - out.info["goal_distance"].double() / shortest.clamp(min=1e-9)).clamp(min=0.0)
+            acc["success"] += success
+            acc["spl"] += success * efficiency
+            acc["soft_spl"] += ends * gained * efficiency
+            acc["goal_seconds"] += success * out.info["episode_length"].double() * dt
         if "position" in out.info:
             has["position"] = True
             pos = out.info["position"].float().clone()  # (N, 3) after this step's move, before any reset
@@ -269,9 +319,13 @@ def competent(
 
 
 def comparison_table(rows: list[EvalMetrics]) -> str:
-    """A markdown table of several evaluations: each metric with its 95% interval."""
+    """A markdown table of several evaluations: each metric with its 95% interval (the point-goal
+    metrics when the evaluations have them)."""
     keys = ["collisions_per_1k", "coverage_per_1k", "episode_return", "reward_per_step", "mean_clearance"]
     keys += ["distance_per_1k", "starvation_rate"]
+    if any(r.task == "pointgoal" for r in rows):
+        keys = ["success_rate", "spl", "soft_spl", "collisions_per_episode", "time_to_goal_s"]
+        keys += ["collisions_per_1k", "episode_return"]
     lines = ["| policy | " + " | ".join(keys) + " | episodes |", "| --- " * (len(keys) + 2) + "|"]
     for r in rows:
         cells = [

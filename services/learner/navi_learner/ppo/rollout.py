@@ -65,7 +65,10 @@ class RolloutStorage:
         bptt_chunk: int,
         device: torch.device,
         compact: bool = False,
+        goal_marks: bool = False,
     ) -> None:
+        """`goal_marks`: the env paints point-goal marks into channel 1 (its `goal_marks`), which compact
+        storage keeps as semantic codes 240-255."""
         if t_len % bptt_chunk:
             raise ValueError(f"rollout length {t_len} is not a multiple of the BPTT chunk {bptt_chunk}")
         self.t_len, self.n, self.chunk, self.compact = t_len, n, bptt_chunk, compact
@@ -79,7 +82,7 @@ class RolloutStorage:
                 t_len + 1, n, az, el, dtype=torch.float16, device=device
             )  # (T+1, N, Az, El)
             self.semantic = torch.zeros(t_len, n, az, el, dtype=torch.uint8, device=device)  # (T, N, Az, El)
-            self.table = semantic_table(device)  # (256,) float32
+            self.table = semantic_table(device, goal_marks)  # (256,) float32
             self.frame_steps = torch.arange(bptt_chunk + 1, device=device)[:, None]  # (L+1, 1) int64
             fast = device.type == "cuda"
             self._pack = _compiled(pack) if fast else pack

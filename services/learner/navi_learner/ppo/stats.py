@@ -27,7 +27,7 @@ class EpisodeStats:
 
     def update(self, out: StepLike, intrinsic: torch.Tensor | None = None) -> None:
         """Fold one step in: extrinsic reward, terms, episode ends, collisions (and those with moving
-        obstacles), novel cells, clearance, starvation."""
+        obstacles), novel cells, clearance, starvation, and point-goal success and SPL."""
         ends = out.done | out.truncated  # (N,) bool
         endf = ends.float()  # (N,)
         self.ep_return += out.reward
@@ -45,6 +45,11 @@ class EpisodeStats:
                 self._add(key, out.info[key].float().sum())
         if "clearance" in out.info:
             self._add("clearance", out.info["clearance"].float().sum())
+        if "success" in out.info:  # point-goal: success and SPL of the episodes that ended here
+            success = out.info["success"].float()  # (N,)
+            shortest, flown = out.info["start_distance"], out.info["path_length"]  # (N,) each
+            self._add("success", success.sum())
+            self._add("spl", (success * shortest / torch.maximum(flown, shortest).clamp(min=1e-6)).sum())
         self.episodes_total += endf.sum()
         self.ep_return *= 1.0 - endf
         self.ep_len *= 1.0 - endf
@@ -83,6 +88,9 @@ class EpisodeStats:
             out["coverage_per_1k"] = 1000.0 * raw["novel_cell"] / steps
         if "starved" in raw and episodes > 0:
             out["starvation_rate"] = raw["starved"] / episodes
+        if "success" in raw and episodes > 0:
+            out["success_rate"] = raw["success"] / episodes
+            out["spl"] = raw["spl"] / episodes
         self.sums = {}
         self.steps = 0
         return out

@@ -428,6 +428,7 @@ def setup(
         cfg.ppo.bptt_chunk,
         device,
         compact,
+        bool(getattr(env, "goal_marks", False)),
     )
     memory = EpisodicMemory(
         n, cfg.engine.memory_slots, cfg.engine.embed_dim, cfg.engine.memory_threshold, device
