@@ -20,6 +20,8 @@ from navi.commands.common import (
     DeviceOpt,
     EnvOpt,
     RecordOpt,
+    TaskOpt,
+    check_choice,
     fail,
     pick_device,
     record_result,
@@ -446,14 +448,17 @@ def bench_learn_cmd(
     device: DeviceOpt = "auto",
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False,
     record: RecordOpt = None,
+    task: TaskOpt = "explore",
 ) -> None:
     """Train from scratch on a train split, evaluate on unseen scenes during training; time to competence
-    (half the reactive baseline's collisions, 1.5x its coverage), learning curves (JSON + PNG)."""
+    (explore: half the reactive baseline's collisions, 1.5x its coverage; pointgoal: success >= 0.9, SPL
+    >= 0.75, fewer collisions per episode than the greedy baseline), learning curves (JSON + PNG)."""
     import time
     from dataclasses import replace
 
     import torch
 
+    from navi_env.sim.config import TASKS
     from navi_learner.envs.factory import parse_reward_overrides
     from navi_learner.evaluation.bench_learn import LearnConfig, bench_learn
     from navi_learner.evaluation.competence import EvalProtocol
@@ -492,6 +497,7 @@ def bench_learn_cmd(
         obstacles=obstacles,
         squad=squad,
         procedural_share=procedural_share,
+        task=check_choice(task, TASKS, "--task"),
     )
     folder = out or Path("artifacts/bench/learn") / time.strftime("%Y%m%d-%H%M%S")
     try:

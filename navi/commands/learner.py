@@ -514,13 +514,17 @@ def run_cmd(
     ] = 2048,
     device: DeviceOpt = "auto",
     seed: SeedOpt = 0,
+    task: TaskOpt = "explore",
 ) -> None:
     """The main job: build the corpora, train (CUDA: until competent on unseen scenes or the budget; CPU:
-    fine-tune the shipped reference checkpoint), promote, evaluate against random and reactive on unseen scenes."""
-    from navi_learner.evaluation.main_job import MainJobConfig, MainJobError, main_job
+    fine-tune the shipped reference checkpoint), promote, evaluate against random and reactive on unseen scenes
+    (--task pointgoal, CUDA: train point-goal episodes, compare with random, greedy and oracle)."""
+    from navi_env.sim.config import TASKS
+    from navi_learner.evaluation.main_job import REFERENCE, MainJobConfig, MainJobError, main_job
 
     dev = pick_device(device)
-    job = MainJobConfig(corpus, unseen, MODELS_DIR, dev, seed, budget, eval_every, cpu_steps)
+    task = check_choice(task, TASKS, "--task")
+    job = MainJobConfig(corpus, unseen, MODELS_DIR, dev, seed, budget, eval_every, cpu_steps, REFERENCE, task)
     try:
         report = main_job(job)
     except MainJobError as err:

@@ -19,7 +19,7 @@ import navi_env.ecosystem  # noqa: F401 (registers Navi/Explore-v0)
 from navi_env.ecosystem.batch import make_batched_env
 from navi_env.ecosystem.gym import NaviVectorEnv
 from navi_env.ecosystem.render import colour_depth
-from navi_env.sim.env import INFO_KEYS
+from navi_env.sim.env import GOAL_INFO_KEYS, INFO_KEYS
 
 from .conftest import SMALL_VIEW
 
@@ -201,3 +201,20 @@ def test_render_shows_the_drone_view_and_where_the_drones_are(corpus: Path) -> N
     left = (plan.shape[1] - int(np.ceil((info.bounds_max[0] - info.bounds_min[0]) / cell)) - 1) // 2
     assert red.size and np.min(np.hypot(red[:, 0] - row, red[:, 1] - left - col)) < 2.0
     assert (np.all(plan == [40, 44, 52], axis=-1)).any()  # walls
+
+
+def test_point_goal_id_gives_goal_episodes_through_the_same_adapters(corpus: Path) -> None:
+    env = gym.make_vec("Navi/PointGoal-v0", num_envs=N, corpus=corpus, device="cpu", config=SMALL_VIEW)
+    raw = env.unwrapped.env  # the SdfDagEnv under the adapter
+    assert raw.config.task == "pointgoal" and raw.config.max_steps_per_episode == 500
+    obs, _ = env.reset(seed=0)
+    assert bool((obs[:, 1] < 0).flatten(1).any(dim=1).all())  # every drone sees its goal mark
+    env.action_space.seed(0)
+    for _ in range(20):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert env.observation_space.contains(obs.numpy())
+        assert torch.allclose(sum(info["reward_terms"].values()), reward, atol=1e-6)
+        assert set(GOAL_INFO_KEYS) <= info.keys() and "progress" in info["reward_terms"]
+        assert torch.equal(terminated, info["success"])
+    single = gym.make("Navi/PointGoal-v0", corpus=corpus, config=SMALL_VIEW)
+    check_env(single.unwrapped)

@@ -51,8 +51,9 @@ def test_spawn_table_pads_and_draws_only_valid_rows() -> None:
     table = spawn_table([a, b], [torch.tensor([1.0, 2.0, 3.0]), torch.tensor([4.0])], "cpu")
     assert table.position.shape == (2, 3, 3) and table.count.tolist() == [3, 1]
     scene = torch.tensor([0] * 500 + [1] * 500)
-    pos, clr, yaw = draw_spawns(table, scene, torch.tensor(1), torch.tensor(0), torch.arange(1000))
-    assert torch.all(pos[500:] == 9.0) and torch.all(clr[500:] == 4.0)
+    pos, clr, yaw, row = draw_spawns(table, scene, torch.tensor(1), torch.tensor(0), torch.arange(1000))
+    assert torch.all(pos[500:] == 9.0) and torch.all(clr[500:] == 4.0) and torch.all(row[500:] == 0)
+    assert torch.equal(table.position[scene, row], pos)  # the row is the one drawn
     assert set(pos[:500, 0].tolist()) == {0.0, 1.0, 2.0}
     assert torch.equal(clr[:500], pos[:500, 0] + 1.0)  # clearance follows its row
     assert float(yaw.min()) >= -torch.pi and float(yaw.max()) < torch.pi

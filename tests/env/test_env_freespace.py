@@ -19,6 +19,7 @@ from navi_env.corpus.freespace import (
     components_ref,
     free_space,
     geodesic,
+    geodesic_many,
     geodesic_ref,
     greedy_coverage,
 )
@@ -51,6 +52,19 @@ def test_geodesic_matches_dijkstra(seed: int) -> None:
     finite = torch.isfinite(ref)
     assert torch.allclose(fast[finite], ref[finite], rtol=1e-5, atol=1e-5)
     assert bool(finite.sum() > sources.shape[0])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_many_fields_at_once_are_the_single_fields(seed: int) -> None:
+    free = random_free(seed)
+    g = torch.Generator().manual_seed(200 + seed)
+    candidates = free.nonzero()  # (F, 3)
+    sources = candidates[torch.randperm(candidates.shape[0], generator=g)[:5]]  # (5, 3)
+    many = geodesic_many(free, sources, 0.5)  # (5, X, Y, Z)
+    for i in range(5):
+        assert torch.equal(many[i], geodesic(free, sources[i : i + 1], 0.5))
+    with pytest.raises(ValueError, match="must be free"):
+        geodesic_many(free, (~free).nonzero()[:1], 0.5)
 
 
 def test_geodesic_in_open_space_is_the_26_neighbour_metric() -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,7 @@ from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy
 from navi_learner.evaluation.bench_learn import LearnConfig, bench_learn, run_devices, split_openarena
 from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol
-from navi_learner.evaluation.evaluate import EvalMetrics, competent, evaluate
+from navi_learner.evaluation.evaluate import EvalMetrics, competent, evaluate, goal_competent
 from navi_learner.ppo.train import train
 
 ENGINE = EngineConfig.tiny()
@@ -96,6 +97,20 @@ def test_competence_bar() -> None:
     assert not competent(metrics(0.0, 149.9), reactive)
     assert competent(metrics(0.0, 150.0), metrics(0.0, 100.0))  # 0 against 0 meets "half as many"
     assert not competent(metrics(0.1, 500.0), metrics(0.0, 100.0))
+
+
+def goal_metrics(success: float, spl: float, collisions: float) -> EvalMetrics:
+    base = metrics(0.0, 0.0)
+    return replace(base, success_rate=success, spl=spl, collisions_per_episode=collisions, task="pointgoal")
+
+
+def test_point_goal_bar() -> None:
+    greedy = goal_metrics(0.7, 0.7, 2.0)
+    assert goal_competent(goal_metrics(0.9, 0.75, 1.9), greedy)
+    assert not goal_competent(goal_metrics(0.89, 0.9, 0.0), greedy)
+    assert not goal_competent(goal_metrics(0.95, 0.74, 0.0), greedy)
+    assert not goal_competent(goal_metrics(0.95, 0.9, 2.0), greedy)  # fewer collisions than greedy
+    assert goal_competent(goal_metrics(0.95, 0.9, 0.0), goal_metrics(0.5, 0.5, 0.0))  # none against none
 
 
 def toy_config(total: int) -> TrainConfig:
@@ -179,6 +194,36 @@ def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     assert summary["competent_seeds"] == sum(r["competence"] is not None for r in saved["runs"])
     assert (out / "learning_curves.png").stat().st_size > 10_000
     assert "| gru | 2 |" in (out / "report.md").read_text()
+
+
+def test_bench_learn_point_goal_end_to_end_on_a_cpu(tmp_path: Path) -> None:
+    root = tmp_path / "corpora"
+    build_default_corpus(root / "procedural-train-64", resolution=64, count=1, seed=0)
+    build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
+    cfg = LearnConfig(
+        seeds=(0,),
+        temporal_cores=("gru",),
+        time_budget_s=1.0,
+        eval_every_s=0.5,
+        actors=4,
+        rollout_length=16,
+        compile=False,
+        protocol=EvalProtocol(actors=4, steps=24, episode_steps=12, seed=5),
+        task="pointgoal",
+    )
+    out = tmp_path / "out"
+    result = bench_learn(cfg, out, "cpu", 64, root, None, say=lambda _: None)
+    saved = json.loads((out / "result.json").read_text())
+    assert saved["config"]["task"] == "pointgoal" and "SPL" in saved["competence_bar"]
+    assert set(saved["baselines"]["all"]) == {"random", "greedy", "oracle"}
+    assert all(b["task"] == "pointgoal" for b in saved["baselines"]["all"].values())
+    (run,) = saved["runs"]
+    assert run["train_config"]["task"] == "pointgoal"
+    assert all(p["competent"] is not None and "success_rate" in p for p in run["curve"])
+    assert run["final_by_split"]["procedural"]["task"] == "pointgoal"
+    assert "median_final_spl" in result["summary"]["gru"]
+    assert "| success_rate |" in (out / "report.md").read_text()
+    assert (out / "learning_curves.png").stat().st_size > 10_000
 
 
 def test_reward_overrides_change_exactly_the_named_term(tmp_path: Path) -> None:

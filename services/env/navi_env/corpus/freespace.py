@@ -9,7 +9,8 @@ neighbours (faces, edges and corners, 1, sqrt 2 and sqrt 3 cells long) when both
   repeated min-pooling over the 26-neighbourhood, as many passes as the longest part is wide.
 - `geodesic` gives every free voxel's path length in meters to the nearest source voxel through free
   voxels (inf where no path), by repeated relaxation over the 26 neighbours: the exact shortest path on
-  the voxel graph, what Dijkstra gives (`geodesic_ref`), up to float32 rounding.
+  the voxel graph, what Dijkstra gives (`geodesic_ref`), up to float32 rounding. `geodesic_many` does
+  the same for several single sources at once (one field each).
 
 Both are torch only, one pass over the grid per iteration, on the scene's device. `components_ref` and
 `geodesic_ref` are the plain-Python twins (breadth-first search, Dijkstra) for small grids.
@@ -139,6 +140,30 @@ def geodesic(free: torch.Tensor, sources: torch.Tensor, cell: float) -> torch.Te
             near = padded[1 + di : 1 + di + x, 1 + dj : 1 + dj + y, 1 + dk : 1 + dk + z]  # (X, Y, Z)
             best = torch.minimum(best, near + length)
         nxt = torch.where(free, best, inf)  # (X, Y, Z)
+        if torch.equal(nxt, dist):
+            return dist
+        dist = nxt
+
+
+def geodesic_many(free: torch.Tensor, sources: torch.Tensor, cell: float) -> torch.Tensor:
+    """`geodesic` from each of G single source voxels (G, 3) int64 at once: (G, X, Y, Z) float32, field g the
+    path length to source g (one relaxation over the batch: as many passes as the longest path, not G
+    times as many)."""
+    if sources.numel() and not bool(free[sources[:, 0], sources[:, 1], sources[:, 2]].all()):
+        raise ValueError("every source voxel must be free")
+    g = sources.shape[0]
+    inf = torch.tensor(math.inf, device=free.device)
+    dist = torch.full((g, *free.shape), math.inf, device=free.device)  # (G, X, Y, Z) float32
+    dist[torch.arange(g, device=free.device), sources[:, 0], sources[:, 1], sources[:, 2]] = 0.0
+    x, y, z = free.shape
+    steps = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]  # offset, its length
+    while True:
+        padded = F.pad(dist[:, None], (1, 1, 1, 1, 1, 1), value=math.inf)[:, 0]  # (G, X+2, Y+2, Z+2)
+        best = dist
+        for (di, dj, dk), length in steps:
+            near = padded[:, 1 + di : 1 + di + x, 1 + dj : 1 + dj + y, 1 + dk : 1 + dk + z]  # (G, X, Y, Z)
+            best = torch.minimum(best, near + length)
+        nxt = torch.where(free[None], best, inf)  # (G, X, Y, Z)
         if torch.equal(nxt, dist):
             return dist
         dist = nxt

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from navi_env.corpus.freespace import FreeSpace, components, geodesic, geodesic_ref
+from navi_env.corpus.freespace import FreeSpace, components, geodesic_many, geodesic_ref
 
 CORNERS = torch.tensor(list(itertools.product((0, 1), repeat=3)))
 """(8, 3) offsets from the lower corner voxel to the 8 voxel centres around a point."""
@@ -83,16 +83,19 @@ def goal_table(
     goals: list[torch.Tensor] = []  # (3,) int64 each
     fields: list[torch.Tensor] = []  # (X, Y, Z) float32 each
     pairs: list[torch.Tensor] = []  # (K,) bool each
-    for voxel in pool[order]:
+    candidates = pool[order]  # (C', 3)
+    for first in range(0, candidates.shape[0], count):  # a batch of fields at a time
         if len(goals) == count:
             break
-        field = geodesic(space.free, voxel[None], space.cell)  # (X, Y, Z)
-        reach = field[start[:, 0], start[:, 1], start[:, 2]]  # (K,) path length from each spawn's voxel
-        paired = (reach >= near) & (reach <= far)  # (K,) bool
-        if bool(paired.any()):
-            goals.append(voxel)
-            fields.append(field)
-            pairs.append(paired)
+        batch = candidates[first : first + count]  # (B, 3)
+        field = geodesic_many(space.free, batch, space.cell)  # (B, X, Y, Z)
+        reach = field[:, start[:, 0], start[:, 1], start[:, 2]]  # (B, K) path length from each spawn's voxel
+        paired = (reach >= near) & (reach <= far)  # (B, K) bool
+        for b in paired.any(dim=1).nonzero()[:, 0].tolist():
+            if len(goals) < count:
+                goals.append(batch[b])
+                fields.append(field[b])
+                pairs.append(paired[b])
     if not goals:
         raise ValueError(f"no goal within {near}-{far} m of any spawn (of {pool.shape[0]} candidates)")
     return GoalTable(space, torch.stack(goals), torch.stack(fields), torch.stack(pairs, dim=1))

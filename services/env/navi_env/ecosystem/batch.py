@@ -10,13 +10,27 @@ from dataclasses import replace
 import torch
 
 from navi_env.corpus.folder import load_corpus
-from navi_env.sim.config import EnvConfig
+from navi_env.sim.config import POINTGOAL_EPISODE_STEPS, EnvConfig
 from navi_env.sim.env import SdfDagEnv
 
 ACTION_DIM = 4
 """Actions (N, 4) in [-1, 1]: forward, vertical, lateral, yaw rate (body frame, docs/SIMULATION.md)."""
 OBS_LOW = (0.0, 0.0, -1.0)
-"""Lowest value per channel: depth / horizon, semantic, delta depth."""
+"""Lowest value per channel: depth / horizon, semantic, delta depth (exploration)."""
+OBS_LOW_POINTGOAL = (0.0, -1.0, -1.0)
+"""Point-goal episodes: the goal mark makes the semantic channel as low as -1 (navi_env.sim.goals)."""
+
+
+def pointgoal_config(config: EnvConfig | None = None) -> EnvConfig:
+    """`config` (default EnvConfig()) for point-goal episodes: task pointgoal, and episodes of
+    POINTGOAL_EPISODE_STEPS when it keeps the exploring default length."""
+    cfg = config or EnvConfig()
+    steps = cfg.max_steps_per_episode
+    if steps == EnvConfig().max_steps_per_episode:
+        steps = POINTGOAL_EPISODE_STEPS
+    return replace(cfg, task="pointgoal", max_steps_per_episode=steps)
+
+
 OBS_HIGH = (1.0, 1.0, 1.0)
 """Highest value per channel."""
 
@@ -55,6 +69,7 @@ def make_batched_env(
 def obs_bounds(env: SdfDagEnv) -> tuple[torch.Tensor, torch.Tensor]:
     """(low, high) of one actor's observation, (3, Az, El) float32 each, on the host."""
     shape = env.obs_shape
-    low = torch.tensor(OBS_LOW, dtype=torch.float32)[:, None, None].expand(shape)  # (3, Az, El)
+    lowest = OBS_LOW_POINTGOAL if env.goal_marks else OBS_LOW
+    low = torch.tensor(lowest, dtype=torch.float32)[:, None, None].expand(shape)  # (3, Az, El)
     high = torch.tensor(OBS_HIGH, dtype=torch.float32)[:, None, None].expand(shape)  # (3, Az, El)
     return low.contiguous(), high.contiguous()

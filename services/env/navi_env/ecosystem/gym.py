@@ -24,13 +24,15 @@ from gymnasium.spaces import Box
 from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
-from navi_env.ecosystem.batch import ACTION_DIM, make_batched_env, obs_bounds
+from navi_env.ecosystem.batch import ACTION_DIM, make_batched_env, obs_bounds, pointgoal_config
 from navi_env.ecosystem.render import render_frame
 from navi_env.sim.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 
 ENV_ID = "Navi/Explore-v0"
 """The Gymnasium id: fly a corpus's scenes, rewarded by docs/SIMULATION.md's terms."""
+POINTGOAL_ID = "Navi/PointGoal-v0"
+"""The Gymnasium id of point-goal episodes: fly to a goal in a corpus's scenes (docs/TASKS.md)."""
 RENDER_FPS = 10
 """One step is 0.1 s of simulated time."""
 
@@ -71,7 +73,8 @@ class NaviVectorEnv(VectorEnv[torch.Tensor, torch.Tensor, torch.Tensor]):
     """N drones of one SdfDagEnv as a Gymnasium vector env, tensors on the env's device.
 
     step(actions (N, 4)) -> obs (N, 3, Az, El) float32, reward (N,) float32, terminated (N,) bool
-    (always False: contact never ends an episode), truncated (N,) bool, info. Reward, terminated,
+    (at the goal in point-goal episodes; never when exploring: contact never ends an episode),
+    truncated (N,) bool, info. Reward, terminated,
     truncated and info's tensors are the env's own buffers, overwritten by the next step.
 
     The observation is the env's own buffer, never copied. With final_obs (the default) the env writes
@@ -84,7 +87,8 @@ class NaviVectorEnv(VectorEnv[torch.Tensor, torch.Tensor, torch.Tensor]):
 
     info: every key of SdfDagEnv's StepOut.info ((N,) or (N, 3) tensors of the step that just ended:
     clearance, collision, position, novel_cell, speed, episode_return, episode_length, starved, scene_id,
-    obstacle_collision, drone_collision), "reward_terms" (term name -> (N,) weighted term; they sum to
+    obstacle_collision, drone_collision; point-goal episodes add success, goal_distance, start_distance
+    and path_length), "reward_terms" (term name -> (N,) weighted term; they sum to
     the reward), "final_obs" / "_final_obs" and "final_info" / "_final_info" (the same per-actor values,
     which already describe the step that ended) with the mask of the actors whose episode ended.
     """
@@ -257,11 +261,35 @@ class NaviEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         return frames[0] if frames is not None else None
 
 
+def make_pointgoal_vector_env(
+    num_envs: int, corpus: str | os.PathLike[str], config: EnvConfig | None = None, **kwargs: Any
+) -> NaviVectorEnv | NumpyVectorEnv:
+    """The vector entry point of Navi/PointGoal-v0: make_vector_env with `config` made point-goal
+    (navi_env.ecosystem.batch.pointgoal_config); the other arguments are make_vector_env's."""
+    return make_vector_env(num_envs, corpus, config=pointgoal_config(config), **kwargs)
+
+
+class PointGoalEnv(NaviEnv):
+    """One drone flying point-goal episodes (NaviEnv with `config` made point-goal): terminated is True
+    on the step that reaches the goal."""
+
+    def __init__(
+        self, corpus: str | os.PathLike[str], config: EnvConfig | None = None, **kwargs: Any
+    ) -> None:
+        super().__init__(corpus, config=pointgoal_config(config), **kwargs)
+
+
 def register_envs() -> None:
-    """Register Navi/Explore-v0 with Gymnasium (NaviEnv for make, make_vector_env for make_vec)."""
-    if ENV_ID not in gymnasium.registry:
-        gymnasium.register(
-            id=ENV_ID,
-            entry_point="navi_env.ecosystem.gym:NaviEnv",
-            vector_entry_point="navi_env.ecosystem.gym:make_vector_env",
-        )
+    """Register Navi/Explore-v0 and Navi/PointGoal-v0 with Gymnasium (NaviEnv or PointGoalEnv for make,
+    make_vector_env or make_pointgoal_vector_env for make_vec)."""
+    entries = (
+        (ENV_ID, "NaviEnv", "make_vector_env"),
+        (POINTGOAL_ID, "PointGoalEnv", "make_pointgoal_vector_env"),
+    )
+    for env_id, single, vector in entries:
+        if env_id not in gymnasium.registry:
+            gymnasium.register(
+                id=env_id,
+                entry_point=f"navi_env.ecosystem.gym:{single}",
+                vector_entry_point=f"navi_env.ecosystem.gym:{vector}",
+            )

@@ -37,7 +37,6 @@ from navi_env.ecosystem.batch import ACTION_DIM, make_batched_env, obs_bounds
 from navi_env.ecosystem.rows import copy_rows
 from navi_env.sim.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
-from navi_env.sim.rewards import TERMS
 
 FLAGS: tuple[str, ...] = ("collision", "obstacle_collision", "drone_collision", "novel_cell", "starved")
 """Boolean info entries, (N,) each, from SdfDagEnv's StepOut.info."""
@@ -67,7 +66,7 @@ class NaviTorchRLEnv(EnvBase):
             flags = {k: Categorical(2, shape=(n,), dtype=torch.bool, device=dev) for k in FLAGS}
             values = {k: Unbounded(shape=(n,), dtype=torch.float32, device=dev) for k in VALUES}
             observation["info"] = Composite(**flags, **values, shape=(n,), device=dev)
-            terms = {k: Unbounded(shape=(n,), dtype=torch.float32, device=dev) for k in TERMS}
+            terms = {k: Unbounded(shape=(n,), dtype=torch.float32, device=dev) for k in env.terms}
             observation["reward_terms"] = Composite(**terms, shape=(n,), device=dev)
         self.observation_spec = observation
         self.action_spec = Bounded(low=-1.0, high=1.0, shape=(n, ACTION_DIM), device=dev)
@@ -91,7 +90,7 @@ class NaviTorchRLEnv(EnvBase):
 
         return {
             "info": {k: fresh(info[k]) for k in (*FLAGS, *VALUES)},
-            "reward_terms": {k: fresh(terms[k]) for k in TERMS},
+            "reward_terms": {k: fresh(v) for k, v in terms.items()},
         }
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:

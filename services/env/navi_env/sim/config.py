@@ -166,6 +166,8 @@ class ObstacleConfig:
 TASKS: tuple[str, ...] = ("explore", "pointgoal")
 """What an episode asks of the drone: explore (cover the scene, no end but the time limit) or pointgoal
 (reach a goal drawn in the scene's free space; docs/TASKS.md)."""
+POINTGOAL_EPISODE_STEPS = 500
+"""Steps of a point-goal episode where nothing else is said (50 s: a 30 m path at 1 m/s fits)."""
 
 
 @dataclass(frozen=True)

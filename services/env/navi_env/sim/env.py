@@ -253,7 +253,8 @@ class SdfDagEnv:
         self._draw_spawns = fuse(episodes.draw_spawns)
         self._reward_terms = fuse(rewards.reward_terms)
         self._draw_goal = fuse(goals.draw_goal)
-        self._goal_distance = goals.goal_distance  # eager everywhere: inductor rounds its hop sums differently
+        # eager everywhere: inductor rounds the hop sums of goal_distance differently
+        self._goal_distance = goals.goal_distance
         self._semantic_table = semantic_table(dev)  # (256,) float32 channel 1 per semantic code
         self.void = f32(n)  # (N,) view statistics of the current observation
         self.near = f32(n)  # (N,)

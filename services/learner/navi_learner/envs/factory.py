@@ -18,9 +18,6 @@ if TYPE_CHECKING:
 
 EnvKind = Literal["sdfdag", "toy"]
 
-POINTGOAL_EPISODE_STEPS = 500
-"""Steps of a point-goal episode (50 s): a 30 m path at 1 m/s fits with room to spare."""
-
 
 class EnvUnavailable(RuntimeError):
     """The drone environment (or its corpus) cannot be built here."""
@@ -98,7 +95,7 @@ def make_env(
         raise EnvUnavailable(f"corpus folder {corpus} does not exist (build one with `navi corpus build`)")
     try:
         from navi_env.corpus.folder import CorpusError, load_corpus
-        from navi_env.sim.config import EnvConfig, ObstacleConfig
+        from navi_env.sim.config import POINTGOAL_EPISODE_STEPS, EnvConfig, ObstacleConfig
         from navi_env.sim.env import SdfDagEnv
     except ImportError as err:
         raise EnvUnavailable(f"navi_env's SdfDagEnv is not importable: {err}") from err

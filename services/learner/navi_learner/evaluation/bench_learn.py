@@ -91,6 +91,9 @@ class LearnConfig:
     """Scripted moving obstacles per actor in every env of the job (EnvConfig.obstacles)."""
     squad: int = 0
     """Squads of this many actors that see and collide with each other, in every env (0: off)."""
+    task: str = "explore"
+    """What every env of the job asks (EnvConfig.task): explore, or pointgoal with its own bar
+    (navi_learner.evaluation.evaluate.goal_competent)."""
 
 
 def openarena_maps(pk3: Path) -> list[str]:
@@ -197,6 +200,7 @@ def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -
         seed=seed,
         device=str(device),
         compile=cfg.compile,
+        task=cfg.task,
         engine=engine,
         ppo=PPOConfig(lr=cfg.lr, ppo_epochs=cfg.ppo_epochs, max_minibatch=cfg.max_minibatch),
     )
@@ -220,8 +224,9 @@ def run_one(
     tcfg = train_config(cfg, core, seed, dev)
     reward = dict(cfg.reward)
     env = make_env(
-        splits.train, tcfg.n_actors, device, seed, reward=reward, obstacles=cfg.obstacles, squad=cfg.squad
-    )
+        splits.train, tcfg.n_actors, device, seed, reward=reward, obstacles=cfg.obstacles, squad=cfg.squad,
+        task=cfg.task,
+    )  # fmt: skip
     unseen = eval_env(splits.unseen, cfg, device)
     monitor = CompetenceMonitor(
         unseen,
@@ -279,11 +284,13 @@ def eval_env(corpus: Path, cfg: LearnConfig, device: str) -> Any:
         reward=dict(cfg.reward),
         obstacles=cfg.obstacles,
         squad=cfg.squad,
+        task=cfg.task,
     )
 
 
 def baselines_by_split(splits: Splits, cfg: LearnConfig, device: str) -> dict[str, dict[str, EvalMetrics]]:
-    """random and reactive on the whole unseen split ("all") and on each of its parts."""
+    """The task's baselines (competence.evaluate_baselines) on the whole unseen split ("all") and on each
+    of its parts."""
     out = {"all": evaluate_baselines(eval_env(splits.unseen, cfg, device), cfg.protocol)}
     for name, path in splits.unseen_parts.items():
         out[name] = evaluate_baselines(eval_env(path, cfg, device), cfg.protocol)
@@ -329,21 +336,29 @@ def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
             else None,
             "median_sps": statistics.median(r["sps"] for r in mine),
         }
+        if last and last[0].get("success_rate") is not None:  # point-goal runs
+            out[core]["median_final_success_rate"] = statistics.median(p["success_rate"] for p in last)
+            out[core]["median_final_spl"] = statistics.median(p["spl"] for p in last)
     return out
 
 
 def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalMetrics]]) -> str:
     """report.md: the summary per core, each run, and the per-split tables of the last run of each core."""
     lines = ["# navi bench learn", "", f"device {result['device']}, {result['date']}", ""]
+    goal = result["config"].get("task") == "pointgoal"
+    finals = ("success", "SPL") if goal else ("coll/1k", "cov/1k")
+    keys = ("median_final_success_rate", "median_final_spl") if goal else (
+        "median_final_collisions_per_1k", "median_final_coverage_per_1k"
+    )  # fmt: skip
     lines += [
-        "| core | seeds | competent | median s to competence | median steps | final coll/1k | final cov/1k | SPS |"
+        "| core | seeds | competent | median s to competence | median steps | "
+        f"final {finals[0]} | final {finals[1]} | SPS |"
     ]
     lines += ["| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for core, s in result["summary"].items():
         lines.append(
             f"| {core} | {s['seeds']} | {s['competent_seeds']} | {s['median_train_s_to_competence']} | "
-            f"{s['median_steps_to_competence']} | {s['median_final_collisions_per_1k']} | "
-            f"{s['median_final_coverage_per_1k']} | {s['median_sps']:.0f} |"
+            f"{s['median_steps_to_competence']} | {s.get(keys[0])} | {s.get(keys[1])} | {s['median_sps']:.0f} |"
         )
     lines += [
         "",
@@ -356,7 +371,7 @@ def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalM
         lines.append(f"| {r['temporal_core']} | {r['seed']} | {hit} | {r['steps']:,} | {r['train_s']:.0f} |")
     for r in result["runs"]:
         for part, metrics in r["final_by_split"].items():
-            rows = [EvalMetrics(**metrics)] + [baselines[part][k] for k in ("random", "reactive")]
+            rows = [EvalMetrics(**metrics), *baselines[part].values()]
             lines += [
                 "",
                 f"## {r['temporal_core']} seed {r['seed']}, unseen {part}",
@@ -413,7 +428,11 @@ def bench_learn(
             "unseen": str(splits.unseen),
             "notes": notes,
         },
-        "competence_bar": "collisions/1k <= 0.5 x reactive and coverage/1k >= 1.5 x reactive, unseen split, same seed",
+        "competence_bar": (
+            "success >= 0.9, SPL >= 0.75 and fewer collisions per episode than greedy, unseen split, same seed"
+            if cfg.task == "pointgoal"
+            else "collisions/1k <= 0.5 x reactive and coverage/1k >= 1.5 x reactive, unseen split, same seed"
+        ),
         "baselines": {part: {k: asdict(v) for k, v in b.items()} for part, b in baselines.items()},
         "runs": runs,
         "summary": summarise(runs, cfg.time_budget_s),

@@ -2,7 +2,9 @@
 monitor that evaluates the live policy every so often and records the learning curve.
 
 Competence (docs/TRAINING.md): on the unseen scenes, with the same seed and deterministic actions,
-at most half the reactive baseline's collisions per 1,000 steps and at least 1.5x its coverage.
+at most half the reactive baseline's collisions per 1,000 steps and at least 1.5x its coverage. For
+point-goal episodes (docs/TASKS.md): a success rate of at least 0.9, SPL of at least 0.75 and fewer
+collisions per episode than the map-less greedy baseline.
 """
 
 from __future__ import annotations
@@ -17,8 +19,8 @@ import torch
 
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.protocol import BatchedEnv
-from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, reactive_for_env
-from navi_learner.evaluation.evaluate import EvalMetrics, ModulePolicy, competent, evaluate
+from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, goal_seeker_for_env, reactive_for_env
+from navi_learner.evaluation.evaluate import EvalMetrics, ModulePolicy, competent, evaluate, goal_competent
 
 CURVE_KEYS = (
     "collisions_per_1k",
@@ -26,8 +28,13 @@ CURVE_KEYS = (
     "coverage_per_1k",
     "episode_return",
     "reward_per_step",
+    "success_rate",
+    "spl",
+    "soft_spl",
+    "collisions_per_episode",
 )
-"""The metrics each learning-curve point records (with their intervals)."""
+"""The metrics each learning-curve point records (with their intervals; the point-goal ones are NaN for
+exploration)."""
 
 
 @dataclass(frozen=True)
@@ -47,12 +54,46 @@ class EvalProtocol:
         return cls() if device.type == "cuda" else cls(actors=16, steps=400, episode_steps=200)
 
 
+def env_task(env: object) -> str:
+    """The task of a drone env (EnvConfig.task); explore for any other env."""
+    return str(getattr(getattr(env, "config", None), "task", "explore"))
+
+
 def evaluate_baselines(env: BatchedEnv, protocol: EvalProtocol) -> dict[str, EvalMetrics]:
-    """random and reactive on the protocol's env seed."""
-    return {
-        p.name: evaluate(env, p, protocol.steps, protocol.seed)
-        for p in (RandomPolicy(protocol.seed), reactive_for_env(env))
-    }
+    """random and reactive on the protocol's env seed; random, greedy and oracle for point-goal episodes."""
+    policies: list[EvalPolicy] = [RandomPolicy(protocol.seed)]
+    if env_task(env) == "pointgoal":
+        policies += [goal_seeker_for_env("greedy", env), goal_seeker_for_env("oracle", env)]
+    else:
+        policies.append(reactive_for_env(env))
+    return {p.name: evaluate(env, p, protocol.steps, protocol.seed) for p in policies}
+
+
+def meets_bar(metrics: EvalMetrics, baselines: dict[str, EvalMetrics]) -> bool:
+    """The competence bar of the metrics' task against the baselines of the same evaluation."""
+    if metrics.task == "pointgoal":
+        return goal_competent(metrics, baselines["greedy"])
+    return competent(metrics, baselines["reactive"])
+
+
+def bar_status(metrics: EvalMetrics | None, baselines: dict[str, EvalMetrics]) -> str:
+    """One line: the metrics (when given) beside the baseline the bar compares with."""
+    if "greedy" in baselines:
+        g = baselines["greedy"]
+        if metrics is None:
+            return f"unseen: greedy success {g.success_rate:.2f}, SPL {g.spl:.2f}, {g.collisions_per_episode:.2f} coll/ep"
+        return (
+            f"unseen: success {metrics.success_rate:.2f}, SPL {metrics.spl:.2f}, "
+            f"{metrics.collisions_per_episode:.2f} coll/ep (greedy {g.success_rate:.2f}, {g.spl:.2f}, "
+            f"{g.collisions_per_episode:.2f})"
+        )
+    r = baselines["reactive"]
+    if metrics is None:
+        return f"unseen: reactive {r.collisions_per_1k:.2f} coll/1k, {r.coverage_per_1k:.0f} cov/1k"
+    return (
+        f"unseen: {metrics.collisions_per_1k:.2f} coll/1k (reactive {r.collisions_per_1k:.2f}), "
+        f"{metrics.coverage_per_1k:.0f} cov/1k (reactive {r.coverage_per_1k:.0f})"
+    )
 
 
 def curve_point(metrics: EvalMetrics, step: int, train_s: float, wall_s: float) -> dict[str, Any]:
@@ -86,8 +127,7 @@ class CompetenceMonitor:
         self.next_s = self.every_s
         if not self.baselines:
             self.baselines = evaluate_baselines(self.env, self.protocol)
-        r = self.baselines["reactive"]
-        self.status = f"unseen: reactive {r.collisions_per_1k:.2f} coll/1k, {r.coverage_per_1k:.0f} cov/1k"
+        self.status = bar_status(None, self.baselines)
 
     def evaluate_policy(self, policy: CognitiveMambaPolicy, name: str = "trained") -> EvalMetrics:
         """Deterministic evaluation of `policy` on the unseen env (train mode restored afterwards)."""
@@ -103,16 +143,11 @@ class CompetenceMonitor:
         m = self.evaluate_policy(policy)
         self.latest = m
         point = curve_point(m, step, train_s, time.perf_counter() - self.started)
-        point["competent"] = competent(m, self.baselines["reactive"])
+        point["competent"] = meets_bar(m, self.baselines)
         self.curve.append(point)
         if point["competent"] and self.competence is None:
             self.competence = {"step": step, "train_s": train_s, "wall_s": point["wall_s"]}
-        self.status = (
-            f"unseen: {m.collisions_per_1k:.2f} coll/1k (reactive "
-            f"{self.baselines['reactive'].collisions_per_1k:.2f}), {m.coverage_per_1k:.0f} cov/1k "
-            f"(reactive {self.baselines['reactive'].coverage_per_1k:.0f})"
-            + (" COMPETENT" if point["competent"] else "")
-        )
+        self.status = bar_status(m, self.baselines) + (" COMPETENT" if point["competent"] else "")
         if self.say is not None:
             self.say(f"step {step:,} ({train_s:.0f} s) {self.status}")
         return m
@@ -152,6 +187,14 @@ def plot_curves(
         ("coverage_per_1k", "coverage / 1k steps"),
         ("episode_return", "episode return"),
     )
+    goal = "greedy" in baselines  # point-goal runs
+    if goal:
+        keys = (
+            ("success_rate", "success rate"),
+            ("spl", "SPL"),
+            ("collisions_per_episode", "collisions / episode"),
+        )
+    bars = {"success_rate": 0.9, "spl": 0.75} if goal else {}
     fig, axes = plt.subplots(2, 3, figsize=(15, 8))
     reactive = baselines.get("reactive")
     for row, (xkey, xlabel) in enumerate((("step", "env steps"), ("train_s", "training seconds"))):
@@ -160,10 +203,12 @@ def plot_curves(
             for name, points in runs.items():
                 xs = [p[xkey] for p in points]
                 ax.plot(xs, [p[key] for p in points], marker="o", markersize=3, label=name)
-            for bname, style in (("random", ":"), ("reactive", "--")):
+            for bname, style in (("random", ":"), ("reactive", "--"), ("greedy", "--"), ("oracle", "-.")):
                 if bname in baselines:
                     ax.axhline(getattr(baselines[bname], key), linestyle=style, color="gray", label=bname)
-            if reactive is not None and key == "collisions_per_1k":
+            if key in bars:
+                ax.axhline(bars[key], color="green", linewidth=0.8, label="competence")
+            if reactive is not None and key == "collisions_per_1k" and not goal:
                 ax.axhline(0.5 * reactive.collisions_per_1k, color="green", linewidth=0.8, label="competence")
             if reactive is not None and key == "coverage_per_1k":
                 ax.axhline(1.5 * reactive.coverage_per_1k, color="green", linewidth=0.8, label="competence")

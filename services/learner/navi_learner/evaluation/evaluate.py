@@ -318,6 +318,18 @@ def competent(
     )
 
 
+def goal_competent(
+    trained: EvalMetrics, greedy: EvalMetrics, success: float = 0.9, spl: float = 0.75
+) -> bool:
+    """The point-goal bar of `navi bench learn --task pointgoal`: a success rate of at least `success`,
+    SPL of at least `spl`, and fewer collisions per episode than the map-less greedy baseline (no more,
+    where that has none), on the same unseen scenes and seed."""
+    fewer = trained.collisions_per_episode < greedy.collisions_per_episode or (
+        greedy.collisions_per_episode == 0.0 and trained.collisions_per_episode == 0.0
+    )
+    return trained.success_rate >= success and trained.spl >= spl and fewer
+
+
 def comparison_table(rows: list[EvalMetrics]) -> str:
     """A markdown table of several evaluations: each metric with its 95% interval (the point-goal
     metrics when the evaluations have them)."""

@@ -9,6 +9,9 @@ evaluate with enough steps for episodes to finish, and write the table and the l
 On a CPU, where minutes cannot train this engine from scratch: start from the reference checkpoint
 shipped with Navi (made by `navi train` on a GPU; reference/README.md and its JSON say how), fine-tune
 it for the CPU budget on the default corpus, then evaluate the same way.
+
+With task "pointgoal" (CUDA only: no point-goal reference checkpoint ships) the job trains point-goal
+episodes until the point-goal bar (docs/TASKS.md) and compares with random, greedy and oracle.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import torch
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.envs.factory import EnvUnavailable, corpus_summary, make_env
-from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
+from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, goal_seeker_for_env, reactive_for_env
 from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol, plot_curves
 from navi_learner.evaluation.evaluate import (
     CheckpointPolicy,
@@ -29,6 +32,7 @@ from navi_learner.evaluation.evaluate import (
     comparison_table,
     competent,
     evaluate,
+    goal_competent,
     jsonable,
 )
 from navi_learner.ppo.train import train
@@ -73,6 +77,8 @@ class MainJobConfig:
     cpu_steps: int = 2048
     """CPU: fine-tuning env steps."""
     reference: Path = REFERENCE
+    task: str = "explore"
+    """explore, or pointgoal (CUDA only)."""
 
 
 def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int = 16) -> None:
@@ -113,6 +119,7 @@ def cuda_config(job: MainJobConfig) -> TrainConfig:
         time_limit_s=job.budget_s,
         seed=job.seed,
         device=job.device,
+        task=job.task,
         ppo=PPOConfig(lr=3e-4, ppo_epochs=2, max_minibatch=16_384),
     )
 
@@ -130,7 +137,7 @@ def cpu_config(job: MainJobConfig, start_step: int) -> TrainConfig:
 
 
 def resume_point(registry: ModelRegistry, cfg: TrainConfig) -> tuple[Path | None, TrainConfig]:
-    """The registry's latest when it uses the same temporal core (its engine shape comes along)."""
+    """The registry's latest when it uses the same temporal core and task (its engine shape comes along)."""
     if not registry.latest_path.is_file():
         return None, cfg
     try:
@@ -138,7 +145,7 @@ def resume_point(registry: ModelRegistry, cfg: TrainConfig) -> tuple[Path | None
     except CheckpointError as err:
         print(f"[navi run] ignoring {registry.latest_path}: {err}", flush=True)
         return None, cfg
-    if meta.temporal_core != cfg.engine.temporal_core:
+    if meta.temporal_core != cfg.engine.temporal_core or meta.config.get("task", "explore") != cfg.task:
         return None, cfg
     budget = cfg.total_steps if cfg.total_steps >= 10**12 else meta.step_id + cfg.total_steps
     return registry.latest_path, replace(
@@ -150,14 +157,20 @@ def main_job(job: MainJobConfig) -> Path:
     """Returns the path of the evaluation report."""
     dev = torch.device(job.device)
     cuda = dev.type == "cuda"
+    if job.task == "pointgoal" and not cuda:
+        raise MainJobError(
+            "navi run --task pointgoal trains from scratch and needs CUDA (no point-goal reference checkpoint "
+            "ships for the CPU path); on a CPU, try `navi evaluate --policy greedy --task pointgoal`"
+        )
     ensure_corpus(job.corpus, dev, count=16 if dev.type == "cuda" else CPU_TRAIN_SCENES)
     ensure_corpus(job.unseen, dev, seed=UNSEEN_SEED, count=UNSEEN_SCENES)
     protocol = EvalProtocol.for_device(dev)
     registry = ModelRegistry(job.models_dir)
     try:
         unseen_env = make_env(
-            job.unseen, protocol.actors, job.device, protocol.seed, episode_steps=protocol.episode_steps
-        )
+            job.unseen, protocol.actors, job.device, protocol.seed, episode_steps=protocol.episode_steps,
+            task=job.task,
+        )  # fmt: skip
     except EnvUnavailable as err:
         raise MainJobError(str(err)) from err
     monitor: CompetenceMonitor | None = None
@@ -186,7 +199,7 @@ def main_job(job: MainJobConfig) -> Path:
             flush=True,
         )
     try:
-        env = make_env(job.corpus, cfg.n_actors, job.device, job.seed)
+        env = make_env(job.corpus, cfg.n_actors, job.device, job.seed, task=job.task)
     except EnvUnavailable as err:
         raise MainJobError(str(err)) from err
     result = train(
@@ -205,9 +218,13 @@ def main_job(job: MainJobConfig) -> Path:
     )
     trained = CheckpointPolicy(result.final_checkpoint, dev)
     trained.name = f"trained ({result.run_id})"
+    baselines: list[EvalPolicy] = [RandomPolicy(protocol.seed)]
+    if job.task == "pointgoal":
+        baselines += [goal_seeker_for_env("greedy", unseen_env), goal_seeker_for_env("oracle", unseen_env)]
+    else:
+        baselines.append(reactive_for_env(unseen_env))
     rows = [
-        evaluate(unseen_env, p, protocol.steps, protocol.seed, progress=True)
-        for p in (trained, RandomPolicy(protocol.seed), reactive_for_env(unseen_env))
+        evaluate(unseen_env, p, protocol.steps, protocol.seed, progress=True) for p in (trained, *baselines)
     ]
     return write_evaluation(
         result.run_dir / "reports", job, protocol, rows, monitor, "cuda" if cuda else "cpu"
@@ -222,23 +239,39 @@ def write_evaluation(
     monitor: CompetenceMonitor | None,
     path_taken: str,
 ) -> Path:
-    """evaluation.md / .json (and on CUDA the learning curves) in the run's reports folder."""
-    trained, rand, reactive = rows
-    beats = {
-        "random": trained.collisions_per_1k <= rand.collisions_per_1k
-        and trained.coverage_per_1k > rand.coverage_per_1k,
-        "reactive": trained.collisions_per_1k <= reactive.collisions_per_1k
-        and trained.coverage_per_1k > reactive.coverage_per_1k,
-    }
-    verdict = (
-        f"Trained vs random: {'beats it' if beats['random'] else 'does not beat it'}; vs reactive: "
-        f"{'beats it' if beats['reactive'] else 'does not beat it'} (fewer or equal collisions per 1,000 steps and "
-        f"more coverage). Competent (half the reactive collisions, 1.5x its coverage): "
-        f"{'yes' if competent(trained, reactive) else 'no'}."
-    )
+    """evaluation.md / .json (and on CUDA the learning curves) in the run's reports folder. `rows`: the
+    trained policy, then random and reactive (explore) or random, greedy and oracle (point-goal)."""
+    if job.task == "pointgoal":
+        trained, rand, greedy, oracle = rows
+        beats = {
+            name: trained.success_rate > other.success_rate
+            and trained.collisions_per_episode <= other.collisions_per_episode
+            for name, other in (("random", rand), ("greedy", greedy), ("oracle", oracle))
+        }
+        versus = "; ".join(
+            f"vs {name}: {'beats it' if won else 'does not beat it'}" for name, won in beats.items()
+        )
+        verdict = (
+            f"Trained {versus} (a higher success rate, no more collisions per episode). Competent (success >= 0.9, "
+            f"SPL >= 0.75, fewer collisions per episode than greedy): {'yes' if goal_competent(trained, greedy) else 'no'}."
+        )
+    else:
+        trained, rand, reactive = rows
+        beats = {
+            "random": trained.collisions_per_1k <= rand.collisions_per_1k
+            and trained.coverage_per_1k > rand.coverage_per_1k,
+            "reactive": trained.collisions_per_1k <= reactive.collisions_per_1k
+            and trained.coverage_per_1k > reactive.coverage_per_1k,
+        }
+        verdict = (
+            f"Trained vs random: {'beats it' if beats['random'] else 'does not beat it'}; vs reactive: "
+            f"{'beats it' if beats['reactive'] else 'does not beat it'} (fewer or equal collisions per 1,000 steps "
+            f"and more coverage). Competent (half the reactive collisions, 1.5x its coverage): "
+            f"{'yes' if competent(trained, reactive) else 'no'}."
+        )
     table = comparison_table(rows)
     text = (
-        f"# navi run: evaluation on unseen scenes ({path_taken} path)\n\n"
+        f"# navi run: evaluation on unseen scenes ({path_taken} path, task {job.task})\n\n"
         f"{protocol.actors} actors x {protocol.steps} steps on {job.unseen} (procedural seed {UNSEEN_SEED}), "
         f"episodes of {protocol.episode_steps} steps, env seed {protocol.seed}, deterministic actions; "
         f"95% bootstrap intervals over actors.\n\n{table}\n\n{verdict}\n"
