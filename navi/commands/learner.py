@@ -518,7 +518,7 @@ def run_cmd(
 ) -> None:
     """The main job: build the corpora, train (CUDA: until competent on unseen scenes or the budget; CPU:
     fine-tune the shipped reference checkpoint), promote, evaluate against random and reactive on unseen scenes
-    (--task pointgoal, CUDA: train point-goal episodes, compare with random, greedy and oracle)."""
+    (--task pointgoal: train point-goal episodes from scratch, compare with random, greedy and oracle)."""
     from navi_env.sim.config import TASKS
     from navi_learner.evaluation.main_job import REFERENCE, MainJobConfig, MainJobError, main_job
 

@@ -214,6 +214,7 @@ def test_point_goal_id_gives_goal_episodes_through_the_same_adapters(corpus: Pat
         obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
         assert env.observation_space.contains(obs.numpy())
         assert torch.allclose(sum(info["reward_terms"].values()), reward, atol=1e-6)
+        assert not bool((terminated & truncated).any())  # an episode ends one way
         assert set(GOAL_INFO_KEYS) <= info.keys() and "progress" in info["reward_terms"]
         assert torch.equal(terminated, info["success"])
     single = gym.make("Navi/PointGoal-v0", corpus=corpus, config=SMALL_VIEW)

@@ -114,3 +114,23 @@ def test_main_job_trains_on_a_gpu_with_the_learning_benchmarks_settings(tmp_path
         bench.engine,
     )
     assert ours.time_limit_s == job.budget_s
+
+
+def test_main_job_point_goal_cpu_path_trains_from_scratch_and_compares_with_the_seekers(
+    unseen: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    train = tmp_path / "train"
+    build_default_corpus(train, resolution=CORPUS_RESOLUTION, count=1, seed=0)
+    job = MainJobConfig(train, unseen, tmp_path / "models", "cpu", cpu_steps=256, task="pointgoal")
+    assert cuda_config(job).task == "pointgoal"
+    report = main_job(job)
+    assert "Training point-goal episodes from scratch" in capsys.readouterr().out
+    result = json.loads((report.parent / "evaluation.json").read_text())
+    trained, rand, greedy, oracle = (EvalMetrics(**r) for r in result["results"])
+    assert (rand.policy, greedy.policy, oracle.policy) == ("random", "greedy", "oracle")
+    assert all(r.task == "pointgoal" for r in (trained, rand, greedy, oracle))
+    assert set(result["beats"]) == {"random", "greedy", "oracle"}
+    assert greedy.success_rate > rand.success_rate and "Competent (success >= 0.9" in report.read_text()
+    made = load_checkpoint(job.models_dir / "latest.pt")
+    assert made.meta.parent_checkpoint is None and made.meta.config["task"] == "pointgoal"
