@@ -158,12 +158,9 @@ def test_split_openarena_holds_out_every_fifth_map() -> None:
     assert not set(train_maps) & set(held)
 
 
-def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
-    root = tmp_path / "corpora"
-    build_default_corpus(root / "procedural-train-64", resolution=64, count=2, seed=0)
-    build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
-    cfg = LearnConfig(
-        seeds=(0, 1),
+def small_learn_config(**overrides: object) -> LearnConfig:
+    """A bench learn job of seconds on a CPU: the gru core, 4 actors, a one-second budget, a tiny protocol."""
+    small: dict[str, object] = dict(
         temporal_cores=("gru",),
         time_budget_s=1.0,
         eval_every_s=0.5,
@@ -171,8 +168,15 @@ def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
         rollout_length=16,
         compile=False,
         protocol=EvalProtocol(actors=4, steps=24, episode_steps=12, seed=5),
-        reward=(("exploration_weight", 0.25),),
     )
+    return LearnConfig(**(small | overrides))  # type: ignore[arg-type]
+
+
+def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
+    root = tmp_path / "corpora"
+    build_default_corpus(root / "procedural-train-64", resolution=64, count=2, seed=0)
+    build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
+    cfg = small_learn_config(seeds=(0, 1), reward=(("exploration_weight", 0.25),))
     out = tmp_path / "out"
     result = bench_learn(cfg, out, "cpu", 64, root, None, say=lambda _: None)
     saved = json.loads((out / "result.json").read_text())
@@ -200,17 +204,7 @@ def test_bench_learn_point_goal_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     root = tmp_path / "corpora"
     build_default_corpus(root / "procedural-train-64", resolution=64, count=1, seed=0)
     build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
-    cfg = LearnConfig(
-        seeds=(0,),
-        temporal_cores=("gru",),
-        time_budget_s=1.0,
-        eval_every_s=0.5,
-        actors=4,
-        rollout_length=16,
-        compile=False,
-        protocol=EvalProtocol(actors=4, steps=24, episode_steps=12, seed=5),
-        task="pointgoal",
-    )
+    cfg = small_learn_config(seeds=(0,), task="pointgoal")
     out = tmp_path / "out"
     result = bench_learn(cfg, out, "cpu", 64, root, None, say=lambda _: None)
     saved = json.loads((out / "result.json").read_text())

@@ -103,41 +103,55 @@ class ReactivePolicy:
 
     def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
         cfg = self.cfg
-        depth = obs[:, 0].float() * cfg.horizon  # (N, Az, El) meters
-        n, az, el = depth.shape
-        dev = depth.device
-        elevation = cfg.elevation_min + (torch.arange(el, device=dev) + 0.5) * (
-            (cfg.elevation_max - cfg.elevation_min) / el
-        )  # (El,) degrees
-        azimuth = torch.remainder(torch.arange(az, device=dev) * (360.0 / az) + 180.0, 360.0) - 180.0  # (Az,)
-        band = elevation.abs() <= cfg.band  # (El,) bool
-        free = depth[:, :, band].amin(dim=2) if bool(band.any()) else depth.amin(dim=2)  # (N, Az)
-        k = max(0, round(cfg.body_half_angle * az / 360.0))
-        wide = -F.max_pool1d(F.pad(-free[:, None], (k, k), mode="circular"), 2 * k + 1, stride=1)[
-            :, 0
-        ]  # (N, Az)
-        ahead_bonus = cfg.ahead_preference * 0.5 * (1.0 + torch.cos(torch.deg2rad(azimuth)))  # (Az,)
-        best = (wide.clamp(max=cfg.open_cap) + ahead_bonus).argmax(dim=1)  # (N,)
-        error = azimuth[best]  # (N,) degrees, left positive
+        near = surroundings(obs, cfg)
+        ahead_bonus = cfg.ahead_preference * 0.5 * (1.0 + torch.cos(torch.deg2rad(near.azimuth)))  # (Az,)
+        best = (near.wide.clamp(max=cfg.open_cap) + ahead_bonus).argmax(dim=1)  # (N,)
+        error = near.azimuth[best]  # (N,) degrees, left positive
         yaw = (error / cfg.turn_angle).clamp(-1.0, 1.0)  # (N,)
-        governor = ((wide[:, 0] - cfg.stop_distance) / cfg.brake_distance).clamp(0.0, 1.0)  # (N,)
+        governor = ((near.wide[:, 0] - cfg.stop_distance) / cfg.brake_distance).clamp(0.0, 1.0)  # (N,)
         forward = governor * torch.cos(torch.deg2rad(error)).clamp(min=0.0)  # (N,)
-
-        def side(lo: float, hi: float) -> torch.Tensor:
-            mask = (azimuth >= lo) & (azimuth <= hi)  # (Az,) bool
-            return wide[:, mask].amin(dim=1).clamp(max=cfg.side_distance)  # (N,)
-
-        lateral = (side(60.0, 120.0) - side(-120.0, -60.0)) / cfg.side_distance  # (N,) + pushes left
-
-        def cone(mask: torch.Tensor) -> torch.Tensor:
-            if not bool(mask.any()):
-                return torch.full((n,), cfg.side_distance, device=dev)
-            return depth[:, :, mask].amin(dim=(1, 2)).clamp(max=cfg.side_distance)  # (N,)
-
-        vertical = (cone(elevation >= 40.0) - cone(elevation <= -40.0)) / cfg.side_distance  # (N,) + climbs
         return torch.stack(
-            [forward, vertical.clamp(-1.0, 1.0), lateral.clamp(-1.0, 1.0), yaw], dim=1
+            [forward, near.vertical.clamp(-1.0, 1.0), near.lateral.clamp(-1.0, 1.0), yaw], dim=1
         )  # (N, 4)
+
+
+@dataclass(frozen=True)
+class Surroundings:
+    """What the scripted policies read from an observation (ReactivePolicy's steps 1 and 4)."""
+
+    elevation: torch.Tensor  # (El,) degrees of each elevation bin
+    azimuth: torch.Tensor  # (Az,) degrees of each azimuth bin in (-180, 180], left positive
+    wide: torch.Tensor  # (N, Az) free distance per heading, the drone's width included, meters
+    lateral: torch.Tensor  # (N,) push away from the nearer side, + to the left, in [-1, 1]
+    vertical: torch.Tensor  # (N,) push away from the nearer of floor and ceiling, + climbs, in [-1, 1]
+
+
+def surroundings(obs: torch.Tensor, cfg: ReactiveConfig) -> Surroundings:
+    """Free distance per heading and the side pushes of observations obs (N, 3, Az, El)."""
+    depth = obs[:, 0].float() * cfg.horizon  # (N, Az, El) meters
+    n, az, el = depth.shape
+    dev = depth.device
+    elevation = cfg.elevation_min + (torch.arange(el, device=dev) + 0.5) * (
+        (cfg.elevation_max - cfg.elevation_min) / el
+    )  # (El,) degrees
+    azimuth = torch.remainder(torch.arange(az, device=dev) * (360.0 / az) + 180.0, 360.0) - 180.0  # (Az,)
+    band = elevation.abs() <= cfg.band  # (El,) bool
+    free = depth[:, :, band].amin(dim=2) if bool(band.any()) else depth.amin(dim=2)  # (N, Az)
+    k = max(0, round(cfg.body_half_angle * az / 360.0))
+    wide = -F.max_pool1d(F.pad(-free[:, None], (k, k), mode="circular"), 2 * k + 1, stride=1)[:, 0]  # (N, Az)
+
+    def side(lo: float, hi: float) -> torch.Tensor:
+        mask = (azimuth >= lo) & (azimuth <= hi)  # (Az,) bool
+        return wide[:, mask].amin(dim=1).clamp(max=cfg.side_distance)  # (N,)
+
+    def cone(mask: torch.Tensor) -> torch.Tensor:
+        if not bool(mask.any()):
+            return torch.full((n,), cfg.side_distance, device=dev)
+        return depth[:, :, mask].amin(dim=(1, 2)).clamp(max=cfg.side_distance)  # (N,)
+
+    lateral = (side(60.0, 120.0) - side(-120.0, -60.0)) / cfg.side_distance  # (N,)
+    vertical = (cone(elevation >= 40.0) - cone(elevation <= -40.0)) / cfg.side_distance  # (N,)
+    return Surroundings(elevation, azimuth, wide, lateral, vertical)
 
 
 def reactive_for(horizon: float, elevation_min: float, elevation_max: float) -> ReactivePolicy:
@@ -200,45 +214,22 @@ class GoalSeekerPolicy:
     def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
         cfg, avoid = self.cfg, self.cfg.avoid
         goal_az, goal_el, distance = self.goal(obs)  # (N,) each
-        depth = obs[:, 0].float() * avoid.horizon  # (N, Az, El) meters
-        n, az, el = depth.shape
-        dev = depth.device
-        elevation = avoid.elevation_min + (torch.arange(el, device=dev) + 0.5) * (
-            (avoid.elevation_max - avoid.elevation_min) / el
-        )  # (El,) degrees
-        azimuth = torch.remainder(torch.arange(az, device=dev) * (360.0 / az) + 180.0, 360.0) - 180.0  # (Az,)
-        band = elevation.abs() <= avoid.band  # (El,) bool
-        free = depth[:, :, band].amin(dim=2) if bool(band.any()) else depth.amin(dim=2)  # (N, Az)
-        k = max(0, round(avoid.body_half_angle * az / 360.0))
-        wide = -F.max_pool1d(F.pad(-free[:, None], (k, k), mode="circular"), 2 * k + 1, stride=1)[
-            :, 0
-        ]  # (N, Az)
-        toward = 0.5 * (1.0 + torch.cos(torch.deg2rad(azimuth[None, :] - goal_az[:, None])))  # (N, Az)
+        near = surroundings(obs, avoid)
+        toward = 0.5 * (1.0 + torch.cos(torch.deg2rad(near.azimuth[None, :] - goal_az[:, None])))  # (N, Az)
         cap = (distance + 1.0).clamp(max=avoid.open_cap)[:, None]  # (N, 1)
-        best = (torch.minimum(wide, cap) + cfg.goal_preference * toward).argmax(dim=1)  # (N,)
-        error = azimuth[best]  # (N,) degrees
+        best = (torch.minimum(near.wide, cap) + cfg.goal_preference * toward).argmax(dim=1)  # (N,)
+        error = near.azimuth[best]  # (N,) degrees
         yaw = (error / avoid.turn_angle).clamp(-1.0, 1.0)  # (N,)
-        governor = ((wide[:, 0] - avoid.stop_distance) / avoid.brake_distance).clamp(0.0, 1.0)  # (N,)
+        governor = ((near.wide[:, 0] - avoid.stop_distance) / avoid.brake_distance).clamp(0.0, 1.0)  # (N,)
         horizontal = distance * torch.cos(torch.deg2rad(goal_el))  # (N,) meters
         approach = (horizontal / cfg.approach_distance).clamp(0.1, 1.0)  # (N,)
         forward = governor * torch.cos(torch.deg2rad(error)).clamp(min=0.0) * approach  # (N,)
-
-        def side(lo: float, hi: float) -> torch.Tensor:
-            mask = (azimuth >= lo) & (azimuth <= hi)  # (Az,) bool
-            return wide[:, mask].amin(dim=1).clamp(max=avoid.side_distance)  # (N,)
-
-        lateral = (side(60.0, 120.0) - side(-120.0, -60.0)) / avoid.side_distance  # (N,) + pushes left
-
-        def cone(mask: torch.Tensor) -> torch.Tensor:
-            if not bool(mask.any()):
-                return torch.full((n,), avoid.side_distance, device=dev)
-            return depth[:, :, mask].amin(dim=(1, 2)).clamp(max=avoid.side_distance)  # (N,)
-
-        push = (cone(elevation >= 40.0) - cone(elevation <= -40.0)) / avoid.side_distance  # (N,) + climbs
         climb = distance * torch.sin(torch.deg2rad(goal_el)) / cfg.climb_distance  # (N,)
-        vertical = torch.where(push.abs() > 0.5, push, climb)  # (N,) the avoider's push wins near surfaces
+        vertical = torch.where(
+            near.vertical.abs() > 0.5, near.vertical, climb
+        )  # (N,) the push wins near surfaces
         return torch.stack(
-            [forward, vertical.clamp(-1.0, 1.0), lateral.clamp(-1.0, 1.0), yaw], dim=1
+            [forward, vertical.clamp(-1.0, 1.0), near.lateral.clamp(-1.0, 1.0), yaw], dim=1
         )  # (N, 4)
 
 
