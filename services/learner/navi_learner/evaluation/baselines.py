@@ -10,6 +10,7 @@ are deterministic for a given seed. docs/TRAINING.md describes the reactive algo
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -192,7 +193,7 @@ class GoalSeekerConfig:
     """Vertical action is the goal's height difference over this (m), clamped to [-1, 1]."""
 
 
-class GoalSeekerPolicy:
+class GoalSeekerPolicy(ABC):
     """A point-goal controller for a goal direction and distance per actor (`goal(obs)`): the free
     distance per azimuth as the reactive avoider reads it, the heading with the largest
     min(free, distance + 1 m) + goal_preference * (1 + cos(angle to the goal)) / 2, yaw toward it; forward
@@ -207,9 +208,9 @@ class GoalSeekerPolicy:
     def reset(self, n: int, device: torch.device) -> None:
         return None
 
+    @abstractmethod
     def goal(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(azimuth (N,) degrees in the body frame, left positive; elevation (N,) degrees; distance (N,) m)."""
-        raise NotImplementedError
 
     def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
         cfg, avoid = self.cfg, self.cfg.avoid
