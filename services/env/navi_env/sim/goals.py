@@ -185,9 +185,10 @@ def paint_goal(
     obs: torch.Tensor, offset: torch.Tensor, yaw: torch.Tensor, config: EnvConfig, edges: torch.Tensor
 ) -> None:
     """Write the goal mark into channel 1 of obs (N, 3, Az, El) in place, for goals at world offsets
-    (N, 3) (goal minus drone position) seen from headings yaw (N,) (`edges`: GoalBank.edges): the bins within the mark window
-    around the bin of the goal's direction in the body frame (azimuth wraps round; elevation stops at
-    the pattern's edges, a goal outside the pattern is marked at the nearest edge row)."""
+    (N, 3) (goal minus drone position) seen from headings yaw (N,); `edges` is GoalBank.edges. The mark
+    covers the bins within the mark window around the bin of the goal's direction in the body frame
+    (azimuth wraps round; elevation stops at the pattern's edges, a goal outside the pattern is marked
+    at the nearest edge row)."""
     n, _, az, el = obs.shape
     da, de = mark_window(config)
     c, s = torch.cos(yaw), torch.sin(yaw)  # (N,)

@@ -174,11 +174,6 @@ def reactive_for_env(env: object) -> ReactivePolicy:
     return ReactivePolicy()
 
 
-MARK_EDGES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0)
-"""Lower edges (m) of the 16 distance bands of the point-goal mark (navi_env.sim.goals.MARK_EDGES with 0
-in front): what the greedy baseline takes a band to mean, erring short so it slows down in time."""
-
-
 @dataclass(frozen=True)
 class GoalSeekerConfig:
     """The point-goal baselines' controller: the reactive avoider's gap choice, pulled toward the goal."""
@@ -241,6 +236,8 @@ class GreedyGoalPolicy(GoalSeekerPolicy):
     name = "greedy"
 
     def goal(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        from navi_env.sim.goals import MARK_BANDS, MARK_EDGES
+
         avoid = self.cfg.avoid
         mark = obs[:, 1] < 0.0  # (N, Az, El) bool
         _, az, el = mark.shape
@@ -254,8 +251,10 @@ class GreedyGoalPolicy(GoalSeekerPolicy):
             (avoid.elevation_max - avoid.elevation_min) / el
         )  # (El,) degrees
         goal_el = weight.sum(dim=1) @ elevation / count  # (N,)
-        band = torch.round(-obs[:, 1].float().amin(dim=(1, 2)) * len(MARK_EDGES)).long() - 1  # (N,)
-        distance = torch.tensor(MARK_EDGES, device=dev)[band.clamp(0, len(MARK_EDGES) - 1)]  # (N,)
+        band = torch.round(-obs[:, 1].float().amin(dim=(1, 2)) * MARK_BANDS).long() - 1  # (N,)
+        # each band read as its lower edge (0 for the first): short, so the drone slows down in time
+        lower = torch.tensor((0.0, *MARK_EDGES), device=dev)  # (B,)
+        distance = lower[band.clamp(0, MARK_BANDS - 1)]  # (N,)
         return goal_az, goal_el, distance
 
 
