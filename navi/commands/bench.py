@@ -35,6 +35,7 @@ from navi.commands.compiler import (
     max_source_bytes,
 )
 from navi.commands.learner import (
+    EngineOpt,
     MaxMinibatchOpt,
     ObsStorageOpt,
     ObstaclesOpt,
@@ -449,6 +450,7 @@ def bench_learn_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False,
     record: RecordOpt = None,
     task: TaskOpt = "explore",
+    engine: EngineOpt = None,
 ) -> None:
     """Train from scratch on a train split, evaluate on unseen scenes during training; time to competence
     (explore: half the reactive baseline's collisions, 1.5x its coverage; pointgoal: success >= 0.9, SPL
@@ -459,6 +461,7 @@ def bench_learn_cmd(
     import torch
 
     from navi_env.sim.config import TASKS
+    from navi_learner.config import engine_overrides
     from navi_learner.envs.factory import parse_reward_overrides
     from navi_learner.evaluation.bench_learn import LearnConfig, bench_learn
     from navi_learner.evaluation.competence import EvalProtocol
@@ -466,6 +469,7 @@ def bench_learn_cmd(
 
     try:
         overrides = parse_reward_overrides(reward or [])
+        engine_fields = engine_overrides(engine or [])
     except ValueError as err:
         raise fail(str(err)) from err
 
@@ -494,6 +498,7 @@ def bench_learn_cmd(
         gpus=gpus,
         protocol=protocol,
         reward=tuple(overrides.items()),
+        engine=tuple(engine_fields.items()),
         obstacles=obstacles,
         squad=squad,
         procedural_share=procedural_share,
@@ -546,6 +551,7 @@ def bench_train_cmd(
     result_file: Annotated[
         Path | None, typer.Option("--result-file", hidden=True, help="Write the JSON here instead.")
     ] = None,
+    engine: EngineOpt = None,
 ) -> None:
     """Env only / env + inference / env + training SPS and ms per stage."""
     from dataclasses import replace
@@ -570,7 +576,7 @@ def bench_train_cmd(
         try:
             cfg = train_config(
                 actors, temporal_core, rollout_length, 1, 5e-4, 0, 10**12, dev, 0, obs_storage,
-                max_minibatch, compile_encoder,
+                max_minibatch, compile_encoder, engine,
             )  # fmt: skip
             n = actors or default_actors(torch.device(dev))
             environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)

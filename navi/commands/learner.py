@@ -49,6 +49,14 @@ ObsStorageOpt = Annotated[
 MaxMinibatchOpt = Annotated[
     int, typer.Option("--max-minibatch", min=1, help="Most samples per PPO minibatch (GPU memory).")
 ]
+EngineOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--engine",
+        help="KEY=VALUE: replace an EngineConfig field of a fresh engine (repeatable), e.g. --engine "
+        "patch_el=16 --engine encoder_heads=2.",
+    ),
+]
 
 
 NprocOpt = Annotated[
@@ -135,14 +143,26 @@ def train_config(
     obs_storage: str = "auto",
     max_minibatch: int = 8_192,
     compile_encoder: bool = True,
+    engine_items: list[str] | None = None,
 ) -> TrainConfig:
-    """TrainConfig from CLI options (0 keeps a default)."""
-    from navi_learner.config import OBS_STORAGE, TEMPORAL_CORES, EngineConfig, PPOConfig, TrainConfig
+    """TrainConfig from CLI options (0 keeps a default; `engine_items` are --engine KEY=VALUE)."""
+    from navi_learner.config import (
+        OBS_STORAGE,
+        TEMPORAL_CORES,
+        EngineConfig,
+        PPOConfig,
+        TrainConfig,
+        engine_overrides,
+    )
 
     name = check_choice(core, TEMPORAL_CORES, "--temporal-core")
     check_choice(obs_storage, OBS_STORAGE, "--obs-storage")
+    try:
+        overrides = engine_overrides(engine_items or [])
+    except ValueError as err:
+        raise fail(str(err)) from err
     engine = EngineConfig(
-        temporal_core="gru" if name == "gru" else "mambapy" if name == "mambapy" else "mamba2"
+        temporal_core="gru" if name == "gru" else "mambapy" if name == "mambapy" else "mamba2", **overrides
     )
     return TrainConfig(
         n_actors=actors,
@@ -287,6 +307,7 @@ def train(
     obs_storage: ObsStorageOpt = "auto",
     max_minibatch: MaxMinibatchOpt = 8_192,
     task: TaskOpt = "explore",
+    engine: EngineOpt = None,
 ) -> None:
     """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first. Under torchrun
     (or with --nproc N) every rank trains its own actors on its own device with synchronous
@@ -322,8 +343,11 @@ def train(
             obs_storage,
             max_minibatch,
             compile_encoder,
+            engine,
         )
         resume, cfg = resume_choice(checkpoint, fresh, replace(cfg, time_limit_s=time_limit, task=task))
+        if resume is not None and engine:
+            typer.echo(f"note: --engine is ignored: the engine comes from {resume}", err=True)
         n = cfg.n_actors or default_actors(torch.device(dev))
         environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles, squad, task)
         summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")

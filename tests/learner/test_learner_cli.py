@@ -12,6 +12,7 @@ import torch
 from typer.testing import CliRunner
 
 from navi.cli import build_app
+from navi_learner.serving.checkpoint import read_meta
 
 runner = CliRunner()
 
@@ -92,6 +93,21 @@ def test_train_promote_list_evaluate_compare(tmp_path: Path) -> None:
     assert code == 0 and json.loads(out)["tags"] == ["rl", "gru"]
 
 
+def test_engine_option_shapes_a_fresh_engine_and_is_ignored_on_resume() -> None:
+    args = ("train", "--env", "toy", "--actors", "4", "--rollout-length", "32", "--device", "cpu")
+    code, out, err = invoke(
+        *args, "--total-steps", "128", "--engine", "head_hidden=16", "--engine", "rnd_dim=8"
+    )
+    assert code == 0, err
+    engine = read_meta(Path(json.loads(out.strip().splitlines()[-1])["checkpoint"])).config["engine"]
+    assert engine["head_hidden"] == 16 and engine["rnd_dim"] == 8
+    code, out, err = invoke(*args, "--total-steps", "256", "--engine", "head_hidden=64")
+    assert code == 0, err
+    assert "--engine is ignored" in err
+    engine = read_meta(Path(json.loads(out.strip().splitlines()[-1])["checkpoint"])).config["engine"]
+    assert engine["head_hidden"] == 16
+
+
 def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     code, _, err = invoke("evaluate", "--env", "toy")
     assert code == 2
@@ -111,6 +127,14 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     assert code == 2 and "unknown reward weight" in err and "exploration_weight" in err
     code, _, err = invoke("bench", "learn", "--reward", "exploration_weight", "--device", "cpu")
     assert code == 2 and "KEY=NUMBER" in err
+    code, _, err = invoke("bench", "learn", "--engine", "no_such_field=1", "--device", "cpu")
+    assert code == 2 and "unknown engine field" in err and "patch_el" in err
+    code, _, err = invoke("train", "--env", "toy", "--engine", "patch_el=wide", "--device", "cpu")
+    assert code == 2 and "patch_el expects int" in err
+    code, _, err = invoke(
+        "bench", "train", "--env", "toy", "--engine", "temporal_core=gru", "--device", "cpu"
+    )
+    assert code == 2 and "unknown engine field 'temporal_core'" in err
     (tmp_path / "junk.pt").write_bytes(b"junk")
     code, _, err = invoke("export", "junk.pt", "--onnx", "out.onnx")
     assert code == 2 and err.startswith("error:")

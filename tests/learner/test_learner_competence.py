@@ -245,7 +245,8 @@ def test_runs_spread_over_gpus_round_robin() -> None:
 
 
 def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
-    """`--first-seed 2 --seeds 1` trains seed 2 only (one study spread over several jobs)."""
+    """`--first-seed 2 --seeds 1` trains seed 2 only (one study spread over several jobs); `--engine`
+    shapes every run's engine."""
     from typer.testing import CliRunner
 
     from navi.cli import build_app
@@ -257,11 +258,12 @@ def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
     args = "bench learn --seeds 1 --first-seed 2 --temporal-core gru --budget-s 1 --eval-every-s 1"
     args += " --actors 4 --rollout-length 8 --eval-actors 4 --eval-steps 16 --eval-episode-steps 8"
     args += f" --resolution 64 --no-compile --device cpu --json --corpus-root {root} --out {out}"
-    args += f" --openarena {tmp_path / 'none.pk3'}"
+    args += f" --openarena {tmp_path / 'none.pk3'} --engine head_hidden=24"
     result = CliRunner().invoke(build_app(), args.split())
     assert result.exit_code == 0, result.output
     saved = json.loads((out / "result.json").read_text())
     assert saved["config"]["seeds"] == [2]
+    assert saved["runs"][0]["train_config"]["engine"]["head_hidden"] == 24
     assert [r["seed"] for r in saved["runs"]] == [2]
     assert saved["runs"][0]["train_config"]["seed"] == 2
 

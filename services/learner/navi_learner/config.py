@@ -6,7 +6,8 @@ Every field is documented; the CLI maps its options onto these dataclasses, and 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Literal
 
 import torch
@@ -83,6 +84,26 @@ class EngineConfig:
     def patch(self) -> tuple[int, int]:
         """(azimuth, elevation) patch sides in rays."""
         return self.patch_size, self.patch_el or self.patch_size
+
+
+def engine_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """KEY=VALUE strings (a CLI's --engine) as EngineConfig fields of their declared type, e.g.
+    ["patch_el=16", "encoder_heads=2"]; ValueError names an unknown field or a value of the wrong type.
+    The temporal core has an option of its own (--temporal-core)."""
+    types = {f.name: f.type for f in fields(EngineConfig) if f.name != "temporal_core"}
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = (part.strip() for part in item.partition("="))
+        if not sep:
+            raise ValueError(f"--engine expects KEY=VALUE, got {item!r}")
+        if key not in types:
+            raise ValueError(f"unknown engine field {key!r}; known: {', '.join(sorted(types))}")
+        cast = int if types[key] in ("int", int) else float
+        try:
+            out[key] = cast(value)
+        except ValueError:
+            raise ValueError(f"--engine {key} expects {cast.__name__}, got {value!r}") from None
+    return out
 
 
 @dataclass

@@ -85,6 +85,8 @@ class LearnConfig:
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
     reward: tuple[tuple[str, float], ...] = ()
     """RewardConfig fields replaced in every env of the job (training, evaluation, baselines)."""
+    engine: tuple[tuple[str, Any], ...] = ()
+    """EngineConfig fields replaced in every run's fresh engine (navi_learner.config.engine_overrides)."""
     procedural_share: float = 0.0
     """Share of the train corpus's scenes that are procedural (0: as built, 16 of 56); see prepare_splits."""
     obstacles: int = 0
@@ -189,7 +191,8 @@ def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -
     """The TrainConfig of one run of the benchmark (the default engine with `core`)."""
     cuda = device.type == "cuda"
     engine = EngineConfig(
-        temporal_core="gru" if core == "gru" else "mambapy" if core == "mambapy" else "mamba2"
+        temporal_core="gru" if core == "gru" else "mambapy" if core == "mambapy" else "mamba2",
+        **dict(cfg.engine),
     )
     return TrainConfig(
         n_actors=cfg.actors or (2048 if cuda else 8),
