@@ -200,9 +200,10 @@ def bc_command(
         raise fail(str(exc)) from exc
     engine = EngineConfig(temporal_core=temporal_core)  # type: ignore[arg-type]
     _, az, el = loaded[0].obs_shape
-    pa, pe = engine.patch
-    if az % pa or el % pe:
-        raise fail(f"observations {az}x{el} are not divisible by the {pa}x{pe} patch")
+    try:
+        engine.patch_for(az, el)
+    except ValueError as err:
+        raise fail(str(err)) from err
     config = BCConfig(epochs=epochs, bptt=bptt, streams=streams, lr=lr, seed=seed, device=device)
 
     def progress(epoch: int, loss: float) -> None:

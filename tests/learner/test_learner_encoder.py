@@ -13,8 +13,8 @@ from navi_learner.engine.encoder import RayViTEncoder, patchify, spherical_posit
 
 def test_canonical_shapes() -> None:
     enc = RayViTEncoder((3, 256, 48), EngineConfig())
-    assert enc.patch == (16, 8) and enc.n_tokens == 96  # 16 azimuth × 6 elevation patches
-    assert enc.embed.in_features == 4 * 16 * 8  # the three channels and near_field
+    assert enc.patch == (16, 16) and enc.n_tokens == 48  # 16 azimuth × 3 elevation patches
+    assert enc.embed.in_features == 4 * 16 * 16  # the three channels and near_field
     out = enc(torch.rand(2, 3, 256, 48))
     assert out.shape == (2, 128) and out.dtype == torch.float32
 
@@ -79,4 +79,13 @@ def test_patch_divisibility_is_checked() -> None:
     with pytest.raises(ValueError, match="divisible"):
         RayViTEncoder((3, 20, 8), EngineConfig())
     with pytest.raises(ValueError, match="divisible"):
-        RayViTEncoder((3, 256, 44), EngineConfig())  # 44 elevation bins: not a multiple of 8
+        RayViTEncoder((3, 256, 44), EngineConfig())  # 44 elevation bins: not a multiple of 16
+
+
+def test_a_patch_longer_than_the_view_is_capped_at_it() -> None:
+    """The toy env's 16 × 8 view under the default 16 × 16 patch is one 16 × 8 patch."""
+    enc = RayViTEncoder((3, 16, 8), EngineConfig())
+    assert enc.patch == (16, 8) and enc.n_tokens == 1
+    assert EngineConfig(patch_size=32, patch_el=4).patch_for(16, 8) == (16, 4)
+    with pytest.raises(ValueError, match="divisible"):
+        EngineConfig(patch_size=16, patch_el=16).patch_for(24, 8)  # 24 rays: capped at 16, not a divisor

@@ -23,8 +23,8 @@ class EngineConfig:
     embed_dim: int = 128
     """D: width of the encoder tokens and of the embedding handed to the temporal core."""
     patch_size: int = 16
-    """Patch side along azimuth in rays; Az must be divisible by it (16 × 8 → 16·6 = 96 tokens at 256×48)."""
-    patch_el: int = 8
+    """Patch side along azimuth in rays; Az must be divisible by it (16 × 16 → 16·3 = 48 tokens at 256×48)."""
+    patch_el: int = 16
     """Patch side along elevation in rays (0: patch_size, a square patch); El must be divisible by it."""
     encoder_layers: int = 2
     """Number of pre-norm transformer blocks in the RayViT encoder."""
@@ -84,6 +84,14 @@ class EngineConfig:
     def patch(self) -> tuple[int, int]:
         """(azimuth, elevation) patch sides in rays."""
         return self.patch_size, self.patch_el or self.patch_size
+
+    def patch_for(self, az: int, el: int) -> tuple[int, int]:
+        """The patch sides on an Az × El view: a side longer than the view is capped at it (a view
+        narrower than a patch is one patch along that axis). ValueError where a side does not divide."""
+        pa, pe = min(self.patch[0], az), min(self.patch[1], el)
+        if az % pa or el % pe:
+            raise ValueError(f"observation {az}x{el} is not divisible by the {pa}x{pe} patch")
+        return pa, pe
 
 
 def engine_overrides(items: Sequence[str]) -> dict[str, Any]:

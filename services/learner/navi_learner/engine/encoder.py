@@ -3,7 +3,7 @@
 Channel 0 (depth / horizon, linear) resolves the near field poorly (a wall at 0.5 m and one at 1 m
 differ by 0.005), so the encoder adds a log-depth channel, `near_field`, that spreads it out (1 at
 contact, 0.67 at 1% of the horizon, 0 at the horizon). Non-overlapping patches of the four channels
-(16 azimuth × 8 elevation rays, 22.5° × 30°: 16×6 = 96 tokens at 256×48) are embedded linearly, a fixed
+(16 azimuth × 16 elevation rays, 22.5° × 60°: 16×3 = 48 tokens at 256×48) are embedded linearly, a fixed
 spherical sin/cos positional encoding (computed once, a buffer, never trained) is added, a few lean
 pre-norm transformer blocks with fused attention (F.scaled_dot_product_attention) mix the tokens,
 and the mean token is projected to the embedding.
@@ -94,9 +94,7 @@ class RayViTEncoder(nn.Module):
     def __init__(self, obs_shape: tuple[int, int, int], cfg: EngineConfig) -> None:
         super().__init__()
         c, az, el = obs_shape
-        pa, pe = cfg.patch
-        if az % pa or el % pe:
-            raise ValueError(f"observation {az}x{el} is not divisible by the {pa}x{pe} patch")
+        pa, pe = cfg.patch_for(az, el)
         self.patch = (pa, pe)
         self.embed = nn.Linear((c + 1) * pa * pe, cfg.embed_dim)  # the channels and near_field
         self.register_buffer(
