@@ -8,9 +8,10 @@ import dataclasses
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -141,6 +142,20 @@ def bench_trace_cmd(
         Path | None,
         typer.Option(help="Source mesh for --vs-warp: .npz with vertices (V,3), triangles (F,3)."),
     ] = None,
+    vs_nanovdb: Annotated[
+        bool,
+        typer.Option(
+            "--vs-nanovdb",
+            help="Also trace the same rays through a NanoVDB narrow band of the scene's own samples "
+            "(Warp Volume, float32, trilinear, the same step and hit rules); with --corpus, on every map.",
+        ),
+    ] = False,
+    nanovdb_bands: Annotated[
+        str,
+        typer.Option(
+            "--nanovdb-bands", help="Narrow-band half widths in voxels for --vs-nanovdb, comma-separated."
+        ),
+    ] = "3,8,24",
     obstacles: Annotated[
         int,
         typer.Option(
@@ -166,10 +181,19 @@ def bench_trace_cmd(
         raise fail("give one of --gmdag FILE or --corpus DIR")
     if vs_warp and mesh is None:
         raise fail("--vs-warp needs --mesh FILE.npz (vertices, triangles) of the scene's source mesh")
+    try:
+        bands = tuple(float(b) for b in nanovdb_bands.split(",") if b.strip())
+    except ValueError:
+        raise fail(f"--nanovdb-bands expects numbers separated by commas, got {nanovdb_bands!r}") from None
+    if vs_nanovdb and (not bands or min(bands) <= 0):
+        raise fail("--nanovdb-bands needs at least one band, every one above 0 voxels")
+    if vs_nanovdb and obstacles:
+        raise fail("--vs-nanovdb traces the static scene: leave out --obstacles")
     cfg = TraceBenchConfig(
         agents=agents, device=device, launches=steps, azimuth_bins=azimuth, elevation_bins=elevation,
         max_steps=max_steps, tiled_order=tiled, obstacles=obstacles, hit_slope=hit_slope,
     )  # fmt: skip
+    nanovdb = nanovdb_anchor(cfg, bands) if vs_nanovdb else None
     if corpus_dir is not None:
         if vs_warp:
             raise fail("--vs-warp needs one scene (--gmdag)")
@@ -177,7 +201,7 @@ def bench_trace_cmd(
         if not paths:
             raise fail(f"{corpus_dir} holds no .gmdag files")
         try:
-            report = bench_trace_maps(paths, cfg, lambda line: typer.echo(line, err=True))
+            report = bench_trace_maps(paths, cfg, lambda line: typer.echo(line, err=True), nanovdb)
         except (OSError, GmdagError, ValueError, RuntimeError) as exc:
             raise fail(str(exc)) from None
         if record is not None:
@@ -201,6 +225,8 @@ def bench_trace_cmd(
             except WarpUnavailable as exc:
                 result["warp"] = {"error": str(exc)}
                 typer.echo(f"--vs-warp skipped: {exc}", err=True)
+        if nanovdb is not None:
+            result |= nanovdb(corpus, measured)
     except (OSError, GmdagError, ValueError, RuntimeError) as exc:
         raise fail(str(exc)) from None
     if record is not None:
@@ -210,6 +236,22 @@ def bench_trace_cmd(
         return
     for key, value in result.items():
         typer.echo(f"{key:>20}: {value}")
+
+
+def nanovdb_anchor(cfg: Any, bands: tuple[float, ...]) -> Callable[[Any, Any], dict[str, object]]:
+    """`--vs-nanovdb`: for a scene and the tracer's result on it, {"nanovdb": one dict per band}, or
+    {"nanovdb": {"error": why}} where warp-lang is missing (said once on stderr)."""
+
+    def measure(corpus: Any, measured: Any) -> dict[str, object]:
+        from navi_env.tracer.bench_nanovdb import NanoVDBUnavailable, bench_nanovdb
+
+        try:
+            return {"nanovdb": bench_nanovdb(corpus, cfg, measured.ms_per_launch, bands)}
+        except NanoVDBUnavailable as exc:
+            typer.echo(f"--vs-nanovdb skipped: {exc}", err=True)
+            return {"nanovdb": {"error": str(exc)}}
+
+    return measure
 
 
 def use_scene_options(gmdag: Path | None, corpus: Path | None, threads: int) -> None:

@@ -218,9 +218,13 @@ def dense_bytes(resolution: int) -> int:
 
 
 def bench_trace_maps(
-    paths: list[Path], cfg: TraceBenchConfig, say: Callable[[str], None]
+    paths: list[Path],
+    cfg: TraceBenchConfig,
+    say: Callable[[str], None],
+    extra: Callable[[SceneCorpus, TraceBenchResult], dict[str, object]] | None = None,
 ) -> dict[str, object]:
     """bench_trace on each scene file (loaded alone, freed before the next); `say` gets a line per map.
+    `extra(corpus, result)` adds keys to a map's row (an anchor measured on the same map in the same job).
     Returns {"maps": [each result plus dense_ratio], "summary": summarise_maps(...)}."""
     if not paths:
         raise ValueError("no .gmdag files to measure")
@@ -229,6 +233,8 @@ def bench_trace_maps(
         corpus = load_scene(path, cfg.device)
         r = bench_trace(corpus, cfg)
         row = asdict(r) | {"dense_ratio": dense_bytes(r.resolution) / r.bytes_per_scene}
+        if extra is not None:
+            row |= extra(corpus, r)
         rows.append(row)
         say(
             f"[{i + 1}/{len(paths)}] {r.scene}: {r.grays_per_s:.2f} G rays/s, {r.mean_steps:.1f} mean / "

@@ -1,0 +1,198 @@
+"""`navi bench trace --vs-nanovdb`: the benchmark's rays sphere-traced through a NanoVDB narrow band.
+
+NanoVDB (OpenVDB's GPU form, Warp's `Volume`) is the standard sparse volume for level sets, so it is
+the peer a user would pick instead of a `.gmdag`. The anchor holds the same distance samples at the
+same lattice as the scene (Navi's samples sit at the corners of its R^3 cells: index (i, j, k) is
+world `origin + voxel * (i, j, k)`, read through `sample_distance`), allocated by 8^3 tiles only
+within `band` voxels of the surface, values clamped to +-band and `band` voxels (meters) outside the
+tiles, float32 (the one value type Warp allocates and writes on the device). A Warp kernel
+(`nanovdb_kernel.march`) traces the same world-space rays with trilinear samples and Navi's step and
+hit rules, but without its far-cube skips: in free space it steps by at most the band. That is what a
+narrow-band level set without hierarchical skipping (HDDA) costs; no package that offers a NanoVDB ray
+marcher with HDDA (such as fVDB) is available here.
+
+Only when `warp` (warp-lang) imports; otherwise `NanoVDBUnavailable` with the reason.
+
+Shapes: B agents, R rays per agent, P = B * R rays, T tiles, V = 512 T voxels.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from navi_env.tracer.bench import TraceBenchConfig, rays_for_warp
+from navi_env.tracer.bench_warp import _tracer_depth
+from navi_env.tracer.nanovdb_kernel import REFINE_ITERATIONS, SECANT_REACH, fill_kernel, march_kernel
+from navi_env.tracer.scene import SceneCorpus
+from navi_env.tracer.trace import DEFAULT_HIT_EPSILON_VOXELS, sample_distance
+
+TILE = 8
+"""Voxels per NanoVDB leaf edge."""
+BANDS = (3.0, 8.0, 24.0)
+"""Narrow-band half widths (voxels) measured by default."""
+TILE_REACH = (TILE - 1) / 2 * math.sqrt(3.0) + 0.5
+"""Voxels from a tile's centre to its farthest voxel (3.5 sqrt 3), plus half a voxel for the samples'
+rounding: a tile whose centre is farther than band + this from the surface holds no band voxel."""
+CHUNK = 1 << 22
+"""Voxels sampled and stored per pass while filling."""
+
+
+class NanoVDBUnavailable(RuntimeError):
+    """Warp cannot run this comparison (warp-lang is not installed)."""
+
+
+def band_tiles(corpus: SceneCorpus, band: float) -> np.ndarray:
+    """(T, 3) int32 index-space min corners of the 8^3 tiles of scene 0 that may hold a sample within
+    `band` voxels of the surface (sampled at each tile's centre, with TILE_REACH of slack)."""
+    info = corpus.infos[0]
+    per_axis = info.resolution // TILE + 1  # tiles covering samples 0..R
+    axis = torch.arange(per_axis, dtype=torch.float64) * TILE  # (A,) tile min corners, voxels
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)  # (A^3, 3)
+    centres = torch.from_numpy(info.cube_min)[None, :] + (grid + (TILE - 1) / 2) * info.voxel_size  # (A^3, 3)
+    keep = torch.zeros(len(grid), dtype=torch.bool)  # (A^3,)
+    for start in range(0, len(grid), CHUNK):
+        pts = centres[start : start + CHUNK].float().to(corpus.device)  # (C, 3) meters
+        ids = torch.zeros(len(pts), dtype=torch.int64, device=corpus.device)  # (C,)
+        d = sample_distance(corpus, ids, pts).cpu() / info.voxel_size  # (C,) voxels
+        keep[start : start + len(pts)] = d.abs() <= band + TILE_REACH
+    return grid[keep].numpy().astype(np.int32)
+
+
+def build_band(corpus: SceneCorpus, band: float, wp: Any, device: str) -> tuple[Any, int, int]:
+    """The volume of scene 0's samples within `band` voxels: (wp.Volume, tiles T, device bytes)."""
+    info = corpus.infos[0]
+    tiles = band_tiles(corpus, band)  # (T, 3)
+    h = info.voxel_size
+    volume = wp.Volume.allocate_by_tiles(
+        wp.array(tiles, dtype=wp.vec3i, device=device),
+        voxel_size=h,
+        bg_value=float(band * h),
+        translation=wp.vec3(*(float(c) for c in info.cube_min)),
+        device=device,
+    )
+    fill = fill_kernel(wp)
+    offsets = np.stack(np.meshgrid(*[np.arange(TILE)] * 3, indexing="ij"), -1).reshape(-1, 3)  # (512, 3)
+    per_chunk = max(1, CHUNK // len(offsets))
+    for start in range(0, len(tiles), per_chunk):
+        voxels = (tiles[start : start + per_chunk, None, :] + offsets[None]).reshape(-1, 3)  # (V', 3) int32
+        pts = torch.from_numpy(info.cube_min + voxels * h).float().to(corpus.device)  # (V', 3) meters
+        ids = torch.zeros(len(pts), dtype=torch.int64, device=corpus.device)  # (V',)
+        values = sample_distance(corpus, ids, pts).clamp(-band * h, band * h).cpu().numpy()  # (V',) meters
+        wp.launch(
+            fill,
+            dim=len(voxels),
+            inputs=[
+                volume.id,
+                wp.array(voxels.astype(np.int32), dtype=wp.vec3i, device=device),
+                wp.array(values.astype(np.float32), dtype=float, device=device),
+            ],
+            device=device,
+        )
+    wp.synchronize_device(device)
+    return volume, len(tiles), int(volume.array().size)
+
+
+def _warp() -> Any:
+    try:
+        import warp as wp
+    except ImportError as exc:
+        raise NanoVDBUnavailable(f"warp-lang is not installed ({exc}); pip install warp-lang") from None
+    wp.config.quiet = True  # keep stdout for the one JSON object
+    wp.init()
+    return wp
+
+
+class Marcher:
+    """The benchmark's rays as Warp arrays in scene 0's index space, and the march over a band."""
+
+    def __init__(self, corpus: SceneCorpus, cfg: TraceBenchConfig) -> None:
+        self.wp = wp = _warp()
+        self.corpus, self.cfg = corpus, cfg
+        dev = corpus.device
+        self.device = f"cuda:{dev.index or 0}" if dev.type == "cuda" else "cpu"
+        self.info = info = corpus.infos[0]
+        origins, dirs = rays_for_warp(corpus, cfg)  # (P, 3), (P, 3) float32 world
+        index_origins = ((origins - info.cube_min[None, :]) / info.voxel_size).astype(np.float32)  # (P, 3)
+        self.rays = len(origins)
+        self.origins = wp.array(index_origins, dtype=wp.vec3, device=self.device)
+        self.dirs = wp.array(dirs, dtype=wp.vec3, device=self.device)
+        self.depth = wp.zeros(self.rays, dtype=float, device=self.device)  # (P,) meters
+        self.steps = wp.zeros(self.rays, dtype=int, device=self.device)  # (P,)
+        self.kernel = march_kernel(wp)
+
+    def launch(self, volume: Any) -> None:
+        """One march of every ray through `volume` into self.depth and self.steps."""
+        info, cfg = self.info, self.cfg
+        args = [
+            volume.id, self.origins, self.dirs, float(info.resolution), float(info.voxel_size), cfg.horizon,
+            DEFAULT_HIT_EPSILON_VOXELS, cfg.hit_slope, cfg.max_steps, REFINE_ITERATIONS, SECANT_REACH,
+            self.depth, self.steps,
+        ]  # fmt: skip
+        self.wp.launch(self.kernel, dim=self.rays, inputs=args, device=self.device)
+
+    def traced(self) -> tuple[np.ndarray, np.ndarray]:
+        """The last march's depth (B, R) meters and steps (B, R)."""
+        b = self.cfg.agents
+        return self.depth.numpy().reshape(b, -1), self.steps.numpy().reshape(b, -1)
+
+
+def nanovdb_depth(corpus: SceneCorpus, cfg: TraceBenchConfig, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (B, R) meters and steps (B, R) of the benchmark's rays through scene 0's band volume."""
+    m = Marcher(corpus, cfg)
+    volume, _, _ = build_band(corpus, band, m.wp, m.device)
+    m.launch(volume)
+    m.wp.synchronize_device(m.device)
+    return m.traced()
+
+
+def bench_nanovdb(
+    corpus: SceneCorpus, cfg: TraceBenchConfig, tracer_ms: float, bands: Sequence[float] = BANDS
+) -> list[dict[str, object]]:
+    """For each band: build the volume, time the march over the benchmark's rays, and compare its
+    depths with the tracer's. One dict per band."""
+    m = Marcher(corpus, cfg)
+    wp = m.wp
+    ours = _tracer_depth(corpus, cfg)  # (B, R)
+    out: list[dict[str, object]] = []
+    for band in bands:
+        t_build = time.perf_counter()
+        volume, tiles, nbytes = build_band(corpus, band, wp, m.device)
+        build_s = time.perf_counter() - t_build
+        for _ in range(cfg.warmup):
+            m.launch(volume)
+        wp.synchronize_device(m.device)
+        t0 = time.perf_counter()
+        for _ in range(cfg.launches):
+            m.launch(volume)
+        wp.synchronize_device(m.device)
+        seconds = (time.perf_counter() - t0) / cfg.launches
+        theirs, steps = m.traced()  # (B, R) each
+        n = steps.astype(np.float64).ravel()  # (P,)
+        both = (theirs < cfg.horizon) & (ours < cfg.horizon)  # (B, R)
+        out.append(
+            {
+                "band_voxels": band,
+                "value_type": "float32",
+                "tiles": tiles,
+                "voxels": tiles * TILE**3,
+                "device_bytes": nbytes,
+                "build_s": build_s,
+                "ms_per_launch": seconds * 1e3,
+                "grays_per_s": m.rays / seconds / 1e9,
+                "speedup_tracer_vs_nanovdb": seconds * 1e3 / tracer_ms,
+                "mean_steps": float(n.mean()),
+                "p99_steps": float(np.quantile(n, 0.99)),
+                "median_abs_depth_diff_m": float(np.median(np.abs(theirs[both] - ours[both])))
+                if both.any()
+                else None,
+                "hit_disagreement": float(((theirs < cfg.horizon) != (ours < cfg.horizon)).mean()),
+            }
+        )
+        del volume
+    return out

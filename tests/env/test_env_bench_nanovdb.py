@@ -1,0 +1,115 @@
+"""The NanoVDB anchor of `navi bench trace --vs-nanovdb`: its narrow band holds the scene's own samples,
+and its march agrees with the reference tracer on a small scene."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from navi_compiler.compile import compile_scene
+from navi_compiler.gmdag import write_gmdag
+from navi_compiler.ingest.procedural import generate_scene
+from navi_env.sim.rays import spherical_directions
+from navi_env.tracer.bench import TraceBenchConfig, place_agents
+from navi_env.tracer.bench_nanovdb import TILE, TILE_REACH, band_tiles
+from navi_env.tracer.scene import SceneCorpus, load_scene
+from navi_env.tracer.trace import sample_distance
+from navi_env.tracer.trace_ref import trace_ref
+
+needs_warp = pytest.mark.skipif(
+    importlib.util.find_spec("warp") is None, reason="warp-lang is not installed (the anchor's only need)"
+)
+CFG = TraceBenchConfig(agents=8, device="cpu", launches=2, warmup=1, azimuth_bins=32, elevation_bins=8)
+
+
+@pytest.fixture(scope="module")
+def rooms(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A procedural rooms scene at 64^3 (walls, doors and floors: hits at every range)."""
+    path = tmp_path_factory.mktemp("nanovdb") / "rooms.gmdag"
+    gmdag, _ = compile_scene(generate_scene("rooms", 0), resolution=64)
+    write_gmdag(gmdag, path)
+    return path
+
+
+def reference_depth(corpus: SceneCorpus, cfg: TraceBenchConfig) -> np.ndarray:
+    """(B, R) depth of the benchmark's agents through the reference tracer."""
+    agents = place_agents(corpus, cfg.agents, cfg.clearance_voxels, cfg.seed)
+    pattern = spherical_directions(cfg.azimuth_bins, cfg.elevation_bins)  # (R, 3)
+    depth = torch.empty(cfg.agents, len(pattern))  # (B, R)
+    trace_ref(corpus, agents.scene_ids, agents.origins, pattern, yaw=agents.yaw, out_depth=depth,
+              max_steps=cfg.max_steps, horizon=cfg.horizon, hit_slope=cfg.hit_slope)  # fmt: skip
+    return depth.numpy()
+
+
+def test_band_tiles_hold_every_sample_near_the_surface(rooms: Path) -> None:
+    """Every lattice sample within the band lies in an allocated tile, and a wider band allocates more."""
+    corpus = load_scene(rooms, "cpu")
+    info = corpus.infos[0]
+    n = info.resolution + 1
+    ijk = torch.stack(torch.meshgrid(*[torch.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)  # (n^3, 3)
+    pts = torch.from_numpy(info.cube_min).float() + ijk.float() * info.voxel_size  # (n^3, 3) meters
+    d = sample_distance(corpus, torch.zeros(len(pts), dtype=torch.int64), pts) / info.voxel_size  # (n^3,)
+    tiles = {tuple(t) for t in band_tiles(corpus, 3.0).tolist()}
+    near = ijk[d.abs() <= 3.0]  # (K, 3) samples in the band
+    assert len(near) > 0
+    assert all(tuple((v // TILE * TILE).tolist()) in tiles for v in near)
+    assert len(band_tiles(corpus, 8.0)) > len(tiles)
+    assert TILE_REACH > (TILE - 1) / 2 * 3**0.5
+
+
+@needs_warp
+def test_nanovdb_march_agrees_with_the_reference_tracer(rooms: Path) -> None:
+    from navi_env.tracer.bench_nanovdb import nanovdb_depth
+
+    corpus = load_scene(rooms, "cpu")
+    voxel = corpus.infos[0].voxel_size
+    ref = reference_depth(corpus, CFG)  # (B, R)
+    for band in (3.0, 8.0):
+        depth, steps = nanovdb_depth(corpus, CFG, band)  # (B, R) each
+        hit, ref_hit = depth < CFG.horizon, ref < CFG.horizon
+        assert (hit == ref_hit).mean() >= 0.995
+        both = hit & ref_hit
+        assert both.mean() > 0.5  # walls in most directions
+        diff = np.abs(depth[both] - ref[both]) / voxel  # voxels
+        assert np.median(diff) < 0.01 and np.quantile(diff, 0.99) < 0.5
+        assert steps.min() >= 1 and steps.max() <= CFG.max_steps
+
+
+@needs_warp
+def test_bench_trace_vs_nanovdb_reports_each_band(rooms: Path) -> None:
+    from typer.testing import CliRunner
+
+    from navi.cli import build_app
+
+    args = f"bench trace --gmdag {rooms} --device cpu --agents 4 --steps 1 --azimuth 32 --elevation 8"
+    result = CliRunner().invoke(
+        build_app(), [*args.split(), "--vs-nanovdb", "--nanovdb-bands", "3,8", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    bands = report["nanovdb"]
+    assert [b["band_voxels"] for b in bands] == [3.0, 8.0]
+    assert bands[0]["tiles"] < bands[1]["tiles"] and bands[0]["device_bytes"] < bands[1]["device_bytes"]
+    for b in bands:
+        assert b["grays_per_s"] > 0 and b["hit_disagreement"] <= 0.005
+        assert b["median_abs_depth_diff_m"] is not None and b["median_abs_depth_diff_m"] < 0.01
+
+
+def test_bench_trace_vs_nanovdb_rejects_bad_options(rooms: Path) -> None:
+    from typer.testing import CliRunner
+
+    from navi.cli import build_app
+
+    base = ["bench", "trace", "--gmdag", str(rooms), "--device", "cpu", "--vs-nanovdb"]
+    for extra, says in (
+        (["--nanovdb-bands", "3,wide"], "--nanovdb-bands expects numbers"),
+        (["--nanovdb-bands", "0"], "every one above 0"),
+        (["--obstacles", "2"], "leave out --obstacles"),
+    ):
+        result = CliRunner().invoke(build_app(), base + extra)
+        assert result.exit_code == 2 and says in result.stderr, result.output
