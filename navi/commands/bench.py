@@ -240,7 +240,7 @@ def bench_trace_cmd(
 
 def nanovdb_anchor(cfg: Any, bands: tuple[float, ...]) -> Callable[[Any, Any], dict[str, object]]:
     """`--vs-nanovdb`: for a scene and the tracer's result on it, {"nanovdb": one dict per band}, or
-    {"nanovdb": {"error": why}} where warp-lang is missing (said once on stderr)."""
+    {"nanovdb": {"error": why}} where warp-lang is missing (also said on stderr)."""
 
     def measure(corpus: Any, measured: Any) -> dict[str, object]:
         from navi_env.tracer.bench_nanovdb import NanoVDBUnavailable, bench_nanovdb
