@@ -26,8 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from navi_env.tracer.bench import TraceBenchConfig, rays_for_warp
-from navi_env.tracer.bench_warp import _tracer_depth
+from navi_env.tracer.bench import TraceBenchConfig, rays_for_warp, tracer_depth
 from navi_env.tracer.nanovdb_kernel import REFINE_ITERATIONS, SECANT_REACH, fill_kernel, march_kernel
 from navi_env.tracer.scene import SceneCorpus
 from navi_env.tracer.trace import DEFAULT_HIT_EPSILON_VOXELS, sample_distance
@@ -158,7 +157,7 @@ def bench_nanovdb(
     depths with the tracer's. One dict per band."""
     m = Marcher(corpus, cfg)
     wp = m.wp
-    ours = _tracer_depth(corpus, cfg)  # (B, R)
+    ours = tracer_depth(corpus, cfg)  # (B, R)
     out: list[dict[str, object]] = []
     for band in bands:
         t_build = time.perf_counter()

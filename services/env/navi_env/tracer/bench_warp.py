@@ -21,11 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from navi_env.sim.rays import spherical_directions
 from navi_env.tracer import primitives as obstacles
-from navi_env.tracer.bench import TraceBenchConfig, place_agents, rays_for_warp
+from navi_env.tracer.bench import TraceBenchConfig, place_agents, rays_for_warp, tracer_depth
 from navi_env.tracer.scene import SceneCorpus
-from navi_env.tracer.trace import trace
 from navi_env.tracer.warp_kernel import ray_kernel, shift_kernel
 
 
@@ -159,7 +157,7 @@ def bench_warp(
             "refit_every_launch": True,
             "hit_fraction": float((warp_depth < cfg.horizon).mean()),
         }
-    ours = _tracer_depth(corpus, cfg)  # (B, R)
+    ours = tracer_depth(corpus, cfg)  # (B, R)
     both = (warp_depth < cfg.horizon) & (ours < cfg.horizon)
     return {
         "ms_per_launch": seconds * 1e3,
@@ -171,14 +169,3 @@ def bench_warp(
         "hit_disagreement": float(((warp_depth < cfg.horizon) != (ours < cfg.horizon)).mean()),
         "triangles": len(triangles),
     }
-
-
-def _tracer_depth(corpus: SceneCorpus, cfg: TraceBenchConfig) -> np.ndarray:
-    """(B, R) tracer depth for the benchmark's agents, on the host, traced as `bench_trace` traces them
-    (its hit threshold slope; the ray order changes no result)."""
-    agents = place_agents(corpus, cfg.agents, cfg.clearance_voxels, cfg.seed)
-    pattern = spherical_directions(cfg.azimuth_bins, cfg.elevation_bins, corpus.device)  # (R, 3)
-    depth = torch.empty(cfg.agents, len(pattern), device=corpus.device)  # (B, R) float32
-    trace(corpus, agents.scene_ids, agents.origins, pattern, yaw=agents.yaw, out_depth=depth,
-          max_steps=cfg.max_steps, horizon=cfg.horizon, hit_slope=cfg.hit_slope)  # fmt: skip
-    return depth.cpu().numpy()
