@@ -41,6 +41,7 @@ from navi.commands.learner import (
     ObsStorageOpt,
     ObstaclesOpt,
     SquadOpt,
+    TargetKlOpt,
     build_env,
     train_config,
 )
@@ -419,7 +420,10 @@ def bench_learn_cmd(
         int, typer.Option("--rollout-length", help="Steps per rollout (0: 64 on CUDA, 32 on CPU).")
     ] = 0,
     ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", min=1, help="PPO epochs per rollout.")] = 2,
-    lr: Annotated[float, typer.Option("--lr", help="Learning rate.")] = 3e-4,
+    lr: Annotated[
+        float, typer.Option("--lr", help="Learning rate (the starting one with --target-kl).")
+    ] = 3e-4,
+    target_kl: TargetKlOpt = 0.0,
     max_minibatch: Annotated[
         int,
         typer.Option(
@@ -534,6 +538,7 @@ def bench_learn_cmd(
         rollout_length=rollout_length,
         ppo_epochs=ppo_epochs,
         lr=lr,
+        target_kl=target_kl,
         max_minibatch=max_minibatch,
         compile=compile_encoder,
         parallel=parallel,

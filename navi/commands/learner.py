@@ -49,6 +49,15 @@ ObsStorageOpt = Annotated[
 MaxMinibatchOpt = Annotated[
     int, typer.Option("--max-minibatch", min=1, help="Most samples per PPO minibatch (GPU memory).")
 ]
+TargetKlOpt = Annotated[
+    float,
+    typer.Option(
+        "--target-kl",
+        min=0.0,
+        help="> 0: adaptive learning rate, starting at --lr: ÷1.5 when a minibatch's approximate KL from the "
+        "rollout policy exceeds twice this, ×1.5 below half of it, within 1e-5..1e-3 (0: constant).",
+    ),
+]
 EngineOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -144,6 +153,7 @@ def train_config(
     max_minibatch: int = 8_192,
     compile_encoder: bool = True,
     engine_items: list[str] | None = None,
+    target_kl: float = 0.0,
 ) -> TrainConfig:
     """TrainConfig from CLI options (0 keeps a default; `engine_items` are --engine KEY=VALUE)."""
     from navi_learner.config import (
@@ -174,7 +184,7 @@ def train_config(
         compile=compile_encoder,
         obs_dtype=obs_storage,
         engine=engine,
-        ppo=PPOConfig(lr=lr, ppo_epochs=epochs, max_minibatch=max_minibatch),
+        ppo=PPOConfig(lr=lr, target_kl=target_kl, ppo_epochs=epochs, max_minibatch=max_minibatch),
     )
 
 
@@ -285,7 +295,10 @@ def train(
     temporal_core: CoreOpt = "mamba2",
     rollout_length: RolloutOpt = 0,
     ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", help="PPO epochs per rollout.")] = 1,
-    lr: Annotated[float, typer.Option("--lr", help="Learning rate.")] = 5e-4,
+    lr: Annotated[
+        float, typer.Option("--lr", help="Learning rate (the starting one with --target-kl).")
+    ] = 5e-4,
+    target_kl: TargetKlOpt = 0.0,
     total_steps: TotalStepsOpt = 1_000_000,
     time_limit: Annotated[
         float, typer.Option("--time-limit-s", min=0.0, help="Training-seconds budget (0: none).")
@@ -344,6 +357,7 @@ def train(
             max_minibatch,
             compile_encoder,
             engine,
+            target_kl,
         )
         resume, cfg = resume_choice(checkpoint, fresh, replace(cfg, time_limit_s=time_limit, task=task))
         if resume is not None and engine:

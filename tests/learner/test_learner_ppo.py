@@ -12,7 +12,7 @@ from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.ppo.loss import ppo_loss
 from navi_learner.ppo.rollout import RolloutStorage
-from navi_learner.ppo.train import update
+from navi_learner.ppo.train import adapt_lr, update
 
 
 def test_ppo_loss_hand_computed() -> None:
@@ -175,3 +175,46 @@ def test_fused_update_matches_the_host_checked_one(poison: bool) -> None:
     assert skip_a == skip_b and (skip_a > 0) == poison
     for k in a:
         torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=k)
+
+
+@pytest.mark.parametrize(
+    ("kl", "expected"),
+    [(0.05, 1e-4 / 1.5), (0.001, 1.5e-4), (0.01, 1e-4), (float("nan"), 1e-4), (1.0, 1e-4 / 1.5)],
+)
+def test_adaptive_rate_follows_the_kl_rule(kl: float, expected: float) -> None:
+    """Target 0.01: above 0.02 the rate falls by 1.5, below 0.005 it rises by 1.5, between (or for a
+    non-finite KL) it stays."""
+    p = torch.nn.Parameter(torch.zeros(2))
+    opt = torch.optim.Adam([p], lr=torch.tensor(1e-4))
+    adapt_lr(opt, torch.tensor(kl), 0.01, 1e-5, 1e-3)
+    assert float(opt.param_groups[0]["lr"]) == pytest.approx(expected, rel=1e-6)
+
+
+def test_adaptive_rate_stays_within_its_bounds() -> None:
+    p = torch.nn.Parameter(torch.zeros(2))
+    opt = torch.optim.Adam([p], lr=torch.tensor(9e-4))
+    adapt_lr(opt, torch.tensor(0.0), 0.01, 1e-5, 1e-3)
+    assert float(opt.param_groups[0]["lr"]) == pytest.approx(1e-3)
+    opt.param_groups[0]["lr"].fill_(1.2e-5)
+    adapt_lr(opt, torch.tensor(1.0), 0.01, 1e-5, 1e-3)
+    assert float(opt.param_groups[0]["lr"]) == pytest.approx(1e-5)
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_update_adapts_the_rate_once_per_minibatch(fused: bool) -> None:
+    """A KL target far above any step's KL raises the rate by 1.5 before each of the minibatches' steps,
+    the fused and host-checked optimizers alike, and the metrics report the mean rate."""
+    torch.manual_seed(0)
+    policy, buf, cfg = tiny_setup()
+    cfg.ppo.target_kl, cfg.ppo.lr_max = (
+        1e3,
+        1.0,
+    )  # the buffer's log-probs are not the policy's: KL of a few nats
+    opt = adam(policy, fused)
+    opt.param_groups[0]["lr"] = torch.tensor(1e-3)
+    metrics, skipped = update(policy, opt, buf, cfg, torch.Generator().manual_seed(0))
+    steps = cfg.ppo.num_minibatches * cfg.ppo.ppo_epochs
+    assert skipped == 0
+    assert float(opt.param_groups[0]["lr"]) == pytest.approx(1e-3 * 1.5**steps, rel=1e-5)
+    mean_rate = sum(1e-3 * 1.5**k for k in range(1, steps + 1)) / steps
+    assert float(metrics["lr"]) == pytest.approx(mean_rate, rel=1e-5)

@@ -138,3 +138,27 @@ def test_ctrl_c_saves_a_checkpoint_first(tmp_path: Path) -> None:
     ckpt = load_checkpoint(result.final_checkpoint)
     assert ckpt.meta.step_id == 2 * 32 * 32  # the two completed updates
     assert ckpt.optimizer is not None and ckpt.optimizer["state"]
+
+
+def test_adaptive_rate_is_a_device_tensor_that_moves_and_resumes(tmp_path: Path) -> None:
+    """With a KL target the run's rate lives in the optimizer as a tensor, moves away from --lr, and a
+    resumed run starts from the checkpoint's rate."""
+    per_update = 32 * 32
+    cfg = config(2 * per_update)
+    cfg.ppo.target_kl, cfg.ppo.lr = 0.01, 5e-4
+    first = train(ToyEnv(32, seed=1), cfg, run_dir=tmp_path / "r1", progress=False)
+    c1 = load_checkpoint(first.final_checkpoint)
+    assert c1.optimizer is not None
+    rate = c1.optimizer["param_groups"][0]["lr"]
+    assert isinstance(rate, torch.Tensor) and float(rate) != pytest.approx(cfg.ppo.lr)
+    assert cfg.ppo.lr_min * 0.999 <= float(rate) <= cfg.ppo.lr_max * 1.001
+    rows = [json.loads(x) for x in (tmp_path / "r1" / "metrics" / "metrics.jsonl").read_text().splitlines()]
+    assert all("lr" in r for r in rows)
+    cfg2 = config(3 * per_update)
+    cfg2.ppo.target_kl = 0.01
+    cfg2.ppo.ppo_epochs = 0  # no step: the resumed rate is what the checkpoint held
+    second = train(ToyEnv(32, seed=2), cfg2, run_dir=tmp_path / "r2", resume_from=first.final_checkpoint,
+                   progress=False)  # fmt: skip
+    c2 = load_checkpoint(second.final_checkpoint)
+    assert c2.optimizer is not None
+    assert float(c2.optimizer["param_groups"][0]["lr"]) == pytest.approx(float(rate))

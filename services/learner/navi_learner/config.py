@@ -119,7 +119,16 @@ class PPOConfig:
     """PPO hyper-parameters and the weights of the intrinsic rewards."""
 
     lr: float = 5e-4
-    """Adam learning rate (policy and RND predictor)."""
+    """Adam learning rate (policy and RND predictor); the starting value when target_kl > 0."""
+    target_kl: float = 0.0
+    """> 0: adaptive learning rate. Before each minibatch's optimizer step the approximate KL divergence
+    from the rollout's policy is compared with this target: above 2× it the rate is divided by 1.5,
+    below half of it multiplied by 1.5, within [lr_min, lr_max]. The rate stays on the device (no host
+    read) and is the same on every rank of a data-parallel run. 0: the rate stays `lr`."""
+    lr_min: float = 1e-5
+    """Lower bound of the adaptive learning rate."""
+    lr_max: float = 1e-3
+    """Upper bound of the adaptive learning rate."""
     gamma: float = 0.99
     """Discount factor."""
     gae_lambda: float = 0.95

@@ -69,7 +69,7 @@ def build_band(corpus: SceneCorpus, band: float, wp: Any, device: str) -> tuple[
     tiles = band_tiles(corpus, band)  # (T, 3)
     h = info.voxel_size
     volume = wp.Volume.allocate_by_tiles(
-        wp.array(tiles, dtype=wp.vec3i, device=device),
+        wp.array(tiles, dtype=wp.int32, device=device),  # (T, 3) voxel coordinates (Warp 1.0 needs int32)
         voxel_size=h,
         bg_value=float(band * h),
         translation=wp.vec3(*(float(c) for c in info.cube_min)),

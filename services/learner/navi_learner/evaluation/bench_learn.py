@@ -72,6 +72,8 @@ class LearnConfig:
     """0: 64 on CUDA, 32 on CPU."""
     ppo_epochs: int = 2
     lr: float = 3e-4
+    target_kl: float = 0.0
+    """> 0: the adaptive learning rate of PPOConfig.target_kl, starting from `lr`."""
     max_minibatch: int = 16_384
     """Most samples per PPO minibatch (about 25 GB of activations at 16,384 with the default engine)."""
     total_steps: int = 10**12
@@ -205,7 +207,9 @@ def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -
         compile=cfg.compile,
         task=cfg.task,
         engine=engine,
-        ppo=PPOConfig(lr=cfg.lr, ppo_epochs=cfg.ppo_epochs, max_minibatch=cfg.max_minibatch),
+        ppo=PPOConfig(
+            lr=cfg.lr, target_kl=cfg.target_kl, ppo_epochs=cfg.ppo_epochs, max_minibatch=cfg.max_minibatch
+        ),
     )
 
 

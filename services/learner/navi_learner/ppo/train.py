@@ -173,6 +173,23 @@ def advantages(
     buf.returns.copy_(ret)
 
 
+def adapt_lr(optimizer: torch.optim.Optimizer, kl: torch.Tensor, target: float, lo: float, hi: float) -> None:
+    """The KL rule of massively parallel PPO, on the device: every group's rate (a () tensor) ÷1.5 where
+    `kl` > 2·target, ×1.5 where `kl` < target/2, kept within [lo, hi]. A non-finite `kl` leaves it."""
+    factor = torch.where(kl > 2 * target, 1 / 1.5, torch.where(kl < target / 2, 1.5, 1.0))  # () float32
+    for group in optimizer.param_groups:
+        lr = group["lr"]  # () float32 on the device (setup made it a tensor)
+        lr.copy_((lr * factor).clamp(lo, hi))
+
+
+def lr_of(optimizer: torch.optim.Optimizer, like: torch.Tensor) -> torch.Tensor:
+    """The first group's learning rate as a () float32 tensor on `like`'s device (for the metrics)."""
+    lr = optimizer.param_groups[0]["lr"]
+    if isinstance(lr, torch.Tensor):
+        return lr.detach().float().clone()
+    return torch.full((), float(lr), device=like.device)
+
+
 def update(
     policy: CognitiveMambaPolicy,
     optimizer: torch.optim.Optimizer,
@@ -217,6 +234,9 @@ def update(
                 ent_coef=p.ent_coef,
                 norm_adv=norm_adv,
             )
+            if p.target_kl > 0:
+                kl = metrics["approx_kl"] if sync is None else sync.mean({"kl": metrics["approx_kl"]})["kl"]
+                adapt_lr(optimizer, kl, p.target_kl, p.lr_min, p.lr_max)
             rnd_loss = policy.rnd.loss(ev.emb)
             total = loss + p.rnd_coef * rnd_loss
             optimizer.zero_grad(set_to_none=True)
@@ -240,7 +260,12 @@ def update(
                 if logger is not None:
                     logger.warning("non-finite loss or gradient: optimizer step skipped")
             optimizer.zero_grad(set_to_none=True)
-            for k, v in {**metrics, "rnd_loss": rnd_loss.detach(), "grad_norm": grad_norm.detach()}.items():
+            extra = {
+                "rnd_loss": rnd_loss.detach(),
+                "grad_norm": grad_norm.detach(),
+                "lr": lr_of(optimizer, params[0]),
+            }
+            for k, v in {**metrics, **extra}.items():
                 sums[k] = sums.get(k, torch.zeros((), device=v.device)) + v  # () float32
             count += 1
     if on_device:
@@ -395,6 +420,9 @@ def setup(
         run_id, root = sync.broadcast_object((run_id, root))
     run = RunFiles(root, run_id, on_log, write=d.main)
     st = TrainState() if resume_from is None else resume(policy, optimizer, resume_from, cfg)
+    for group in optimizer.param_groups:  # adaptive: a device tensor the update adjusts in place
+        lr = float(group["lr"])
+        group["lr"] = torch.tensor(lr, device=device) if cfg.ppo.target_kl > 0 else lr
     manifest: dict[str, Any] = {
         "config": cfg.to_dict(),
         "obs_shape": list(env.obs_shape),
