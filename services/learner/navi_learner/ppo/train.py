@@ -182,14 +182,6 @@ def adapt_lr(optimizer: torch.optim.Optimizer, kl: torch.Tensor, target: float, 
         lr.copy_((lr * factor).clamp(lo, hi))
 
 
-def lr_of(optimizer: torch.optim.Optimizer, like: torch.Tensor) -> torch.Tensor:
-    """The first group's learning rate as a () float32 tensor on `like`'s device (for the metrics)."""
-    lr = optimizer.param_groups[0]["lr"]
-    if isinstance(lr, torch.Tensor):
-        return lr.detach().float().clone()
-    return torch.full((), float(lr), device=like.device)
-
-
 def update(
     policy: CognitiveMambaPolicy,
     optimizer: torch.optim.Optimizer,
@@ -260,11 +252,9 @@ def update(
                 if logger is not None:
                     logger.warning("non-finite loss or gradient: optimizer step skipped")
             optimizer.zero_grad(set_to_none=True)
-            extra = {
-                "rnd_loss": rnd_loss.detach(),
-                "grad_norm": grad_norm.detach(),
-                "lr": lr_of(optimizer, params[0]),
-            }
+            extra = {"rnd_loss": rnd_loss.detach(), "grad_norm": grad_norm.detach()}
+            if p.target_kl > 0:
+                extra["lr"] = optimizer.param_groups[0]["lr"].clone()  # () the rate of this step
             for k, v in {**metrics, **extra}.items():
                 sums[k] = sums.get(k, torch.zeros((), device=v.device)) + v  # () float32
             count += 1
@@ -273,7 +263,10 @@ def update(
         skipped = int(skips)  # one host read per update
         if skipped and logger is not None:
             logger.warning(f"non-finite loss or gradient: {skipped} optimizer step(s) skipped")
-    return {k: v / max(count, 1) for k, v in sums.items()}, skipped
+    means = {k: v / max(count, 1) for k, v in sums.items()}
+    if "lr" not in means:  # a constant rate: one () tensor per update
+        means["lr"] = torch.full((), float(optimizer.param_groups[0]["lr"]), device=skips.device)
+    return means, skipped
 
 
 def scene_names(env: BatchedEnv) -> list[str]:
