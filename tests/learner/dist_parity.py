@@ -73,8 +73,9 @@ def shard(buf: RolloutStorage, rank: int, world: int) -> RolloutStorage:
 
 def main(out: Path) -> None:
     """This rank: RND normaliser and advantages pooled over ranks, one clean update, then one update in
-    which rank 1's loss alone is non-finite; writes the state after the clean update, the skip counts,
-    whether the second update left the replica unchanged, and this rank's normalised advantages."""
+        which rank 1's loss alone is non-finite; writes the state after the clean update, the skip counts,
+        whether the second update left the replica unchanged, this rank's normalised advantages, and the
+    state and rate after a third update with the adaptive rate."""
     torch.set_num_threads(1)
     d, _ = setup("cpu")
     try:
@@ -92,7 +93,19 @@ def main(out: Path) -> None:
             policy, optimizer, part, cfg, torch.Generator().manual_seed(d.rank), None, sync
         )
         unchanged = all(torch.equal(after[k], v) for k, v in policy.state_dict().items())
-        result = {"state": after, "skipped": [skipped, skipped_bad], "unchanged": unchanged, "adv": adv}
+        part.advantages[0, 0] = 0.0
+        cfg.ppo.target_kl = 0.01  # the adaptive rate: one rank-mean KL decides every rank's rate
+        for group in optimizer.param_groups:
+            group["lr"] = torch.tensor(float(group["lr"]))
+        update(policy, optimizer, part, cfg, torch.Generator().manual_seed(d.rank), None, sync)
+        adaptive = {"state": policy.state_dict(), "lr": float(optimizer.param_groups[0]["lr"])}
+        result = {
+            "state": after,
+            "skipped": [skipped, skipped_bad],
+            "unchanged": unchanged,
+            "adv": adv,
+            "adaptive": adaptive,
+        }
         torch.save(result, out / f"rank{d.rank}.pt")
         sync.barrier()
     finally:

@@ -230,6 +230,11 @@ def test_one_update_on_two_ranks_equals_one_update_on_the_union(tmp_path: Path) 
     assert "heads.log_std" in moved and "rnd.predictor.0.weight" in moved and "rnd.err_mean" in moved
     assert skipped == 0 and [r["skipped"] for r in ranks] == [[0, 1], [0, 1]]  # rank 1's NaN: both skip
     assert ranks[0]["unchanged"] and ranks[1]["unchanged"]
+    adaptive = [r["adaptive"] for r in ranks]
+    assert adaptive[0]["lr"] == adaptive[1]["lr"]  # one rate on both ranks
+    assert adaptive[0]["lr"] != pytest.approx(1e-3)  # and it moved
+    for k, v in adaptive[0]["state"].items():
+        assert torch.equal(adaptive[1]["state"][k], v), k
 
 
 def test_bench_train_nproc_reports_ranks_totals_and_scaling(tmp_path: Path) -> None:
