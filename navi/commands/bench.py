@@ -36,6 +36,7 @@ from navi.commands.compiler import (
     max_source_bytes,
 )
 from navi.commands.learner import (
+    CompileRolloutOpt,
     EngineOpt,
     MaxMinibatchOpt,
     ObsStorageOpt,
@@ -424,6 +425,7 @@ def bench_learn_cmd(
         float, typer.Option("--lr", help="Learning rate (the starting one with --target-kl).")
     ] = 3e-4,
     target_kl: TargetKlOpt = 0.0,
+    compile_rollout: CompileRolloutOpt = False,
     max_minibatch: Annotated[
         int,
         typer.Option(
@@ -539,6 +541,7 @@ def bench_learn_cmd(
         ppo_epochs=ppo_epochs,
         lr=lr,
         target_kl=target_kl,
+        compile_rollout=compile_rollout,
         max_minibatch=max_minibatch,
         compile=compile_encoder,
         parallel=parallel,
@@ -582,6 +585,7 @@ def bench_train_cmd(
     compile_encoder: Annotated[
         bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
     ] = True,
+    compile_rollout: CompileRolloutOpt = False,
     obs_storage: ObsStorageOpt = "auto",
     max_minibatch: MaxMinibatchOpt = 8_192,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
@@ -627,7 +631,8 @@ def bench_train_cmd(
             )  # fmt: skip
             n = actors or default_actors(torch.device(dev))
             environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)
-            result = bench_train(environment, replace(cfg, n_actors=n), updates=updates, dist=d)
+            cfg = replace(cfg, n_actors=n, compile_rollout=compile_rollout)
+            result = bench_train(environment, cfg, updates=updates, dist=d)
         except (dist.DistError, StorageError) as err:
             raise fail(str(err)) from err
         finally:

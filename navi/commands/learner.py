@@ -58,6 +58,14 @@ TargetKlOpt = Annotated[
         "rollout policy exceeds twice this, ×1.5 below half of it, within 1e-5..1e-3 (0: constant).",
     ),
 ]
+CompileRolloutOpt = Annotated[
+    bool,
+    typer.Option(
+        "--compile-rollout",
+        help="With --compile on CUDA, also compile the rollout's whole policy step (encoder, core step, "
+        "heads) as one graph: fewer kernel launches where the forward is launch-bound (small actor counts).",
+    ),
+]
 EngineOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -299,6 +307,7 @@ def train(
         float, typer.Option("--lr", help="Learning rate (the starting one with --target-kl).")
     ] = 5e-4,
     target_kl: TargetKlOpt = 0.0,
+    compile_rollout: CompileRolloutOpt = False,
     total_steps: TotalStepsOpt = 1_000_000,
     time_limit: Annotated[
         float, typer.Option("--time-limit-s", min=0.0, help="Training-seconds budget (0: none).")
@@ -359,7 +368,8 @@ def train(
             engine,
             target_kl,
         )
-        resume, cfg = resume_choice(checkpoint, fresh, replace(cfg, time_limit_s=time_limit, task=task))
+        cfg = replace(cfg, time_limit_s=time_limit, task=task, compile_rollout=compile_rollout)
+        resume, cfg = resume_choice(checkpoint, fresh, cfg)
         if resume is not None and engine:
             typer.echo(f"note: --engine is ignored: the engine comes from {resume}", err=True)
         n = cfg.n_actors or default_actors(torch.device(dev))

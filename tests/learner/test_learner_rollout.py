@@ -25,7 +25,7 @@ from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
 from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.stats import EpisodeStats
-from navi_learner.ppo.train import StageTimers, collect
+from navi_learner.ppo.train import StageTimers, collect, compiled_act, rollout_act
 
 ACTORS, T_LEN, CHUNK = 6, 8, 4
 DEVICES = [
@@ -116,3 +116,60 @@ def test_default_rollout_is_64_steps_at_8192_actors_in_20_gb() -> None:
     assert cfg.rollout_length == 64
     assert 8192 * 65 * obs_bytes(shape, True) <= cfg.rollout_memory_gb * 2**30  # T + 1 depth frames
     assert resolve(TrainConfig(n_actors=8192, device="cpu"), shape, compact=False).rollout_length == 16
+
+
+def test_the_compiled_rollout_step_collects_what_the_eager_one_does() -> None:
+    """`--compile-rollout` traces policy.act whole (fullgraph): traced here with the aot_eager backend
+    (the CPU runs the same graph without code generation), two rollouts fill the storage bit for bit as
+    the eager step does, same seeds."""
+    engine = EngineConfig.tiny()
+    cfg = TrainConfig(n_actors=ACTORS, rollout_length=T_LEN, engine=engine, ppo=PPOConfig(bptt_chunk=CHUNK))
+    cpu = torch.device("cpu")
+    filled = []
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        env = small_env("cpu")
+        policy = CognitiveMambaPolicy(env.obs_shape, engine).eval()
+        act = compiled_act(policy, backend="aot_eager") if compiled else policy.act
+        buf = RolloutStorage(
+            T_LEN, ACTORS, env.obs_shape, policy.initial_state(ACTORS, cpu), CHUNK, cpu, True
+        )
+        memory = EpisodicMemory(ACTORS, engine.memory_slots, engine.embed_dim, engine.memory_threshold, cpu)
+        stats, timers = EpisodeStats(ACTORS, cpu), StageTimers(False)
+        starts = torch.ones(ACTORS, dtype=torch.bool)  # (N,)
+        carry = (env.reset(seed=1), starts, policy.initial_state(ACTORS, cpu))
+        rows = []
+        for _ in range(2):
+            carry, _ = collect(policy, env, buf, memory, stats, cfg, carry, timers, act=act)
+            rows.append([buf.actions.clone(), buf.logp.clone(), buf.values.clone(), buf.rewards.clone()])
+        filled.append(rows)
+    for eager_rows, compiled_rows in zip(*filled, strict=True):
+        for a, b in zip(eager_rows, compiled_rows, strict=True):
+            assert torch.equal(a, b)
+    # the step is only compiled where asked for, on CUDA
+    policy = CognitiveMambaPolicy((3, 32, 8), engine)
+    assert rollout_act(policy, replace(cfg, compile_rollout=True), cpu) == policy.act
+    assert rollout_act(policy, cfg, torch.device("cuda")) == policy.act
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_inductor_compiled_rollout_step_matches_the_eager_one_on_cuda() -> None:
+    """On CUDA, with bf16 autocast, the compiled step's deterministic outputs and state match eager."""
+    torch.manual_seed(0)
+    dev = torch.device("cuda")
+    policy = CognitiveMambaPolicy((3, 256, 48), EngineConfig()).to(dev).eval()
+    policy.amp = True
+    cfg = TrainConfig(n_actors=256, compile=True, compile_rollout=True)
+    act = rollout_act(policy, cfg, dev)
+    assert act != policy.act
+    obs = torch.rand(256, 3, 256, 48, device=dev)  # (N, 3, Az, El)
+    resets = torch.rand(256, device=dev) < 0.2  # (N,) bool
+    state = tuple(s.normal_() * 0.1 for s in policy.initial_state(256, dev))
+    with torch.no_grad():
+        want = policy.act(obs, resets, state, deterministic=True)
+        got = act(obs, resets, state, deterministic=True)
+    torch.testing.assert_close(got.action, want.action, atol=2e-2, rtol=2e-2)
+    torch.testing.assert_close(got.value, want.value, atol=2e-2, rtol=2e-2)
+    for g, w in zip(got.state, want.state, strict=True):
+        torch.testing.assert_close(g, w, atol=2e-2, rtol=2e-2)

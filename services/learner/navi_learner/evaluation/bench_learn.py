@@ -74,6 +74,8 @@ class LearnConfig:
     lr: float = 3e-4
     target_kl: float = 0.0
     """> 0: the adaptive learning rate of PPOConfig.target_kl, starting from `lr`."""
+    compile_rollout: bool = False
+    """TrainConfig.compile_rollout for every run."""
     max_minibatch: int = 16_384
     """Most samples per PPO minibatch (about 25 GB of activations at 16,384 with the default engine)."""
     total_steps: int = 10**12
@@ -205,6 +207,7 @@ def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -
         seed=seed,
         device=str(device),
         compile=cfg.compile,
+        compile_rollout=cfg.compile_rollout,
         task=cfg.task,
         engine=engine,
         ppo=PPOConfig(

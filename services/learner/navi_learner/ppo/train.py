@@ -18,7 +18,7 @@ import torch
 
 from navi_learner.config import TrainConfig, compact_storage, resolve
 from navi_learner.engine.memory import EpisodicMemory
-from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
 from navi_learner.envs.protocol import BatchedEnv
 from navi_learner.ppo.dist import Dist, Sync, write_debug
@@ -115,18 +115,21 @@ def collect(
     timers: StageTimers,
     sync: Sync | None = None,
     check_storage: bool = False,
+    act: Callable[..., ActOut] | None = None,
 ) -> tuple[tuple[torch.Tensor, torch.Tensor, CoreState], torch.Tensor]:
     """Fill the storage with one rollout; returns the new (obs, resets, state) carry and the mean
     extrinsic reward per actor-step (a device scalar). With `sync` the RND normaliser follows every
     rank's actors (3 numbers all-reduced per step). With `check_storage` (a run's first rollout) the
-    stored form of step 1's observation is compared with what the policy saw (one host read)."""
+    stored form of step 1's observation is compared with what the policy saw (one host read). `act` is
+    the policy step to call (default `policy.act`; `rollout_act` gives the compiled one)."""
+    act = act or policy.act
     obs, resets, state = carry
     ext_sum = torch.zeros((), device=env.device)  # () float32
     buf.begin()
     for t in range(buf.t_len):
         with timers("forward"), torch.no_grad():
             buf.store_state(t, state)
-            out = policy.act(obs, resets, state)
+            out = act(obs, resets, state)
             novelty = policy.rnd.intrinsic(out.emb, None if sync is None else sync.sum_)  # (N,)
             loop = memory.step(out.emb, resets)  # (N,)
             intrinsic = cfg.ppo.intrinsic_rnd_weight * novelty - cfg.ppo.intrinsic_episodic_weight * loop
@@ -171,6 +174,21 @@ def advantages(
         adv, ret = gae(rewards, buf.values, buf.ends, next_value, cfg.ppo.gamma, cfg.ppo.gae_lambda)
     buf.advantages.copy_(adv)
     buf.returns.copy_(ret)
+
+
+def compiled_act(policy: CognitiveMambaPolicy, backend: str = "inductor") -> Callable[..., ActOut]:
+    """policy.act as one compiled graph (fullgraph, fixed shapes): encoder, core step, heads, sample."""
+    return torch.compile(policy.act, fullgraph=True, dynamic=False, backend=backend)
+
+
+def rollout_act(
+    policy: CognitiveMambaPolicy, cfg: TrainConfig, device: torch.device
+) -> Callable[..., ActOut]:
+    """The rollout's policy step: compiled whole where cfg.compile and cfg.compile_rollout ask for it on
+    CUDA, else policy.act."""
+    if cfg.compile and cfg.compile_rollout and device.type == "cuda":
+        return compiled_act(policy)
+    return policy.act
 
 
 def adapt_lr(optimizer: torch.optim.Optimizer, kl: torch.Tensor, target: float, lo: float, hi: float) -> None:
@@ -314,6 +332,7 @@ class Learner:
     memory: EpisodicMemory
     stats: EpisodeStats
     timers: StageTimers
+    act: Callable[..., ActOut]  # the rollout's policy step (rollout_act)
     gen: torch.Generator  # minibatch order
     state: TrainState
     ema: torch.Tensor  # () float32, the extrinsic reward's moving average
@@ -466,6 +485,7 @@ def setup(
         memory=memory,
         stats=EpisodeStats(n, device),
         timers=StageTimers(cfg.sync_timers and device.type == "cuda"),
+        act=rollout_act(policy, cfg, device),
         gen=torch.Generator().manual_seed(rank_seed),
         state=st,
         ema=torch.full((), st.reward_ema, device=device),  # () float32
@@ -623,6 +643,7 @@ def train(
                 lrn.timers,
                 sync,
                 check_storage=updates == 0,
+                act=lrn.act,
             )
             # advantages, then the PPO update
             with lrn.timers("learn"):
