@@ -63,7 +63,8 @@ CompileRolloutOpt = Annotated[
     typer.Option(
         "--compile-rollout",
         help="With --compile on CUDA, also compile the rollout's whole policy step (encoder, core step, "
-        "heads) as one graph: fewer kernel launches where the forward is launch-bound (small actor counts).",
+        "heads, RND, memory) as one graph: fewer kernel launches where the forward is launch-bound (small "
+        "actor counts).",
     ),
 ]
 EngineOpt = Annotated[

@@ -25,7 +25,7 @@ from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
 from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.stats import EpisodeStats
-from navi_learner.ppo.train import StageTimers, collect, compiled_act, rollout_act
+from navi_learner.ppo.train import StageTimers, collect, compile_graph, make_forward, rollout_forward
 
 ACTORS, T_LEN, CHUNK = 6, 8, 4
 DEVICES = [
@@ -119,9 +119,10 @@ def test_default_rollout_is_64_steps_at_8192_actors_in_20_gb() -> None:
 
 
 def test_the_compiled_rollout_step_collects_what_the_eager_one_does() -> None:
-    """`--compile-rollout` traces policy.act whole (fullgraph): traced here with the aot_eager backend
-    (the CPU runs the same graph without code generation), two rollouts fill the storage bit for bit as
-    the eager step does, same seeds."""
+    """`--compile-rollout` traces the rollout's policy step whole (act, RND, memory; fullgraph): traced
+    here with the aot_eager backend (the CPU runs the same graph without code generation), two
+    rollouts fill the storage, the RND normaliser and the episodic memory bit for bit as the eager step
+    does, same seeds."""
     engine = EngineConfig.tiny()
     cfg = TrainConfig(n_actors=ACTORS, rollout_length=T_LEN, engine=engine, ppo=PPOConfig(bptt_chunk=CHUNK))
     cpu = torch.device("cpu")
@@ -130,26 +131,52 @@ def test_the_compiled_rollout_step_collects_what_the_eager_one_does() -> None:
         torch.manual_seed(0)
         env = small_env("cpu")
         policy = CognitiveMambaPolicy(env.obs_shape, engine).eval()
-        act = compiled_act(policy, backend="aot_eager") if compiled else policy.act
         buf = RolloutStorage(
             T_LEN, ACTORS, env.obs_shape, policy.initial_state(ACTORS, cpu), CHUNK, cpu, True
         )
         memory = EpisodicMemory(ACTORS, engine.memory_slots, engine.embed_dim, engine.memory_threshold, cpu)
+        forward = rollout_forward(policy, memory)
+        if compiled:
+            forward = compile_graph(forward, backend="aot_eager")
         stats, timers = EpisodeStats(ACTORS, cpu), StageTimers(False)
         starts = torch.ones(ACTORS, dtype=torch.bool)  # (N,)
         carry = (env.reset(seed=1), starts, policy.initial_state(ACTORS, cpu))
         rows = []
         for _ in range(2):
-            carry, _ = collect(policy, env, buf, memory, stats, cfg, carry, timers, act=act)
-            rows.append([buf.actions.clone(), buf.logp.clone(), buf.values.clone(), buf.rewards.clone()])
+            carry, _ = collect(policy, env, buf, memory, stats, cfg, carry, timers, forward=forward)
+            rows += [buf.actions.clone(), buf.logp.clone(), buf.values.clone(), buf.rewards.clone()]
+        rows += [
+            policy.rnd.err_mean.clone(),
+            policy.rnd.err_var.clone(),
+            memory.keys.clone(),
+            memory.ptr.clone(),
+        ]
         filled.append(rows)
-    for eager_rows, compiled_rows in zip(*filled, strict=True):
-        for a, b in zip(eager_rows, compiled_rows, strict=True):
-            assert torch.equal(a, b)
-    # the step is only compiled where asked for, on CUDA
+    eager, traced = filled
+    assert bool(eager[-1].any())  # the memory was written
+    for a, b in zip(eager, traced, strict=True):
+        assert torch.equal(a, b)
+
+
+def compiled_fn(fn: object) -> bool:
+    """Whether `fn` is a torch.compile wrapper (it keeps the function it compiles)."""
+    return hasattr(fn, "_torchdynamo_orig_callable")
+
+
+def test_the_rollout_step_is_compiled_only_where_asked_for_on_cuda() -> None:
+    engine = EngineConfig.tiny()
     policy = CognitiveMambaPolicy((3, 32, 8), engine)
-    assert rollout_act(policy, replace(cfg, compile_rollout=True), cpu) == policy.act
-    assert rollout_act(policy, cfg, torch.device("cuda")) == policy.act
+    memory = EpisodicMemory(
+        2, engine.memory_slots, engine.embed_dim, engine.memory_threshold, torch.device("cpu")
+    )
+    eager = rollout_forward(policy, memory)
+    for cfg, device in [
+        (TrainConfig(compile_rollout=True), "cpu"),
+        (TrainConfig(), "cuda"),
+        (TrainConfig(compile=False, compile_rollout=True), "cuda"),
+    ]:
+        forward = make_forward(policy, memory, cfg, torch.device(device))
+        assert forward.__qualname__ == eager.__qualname__ and not compiled_fn(forward)
 
 
 @pytest.mark.gpu
@@ -158,18 +185,27 @@ def test_the_inductor_compiled_rollout_step_matches_the_eager_one_on_cuda() -> N
     """On CUDA, with bf16 autocast, the compiled step's deterministic outputs and state match eager."""
     torch.manual_seed(0)
     dev = torch.device("cuda")
-    policy = CognitiveMambaPolicy((3, 256, 48), EngineConfig()).to(dev).eval()
+    engine = EngineConfig()
+    policy = CognitiveMambaPolicy((3, 256, 48), engine).to(dev).eval()
     policy.amp = True
-    cfg = TrainConfig(n_actors=256, compile=True, compile_rollout=True)
-    act = rollout_act(policy, cfg, dev)
-    assert act != policy.act
-    obs = torch.rand(256, 3, 256, 48, device=dev)  # (N, 3, Az, El)
-    resets = torch.rand(256, device=dev) < 0.2  # (N,) bool
-    state = tuple(s.normal_() * 0.1 for s in policy.initial_state(256, dev))
+    n = 256
+    memories = [
+        EpisodicMemory(n, engine.memory_slots, engine.embed_dim, engine.memory_threshold, dev) for _ in "ab"
+    ]
+    cfg = TrainConfig(n_actors=n, compile=True, compile_rollout=True)
+    compiled = make_forward(policy, memories[0], cfg, dev)
+    eager = rollout_forward(policy, memories[1])
+    obs = torch.rand(n, 3, 256, 48, device=dev)  # (N, 3, Az, El)
+    resets = torch.rand(n, device=dev) < 0.2  # (N,) bool
+    state = tuple(s.normal_() * 0.1 for s in policy.initial_state(n, dev))
     with torch.no_grad():
-        want = policy.act(obs, resets, state, deterministic=True)
-        got = act(obs, resets, state, deterministic=True)
-    torch.testing.assert_close(got.action, want.action, atol=2e-2, rtol=2e-2)
+        rnd = {k: v.clone() for k, v in policy.rnd.state_dict().items()}
+        got, _, got_loop = compiled(obs, resets, state)
+        policy.rnd.load_state_dict(rnd)
+        want, _, want_loop = eager(obs, resets, state)
+    assert compiled_fn(compiled) and not compiled_fn(eager)
     torch.testing.assert_close(got.value, want.value, atol=2e-2, rtol=2e-2)
+    torch.testing.assert_close(got.emb, want.emb, atol=2e-2, rtol=2e-2)
+    torch.testing.assert_close(got_loop, want_loop, atol=2e-2, rtol=2e-2)
     for g, w in zip(got.state, want.state, strict=True):
         torch.testing.assert_close(g, w, atol=2e-2, rtol=2e-2)

@@ -194,8 +194,8 @@ class TrainConfig:
     """torch.compile the encoder (CUDA only; about a minute of compile time, ~1.7x the SPS)."""
     compile_rollout: bool = False
     """With `compile`, on CUDA: also compile the rollout's whole policy step (encoder, temporal-core step,
-    heads, action sample) as one graph, so the launch-bound forward of small actor counts runs fewer,
-    fused kernels. Same weights and outputs as the eager step (a CPU parity test)."""
+    heads, action sample, RND novelty, episodic memory) as one graph, so the launch-bound forward of
+    small actor counts runs fewer, fused kernels. The same step as the eager one (a CPU parity test)."""
     obs_dtype: str = "auto"
     """Rollout observation storage: compact (float16 depth and a semantic byte per ray, 3 bytes; needs
     DistanceMatrix v2 observations, the drone env's), float32 (12 bytes per ray, any env), or auto

@@ -25,7 +25,7 @@ from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.protocol import BatchedEnv
 from navi_learner.ppo.dist import Dist, Sync, entry_argv, relaunch
-from navi_learner.ppo.train import rollout_act, train
+from navi_learner.ppo.train import make_forward, train
 
 
 def _sync(device: torch.device) -> None:
@@ -63,7 +63,7 @@ def inference_sps(
     memory = EpisodicMemory(
         env.n_actors, cfg.engine.memory_slots, cfg.engine.embed_dim, cfg.engine.memory_threshold, device
     )
-    act = rollout_act(policy, cfg, device)
+    forward = make_forward(policy, memory, cfg, device, reduce)
     state = policy.initial_state(env.n_actors, device)
     obs = env.reset(seed=0)
     resets = torch.ones(env.n_actors, dtype=torch.bool, device=device)  # (N,)
@@ -73,9 +73,7 @@ def inference_sps(
             if i == 10:
                 _sync(device)
                 t0 = time.perf_counter()
-            out = act(obs, resets, state)
-            policy.rnd.intrinsic(out.emb, reduce)
-            memory.step(out.emb, resets)
+            out, _, _ = forward(obs, resets, state)
             step = env.step(out.action)
             obs, resets, state = step.obs, step.done | step.truncated, out.state
     _sync(device)

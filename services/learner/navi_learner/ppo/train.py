@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import torch
 
@@ -115,23 +115,21 @@ def collect(
     timers: StageTimers,
     sync: Sync | None = None,
     check_storage: bool = False,
-    act: Callable[..., ActOut] | None = None,
+    forward: Forward | None = None,
 ) -> tuple[tuple[torch.Tensor, torch.Tensor, CoreState], torch.Tensor]:
     """Fill the storage with one rollout; returns the new (obs, resets, state) carry and the mean
     extrinsic reward per actor-step (a device scalar). With `sync` the RND normaliser follows every
     rank's actors (3 numbers all-reduced per step). With `check_storage` (a run's first rollout) the
-    stored form of step 1's observation is compared with what the policy saw (one host read). `act` is
-    the policy step to call (default `policy.act`; `rollout_act` gives the compiled one)."""
-    act = act or policy.act
+    stored form of step 1's observation is compared with what the policy saw (one host read). `forward`
+    is the rollout's policy step (default: the eager `rollout_forward`; `make_forward` compiles it)."""
+    forward = forward or rollout_forward(policy, memory, reduce=None if sync is None else sync.sum_)
     obs, resets, state = carry
     ext_sum = torch.zeros((), device=env.device)  # () float32
     buf.begin()
     for t in range(buf.t_len):
         with timers("forward"), torch.no_grad():
             buf.store_state(t, state)
-            out = act(obs, resets, state)
-            novelty = policy.rnd.intrinsic(out.emb, None if sync is None else sync.sum_)  # (N,)
-            loop = memory.step(out.emb, resets)  # (N,)
+            out, novelty, loop = forward(obs, resets, state)  # ActOut, (N,) RND novelty, (N,) loop penalty
             intrinsic = cfg.ppo.intrinsic_rnd_weight * novelty - cfg.ppo.intrinsic_episodic_weight * loop
             buf.resets[t].copy_(resets)
             buf.store_obs(t, obs)
@@ -176,19 +174,48 @@ def advantages(
     buf.returns.copy_(ret)
 
 
-def compiled_act(policy: CognitiveMambaPolicy, backend: str = "inductor") -> Callable[..., ActOut]:
-    """policy.act as one compiled graph (fullgraph, fixed shapes): encoder, core step, heads, sample."""
-    return torch.compile(policy.act, fullgraph=True, dynamic=False, backend=backend)
+Forward = Callable[[torch.Tensor, torch.Tensor, CoreState], tuple[ActOut, torch.Tensor, torch.Tensor]]
+"""The rollout's policy step: (obs, resets, state) -> (ActOut, RND novelty (N,), loop penalty (N,))."""
 
 
-def rollout_act(
-    policy: CognitiveMambaPolicy, cfg: TrainConfig, device: torch.device
-) -> Callable[..., ActOut]:
-    """The rollout's policy step: compiled whole where cfg.compile and cfg.compile_rollout ask for it on
-    CUDA, else policy.act."""
-    if cfg.compile and cfg.compile_rollout and device.type == "cuda":
-        return compiled_act(policy)
-    return policy.act
+def rollout_forward(
+    policy: CognitiveMambaPolicy,
+    memory: EpisodicMemory,
+    act: Callable[..., ActOut] | None = None,
+    reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> Forward:
+    """The rollout's policy step, eager: `act` (default policy.act), the RND novelty of its embedding
+    (the normaliser updated; `reduce` pools it over ranks) and the episodic memory's loop penalty."""
+
+    def forward(
+        obs: torch.Tensor, resets: torch.Tensor, state: CoreState
+    ) -> tuple[ActOut, torch.Tensor, torch.Tensor]:
+        out = (act or policy.act)(obs, resets, state)
+        return out, policy.rnd.intrinsic(out.emb, reduce), memory.step(out.emb, resets)  # ActOut, (N,), (N,)
+
+    return forward
+
+
+def compile_graph(fn: Callable[..., Any], backend: str = "inductor") -> Callable[..., Any]:
+    """`fn` as one compiled graph (fullgraph, fixed shapes)."""
+    return torch.compile(fn, fullgraph=True, dynamic=False, backend=backend)
+
+
+def make_forward(
+    policy: CognitiveMambaPolicy,
+    memory: EpisodicMemory,
+    cfg: TrainConfig,
+    device: torch.device,
+    reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> Forward:
+    """The rollout's policy step for a run: eager unless cfg.compile and cfg.compile_rollout ask for it on
+    CUDA; then one graph (act, RND, memory), or, where `reduce` pools the RND normaliser over ranks (a
+    collective the graph cannot hold), the compiled act with RND and memory eager."""
+    if not (cfg.compile and cfg.compile_rollout and device.type == "cuda"):
+        return rollout_forward(policy, memory, reduce=reduce)
+    if reduce is None:
+        return cast(Forward, compile_graph(rollout_forward(policy, memory)))
+    return rollout_forward(policy, memory, act=compile_graph(policy.act), reduce=reduce)
 
 
 def adapt_lr(optimizer: torch.optim.Optimizer, kl: torch.Tensor, target: float, lo: float, hi: float) -> None:
@@ -332,7 +359,7 @@ class Learner:
     memory: EpisodicMemory
     stats: EpisodeStats
     timers: StageTimers
-    act: Callable[..., ActOut]  # the rollout's policy step (rollout_act)
+    forward: Forward  # the rollout's policy step (make_forward)
     gen: torch.Generator  # minibatch order
     state: TrainState
     ema: torch.Tensor  # () float32, the extrinsic reward's moving average
@@ -485,7 +512,7 @@ def setup(
         memory=memory,
         stats=EpisodeStats(n, device),
         timers=StageTimers(cfg.sync_timers and device.type == "cuda"),
-        act=rollout_act(policy, cfg, device),
+        forward=make_forward(policy, memory, cfg, device, None if sync is None else sync.sum_),
         gen=torch.Generator().manual_seed(rank_seed),
         state=st,
         ema=torch.full((), st.reward_ema, device=device),  # () float32
@@ -643,7 +670,7 @@ def train(
                 lrn.timers,
                 sync,
                 check_storage=updates == 0,
-                act=lrn.act,
+                forward=lrn.forward,
             )
             # advantages, then the PPO update
             with lrn.timers("learn"):
