@@ -425,7 +425,7 @@ def bench_learn_cmd(
         float, typer.Option("--lr", help="Learning rate (the starting one with --target-kl).")
     ] = 3e-4,
     target_kl: TargetKlOpt = 0.0,
-    compile_rollout: CompileRolloutOpt = False,
+    compile_rollout: CompileRolloutOpt = True,
     max_minibatch: Annotated[
         int,
         typer.Option(
@@ -585,7 +585,7 @@ def bench_train_cmd(
     compile_encoder: Annotated[
         bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
     ] = True,
-    compile_rollout: CompileRolloutOpt = False,
+    compile_rollout: CompileRolloutOpt = True,
     obs_storage: ObsStorageOpt = "auto",
     max_minibatch: MaxMinibatchOpt = 8_192,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,

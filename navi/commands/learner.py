@@ -61,10 +61,10 @@ TargetKlOpt = Annotated[
 CompileRolloutOpt = Annotated[
     bool,
     typer.Option(
-        "--compile-rollout",
+        "--compile-rollout/--no-compile-rollout",
         help="With --compile on CUDA, also compile the rollout's whole policy step (encoder, core step, "
         "heads, RND, memory) as one graph: fewer kernel launches where the forward is launch-bound (small "
-        "actor counts).",
+        "actor counts). --no-compile-rollout compiles the encoder alone.",
     ),
 ]
 EngineOpt = Annotated[
@@ -308,7 +308,7 @@ def train(
         float, typer.Option("--lr", help="Learning rate (the starting one with --target-kl).")
     ] = 5e-4,
     target_kl: TargetKlOpt = 0.0,
-    compile_rollout: CompileRolloutOpt = False,
+    compile_rollout: CompileRolloutOpt = True,
     total_steps: TotalStepsOpt = 1_000_000,
     time_limit: Annotated[
         float, typer.Option("--time-limit-s", min=0.0, help="Training-seconds budget (0: none).")

@@ -192,10 +192,11 @@ class TrainConfig:
     """bf16 autocast for the encoder on CUDA (ignored on CPU)."""
     compile: bool = True
     """torch.compile the encoder (CUDA only; about a minute of compile time, ~1.7x the SPS)."""
-    compile_rollout: bool = False
+    compile_rollout: bool = True
     """With `compile`, on CUDA: also compile the rollout's whole policy step (encoder, temporal-core step,
     heads, action sample, RND novelty, episodic memory) as one graph, so the launch-bound forward of
-    small actor counts runs fewer, fused kernels. The same step as the eager one (a CPU parity test)."""
+    small actor counts runs fewer, fused kernels (2,048 actors: 3.3 instead of 6.5 ms per step on an
+    H100). The same step as the eager one (a CPU parity test); False: the encoder alone is compiled."""
     obs_dtype: str = "auto"
     """Rollout observation storage: compact (float16 depth and a semantic byte per ray, 3 bytes; needs
     DistanceMatrix v2 observations, the drone env's), float32 (12 bytes per ray, any env), or auto

@@ -74,7 +74,7 @@ class LearnConfig:
     lr: float = 3e-4
     target_kl: float = 0.0
     """> 0: the adaptive learning rate of PPOConfig.target_kl, starting from `lr`."""
-    compile_rollout: bool = False
+    compile_rollout: bool = True
     """TrainConfig.compile_rollout for every run."""
     max_minibatch: int = 16_384
     """Most samples per PPO minibatch (about 25 GB of activations at 16,384 with the default engine)."""

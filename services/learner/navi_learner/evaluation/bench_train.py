@@ -113,6 +113,7 @@ def bench_train(
         "max_minibatch": cfg.ppo.max_minibatch,
         "amp": cfg.amp and device.type == "cuda",
         "compile": cfg.compile and device.type == "cuda",
+        "compile_rollout": cfg.compile and cfg.compile_rollout and device.type == "cuda",
     }
     if sync is not None:
         sync.barrier()
