@@ -129,26 +129,33 @@ def components(free: torch.Tensor) -> torch.Tensor:
         label = nxt
 
 
+def settle(dist: torch.Tensor, cell: float, free: torch.Tensor | None = None) -> torch.Tensor:
+    """Relax G fields (G, X, Y, Z) float32 over the 26 neighbours until no voxel changes: each voxel ends at
+    the smallest start value plus 26-neighbour path length through `free` (X, Y, Z) bool voxels (inf
+    outside them), or through every voxel where `free` is None."""
+    x, y, z = dist.shape[1:]
+    steps = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]  # offset, its length
+    inf = torch.tensor(math.inf, device=dist.device)
+    while True:
+        padded = F.pad(dist[:, None], (1, 1, 1, 1, 1, 1), value=math.inf)[:, 0]  # (G, X+2, Y+2, Z+2)
+        best = dist
+        for (di, dj, dk), length in steps:
+            near = padded[:, 1 + di : 1 + di + x, 1 + dj : 1 + dj + y, 1 + dk : 1 + dk + z]  # (G, X, Y, Z)
+            best = torch.minimum(best, near + length)
+        nxt = best if free is None else torch.where(free[None], best, inf)  # (G, X, Y, Z)
+        if torch.equal(nxt, dist):
+            return dist
+        dist = nxt
+
+
 def geodesic(free: torch.Tensor, sources: torch.Tensor, cell: float) -> torch.Tensor:
     """Path length (X, Y, Z) float32 meters from every voxel to the nearest of the source voxels
     (S, 3) int64 through 26-connected free voxels; inf where blocked or cut off. Sources must be free."""
     if sources.numel() and not bool(free[sources[:, 0], sources[:, 1], sources[:, 2]].all()):
         raise ValueError("every source voxel must be free")
-    inf = torch.tensor(math.inf, device=free.device)
     dist = torch.full(free.shape, math.inf, device=free.device)  # (X, Y, Z) float32
     dist[sources[:, 0], sources[:, 1], sources[:, 2]] = 0.0
-    x, y, z = free.shape
-    steps = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]  # offset, its length
-    while True:
-        padded = F.pad(dist[None, None], (1, 1, 1, 1, 1, 1), value=math.inf)[0, 0]  # (X+2, Y+2, Z+2)
-        best = dist
-        for (di, dj, dk), length in steps:
-            near = padded[1 + di : 1 + di + x, 1 + dj : 1 + dj + y, 1 + dk : 1 + dk + z]  # (X, Y, Z)
-            best = torch.minimum(best, near + length)
-        nxt = torch.where(free, best, inf)  # (X, Y, Z)
-        if torch.equal(nxt, dist):
-            return dist
-        dist = nxt
+    return settle(dist[None], cell, free)[0]
 
 
 def geodesic_many(free: torch.Tensor, sources: torch.Tensor, cell: float) -> torch.Tensor:
@@ -158,21 +165,9 @@ def geodesic_many(free: torch.Tensor, sources: torch.Tensor, cell: float) -> tor
     if sources.numel() and not bool(free[sources[:, 0], sources[:, 1], sources[:, 2]].all()):
         raise ValueError("every source voxel must be free")
     g = sources.shape[0]
-    inf = torch.tensor(math.inf, device=free.device)
     dist = torch.full((g, *free.shape), math.inf, device=free.device)  # (G, X, Y, Z) float32
     dist[torch.arange(g, device=free.device), sources[:, 0], sources[:, 1], sources[:, 2]] = 0.0
-    x, y, z = free.shape
-    steps = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]  # offset, its length
-    while True:
-        padded = F.pad(dist[:, None], (1, 1, 1, 1, 1, 1), value=math.inf)[:, 0]  # (G, X+2, Y+2, Z+2)
-        best = dist
-        for (di, dj, dk), length in steps:
-            near = padded[:, 1 + di : 1 + di + x, 1 + dj : 1 + dj + y, 1 + dk : 1 + dk + z]  # (G, X, Y, Z)
-            best = torch.minimum(best, near + length)
-        nxt = torch.where(free[None], best, inf)  # (G, X, Y, Z)
-        if torch.equal(nxt, dist):
-            return dist
-        dist = nxt
+    return settle(dist, cell, free)
 
 
 def surface_distance(sampled: torch.Tensor, cell: float, near: float | None = None) -> torch.Tensor:
@@ -183,19 +178,8 @@ def surface_distance(sampled: torch.Tensor, cell: float, near: float | None = No
     at most 12.8% longer than the straight line, so far from surfaces this can overestimate by that
     much. Solid voxels (sample < 0) and a lattice without sources keep their samples."""
     near = cell if near is None else near
-    dist = torch.where((sampled >= 0) & (sampled < near), sampled, math.inf)  # (X, Y, Z) float32
-    x, y, z = sampled.shape
-    steps = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]  # offset, its length
-    while True:
-        padded = F.pad(dist[None, None], (1, 1, 1, 1, 1, 1), value=math.inf)[0, 0]  # (X+2, Y+2, Z+2)
-        best = dist
-        for (di, dj, dk), length in steps:
-            best = torch.minimum(
-                best, padded[1 + di : 1 + di + x, 1 + dj : 1 + dj + y, 1 + dk : 1 + dk + z] + length
-            )
-        if torch.equal(best, dist):
-            break
-        dist = best
+    start = torch.where((sampled >= 0) & (sampled < near), sampled, math.inf)  # (X, Y, Z) float32
+    dist = settle(start[None], cell)[0]  # (X, Y, Z)
     keep = (sampled < 0) | torch.isinf(dist)  # (X, Y, Z) bool
     return torch.where(keep, sampled, torch.maximum(sampled, dist))
 
@@ -204,13 +188,21 @@ def surface_distance_ref(sampled: torch.Tensor, cell: float, near: float | None 
     """surface_distance by multi-source Dijkstra in Python, float64 sums (small grids)."""
     near = cell if near is None else near
     values = sampled.cpu().double()
-    shape = tuple(values.shape)
-    dist = torch.full(shape, math.inf, dtype=torch.float64)
-    heap: list[tuple[float, tuple[int, int, int]]] = []
-    for i, j, k in itertools.product(*(range(n) for n in shape)):
-        if 0.0 <= float(values[i, j, k]) < near:
-            dist[i, j, k] = float(values[i, j, k])
-            heapq.heappush(heap, (float(values[i, j, k]), (i, j, k)))
+    start = torch.where((values >= 0) & (values < near), values, math.inf)  # (X, Y, Z) float64
+    dist = dijkstra_ref(start, cell)
+    keep = (values < 0) | torch.isinf(dist)
+    return torch.where(keep, values, torch.maximum(values, dist)).float()
+
+
+def dijkstra_ref(start: torch.Tensor, cell: float, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Shortest 26-neighbour path lengths (X, Y, Z) float64 from every finite voxel of `start` (X, Y, Z),
+    which starts at its value, through the voxels of `mask` (X, Y, Z) bool (all where None)."""
+    shape = tuple(start.shape)
+    dist = start.cpu().double().clone()
+    heap: list[tuple[float, tuple[int, int, int]]] = [
+        (float(dist[i, j, k]), (i, j, k)) for i, j, k in torch.isfinite(dist).nonzero().tolist()
+    ]
+    heapq.heapify(heap)
     lengths = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]
     while heap:
         d, v = heapq.heappop(heap)
@@ -218,11 +210,11 @@ def surface_distance_ref(sampled: torch.Tensor, cell: float, near: float | None 
             continue
         for o, length in lengths:
             w = (v[0] + o[0], v[1] + o[1], v[2] + o[2])
-            if all(0 <= w[a] < shape[a] for a in range(3)) and d + length < dist[w]:
+            inside = all(0 <= w[a] < shape[a] for a in range(3))
+            if inside and (mask is None or mask[w]) and d + length < dist[w]:
                 dist[w] = d + length
                 heapq.heappush(heap, (d + length, w))
-    keep = (values < 0) | torch.isinf(dist)
-    return torch.where(keep, values, torch.maximum(values, dist)).float()
+    return dist
 
 
 def components_ref(free: torch.Tensor) -> torch.Tensor:
@@ -253,23 +245,10 @@ def components_ref(free: torch.Tensor) -> torch.Tensor:
 def geodesic_ref(free: torch.Tensor, sources: torch.Tensor, cell: float) -> torch.Tensor:
     """geodesic by Dijkstra in Python, float64 sums (small grids)."""
     mask = free.cpu()
-    shape = tuple(mask.shape)
-    dist = torch.full(shape, math.inf, dtype=torch.float64)
-    heap: list[tuple[float, tuple[int, int, int]]] = []
+    start = torch.full(tuple(mask.shape), math.inf, dtype=torch.float64)
     for s in sources.cpu().tolist():
-        dist[tuple(s)] = 0.0
-        heapq.heappush(heap, (0.0, (s[0], s[1], s[2])))
-    lengths = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]
-    while heap:
-        d, v = heapq.heappop(heap)
-        if d > dist[v]:
-            continue
-        for o, length in lengths:
-            w = (v[0] + o[0], v[1] + o[1], v[2] + o[2])
-            if all(0 <= w[a] < shape[a] for a in range(3)) and mask[w] and d + length < dist[w]:
-                dist[w] = d + length
-                heapq.heappush(heap, (d + length, w))
-    return dist.float()
+        start[s[0], s[1], s[2]] = 0.0
+    return dijkstra_ref(start, cell, mask).float()
 
 
 def reachable_cells(space: FreeSpace, labels: torch.Tensor, point: torch.Tensor, cell_m: float = 1.0) -> int:
