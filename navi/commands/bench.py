@@ -331,6 +331,22 @@ def bench_wrappers_cmd(
             typer.echo(f"{key:>14}: {value}")
 
 
+def flight_row(m: Any) -> dict[str, float | None]:
+    """What `bench freespace --evaluate` reports of one policy on one scene (m: EvalMetrics): collisions and
+    coverage, and why the coverage is what it is: meters flown, meters flown per new cell (revisits; a
+    hovering drone flies little, a circling one many meters per cell), the view clearance and the reward
+    per step (does the reward prefer the policy that covers more?)."""
+    per_cell = m.distance_per_1k / m.coverage_per_1k if m.coverage_per_1k > 0 else None
+    return {
+        "collisions_per_1k": m.collisions_per_1k,
+        "coverage_per_1k": m.coverage_per_1k,
+        "distance_per_1k": round(m.distance_per_1k, 1),
+        "m_per_new_cell": None if per_cell is None else round(per_cell, 2),
+        "mean_clearance": round(m.mean_clearance, 3),
+        "reward_per_step": round(m.reward_per_step, 4),
+    }
+
+
 @app.command("freespace")
 def bench_freespace_cmd(
     corpus: Annotated[Path, typer.Option("--corpus", help="Corpus folder (manifest.json and its scenes).")],
@@ -371,10 +387,7 @@ def bench_freespace_cmd(
             protocol = EvalProtocol(evaluate_actors, 2 * episode_steps, episode_steps)  # two episodes each
             flown = per_scene(corpus, len(result["scenes"]), protocol, device, checkpoint)
             for row, metrics in zip(result["scenes"], flown, strict=True):
-                row["evaluated"] = {
-                    name: {"collisions_per_1k": m.collisions_per_1k, "coverage_per_1k": m.coverage_per_1k}
-                    for name, m in metrics.items()
-                }
+                row["evaluated"] = {name: flight_row(m) for name, m in metrics.items()}
     except (OSError, RuntimeError, ValueError) as exc:
         raise fail(str(exc)) from exc
     if record is not None:
@@ -388,7 +401,10 @@ def bench_freespace_cmd(
             f"reachable {row['reachable_cells_median']} cells, coverage <= {row['coverage_bound_per_1k']}/1k, "
             f"planner {row['planner_coverage_per_1k']}/1k at {row['planner_speed_m_s']} m/s, "
             f"{sum(row['seconds'].values()):.2f} s"
-            + "".join(f", {k} {v['coverage_per_1k']:.0f}/1k" for k, v in row.get("evaluated", {}).items())
+            + "".join(
+                f", {k} {v['coverage_per_1k']:.0f}/1k ({v['distance_per_1k']:.0f} m, {v['m_per_new_cell']} m per cell)"
+                for k, v in row.get("evaluated", {}).items()
+            )
         )
 
 

@@ -25,6 +25,7 @@ from navi_env.corpus.freespace import (
     surface_distance,
     surface_distance_ref,
 )
+from navi_env.sim.config import EnvConfig
 from navi_env.tracer.scene import load_corpus
 
 from .test_env_env import room_gmdag
@@ -248,7 +249,13 @@ def test_bench_freespace_flies_the_reactive_baseline_on_each_scene(small_corpus:
     assert result.exit_code == 0, result.output
     rows = json.loads(result.stdout)["scenes"]
     assert len(rows) == 2
+    top = 1000 * EnvConfig().max_speed * EnvConfig().dt  # meters 1,000 steps at the speed limit can fly
     for row in rows:
         flown = row["evaluated"]["reactive"]
         assert 0.0 < flown["coverage_per_1k"] <= row["coverage_bound_per_1k"]
+        assert 0.0 < flown["distance_per_1k"] <= top
+        assert flown["m_per_new_cell"] == pytest.approx(
+            flown["distance_per_1k"] / flown["coverage_per_1k"], abs=0.01
+        )
+        assert flown["mean_clearance"] > 0.0 and math.isfinite(flown["reward_per_step"])
     assert rows[0]["evaluated"] != rows[1]["evaluated"]  # each scene flown alone
