@@ -371,6 +371,14 @@ def bench_freespace_cmd(
         ),
     ] = 0,
     checkpoint: Annotated[Path | None, typer.Option(help="A checkpoint to evaluate with --evaluate.")] = None,
+    reward: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--reward",
+            help="KEY=NUMBER: score the --evaluate flights with this RewardConfig field replaced (repeatable), "
+            "e.g. --reward proximity_distance=1.0: which flight a reward prefers, scene by scene.",
+        ),
+    ] = None,
     json_out: JsonOutOpt = False,
     record: RecordOpt = None,
 ) -> None:
@@ -378,14 +386,19 @@ def bench_freespace_cmd(
     spawn (times and bytes), and the coverage per 1,000 steps its spawns can reach at most (speed limit
     and the spawn's free part)."""
     from navi_env.corpus.survey import survey_corpus
+    from navi_learner.envs.factory import parse_reward_overrides
 
     try:
+        overrides = parse_reward_overrides(reward or [])
+        if overrides and not evaluate_actors:
+            raise ValueError("--reward scores the --evaluate flights: give --evaluate N as well")
         result = survey_corpus(corpus, device, cell, radius, episode_steps, goals)
         if evaluate_actors:
             from navi_learner.evaluation.competence import EvalProtocol, per_scene
 
             protocol = EvalProtocol(evaluate_actors, 2 * episode_steps, episode_steps)  # two episodes each
-            flown = per_scene(corpus, len(result["scenes"]), protocol, device, checkpoint)
+            flown = per_scene(corpus, len(result["scenes"]), protocol, device, checkpoint, overrides)
+            result["reward"] = overrides
             for row, metrics in zip(result["scenes"], flown, strict=True):
                 row["evaluated"] = {name: flight_row(m) for name, m in metrics.items()}
     except (OSError, RuntimeError, ValueError) as exc:

@@ -25,7 +25,7 @@ from navi_env.corpus.freespace import (
     surface_distance,
     surface_distance_ref,
 )
-from navi_env.sim.config import EnvConfig
+from navi_env.sim.config import EnvConfig, RewardConfig
 from navi_env.tracer.scene import load_corpus
 
 from .test_env_env import room_gmdag
@@ -259,3 +259,34 @@ def test_bench_freespace_flies_the_reactive_baseline_on_each_scene(small_corpus:
         )
         assert flown["mean_clearance"] > 0.0 and math.isfinite(flown["reward_per_step"])
     assert rows[0]["evaluated"] != rows[1]["evaluated"]  # each scene flown alone
+
+
+def test_bench_freespace_scores_the_same_flights_with_another_reward(small_corpus: Path) -> None:
+    """--reward rescores the --evaluate flights: the same moves (coverage, meters, clearance) and a reward
+    per step that moves by exactly the replaced constant; --reward without --evaluate is refused."""
+    runner, app = CliRunner(), build_app()
+    base = [
+        "bench",
+        "freespace",
+        "--corpus",
+        str(small_corpus),
+        "--evaluate",
+        "2",
+        "--episode-steps",
+        "50",
+        "--json",
+    ]
+    plain = runner.invoke(app, base)
+    taxed = runner.invoke(app, [*base, "--reward", "existential_tax=-0.5"])
+    assert plain.exit_code == 0 and taxed.exit_code == 0, plain.output + taxed.output
+    assert json.loads(taxed.stdout)["reward"] == {"existential_tax": -0.5}
+    shift = -0.5 - RewardConfig().existential_tax
+    for a, b in zip(json.loads(plain.stdout)["scenes"], json.loads(taxed.stdout)["scenes"], strict=True):
+        before, after = a["evaluated"]["reactive"], b["evaluated"]["reactive"]
+        for key in ("coverage_per_1k", "collisions_per_1k", "distance_per_1k", "mean_clearance"):
+            assert after[key] == before[key]
+        assert after["reward_per_step"] == pytest.approx(before["reward_per_step"] + shift, abs=2e-4)
+    refused = runner.invoke(
+        app, ["bench", "freespace", "--corpus", str(small_corpus), "--reward", "existential_tax=-0.5"]
+    )
+    assert refused.exit_code != 0 and "--evaluate" in refused.output

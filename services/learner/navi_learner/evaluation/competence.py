@@ -10,7 +10,7 @@ collisions per episode than the map-less greedy baseline.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -228,16 +228,19 @@ def per_scene(
     protocol: EvalProtocol,
     device: str,
     checkpoint: Path | None = None,
+    reward: Mapping[str, float] | None = None,
 ) -> list[dict[str, EvalMetrics]]:
     """The reactive baseline (and the checkpoint, when given) on each of the corpus's `scenes` scenes alone,
-    with `protocol` (its actors, steps, episode length and seed): one {policy name: metrics} per scene."""
+    with `protocol` (its actors, steps, episode length and seed): one {policy name: metrics} per scene.
+    `reward` replaces RewardConfig fields (make_env): the same flights scored by another reward, since
+    neither policy reads the reward."""
     from navi_learner.envs.factory import make_env
     from navi_learner.evaluation.evaluate import CheckpointPolicy
 
     rows = []
     for s in range(scenes):
         env = make_env(corpus, protocol.actors, device, protocol.seed, episode_steps=protocol.episode_steps,
-                       rank=s, world=scenes)  # fmt: skip
+                       rank=s, world=scenes, reward=reward)  # fmt: skip
         policies: list[EvalPolicy] = [reactive_for_env(env)]
         if checkpoint is not None:
             policies.append(CheckpointPolicy(checkpoint, env.device))
