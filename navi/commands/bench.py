@@ -375,8 +375,9 @@ def bench_freespace_cmd(
         list[str] | None,
         typer.Option(
             "--reward",
-            help="KEY=NUMBER: score the --evaluate flights with this RewardConfig field replaced (repeatable), "
-            "e.g. --reward proximity_distance=1.0: which flight a reward prefers, scene by scene.",
+            help="KEY=NUMBER: score the planner's flight (and the --evaluate flights) with this RewardConfig "
+            "field replaced (repeatable), e.g. --reward proximity_distance=1.0: which flight a reward prefers, "
+            "scene by scene.",
         ),
     ] = None,
     json_out: JsonOutOpt = False,
@@ -390,15 +391,13 @@ def bench_freespace_cmd(
 
     try:
         overrides = parse_reward_overrides(reward or [])
-        if overrides and not evaluate_actors:
-            raise ValueError("--reward scores the --evaluate flights: give --evaluate N as well")
-        result = survey_corpus(corpus, device, cell, radius, episode_steps, goals)
+        result = survey_corpus(corpus, device, cell, radius, episode_steps, goals, overrides)
+        result["reward"] = overrides
         if evaluate_actors:
             from navi_learner.evaluation.competence import EvalProtocol, per_scene
 
             protocol = EvalProtocol(evaluate_actors, 2 * episode_steps, episode_steps)  # two episodes each
             flown = per_scene(corpus, len(result["scenes"]), protocol, device, checkpoint, overrides)
-            result["reward"] = overrides
             for row, metrics in zip(result["scenes"], flown, strict=True):
                 row["evaluated"] = {name: flight_row(m) for name, m in metrics.items()}
     except (OSError, RuntimeError, ValueError) as exc:
@@ -412,10 +411,12 @@ def bench_freespace_cmd(
         typer.echo(
             f"{row['name']:>24}: grid {row['grid']}, free {row['free_share']:.1%}, {row['parts']} parts, "
             f"reachable {row['reachable_cells_median']} cells, coverage <= {row['coverage_bound_per_1k']}/1k, "
-            f"planner {row['planner_coverage_per_1k']}/1k at {row['planner_speed_m_s']} m/s, "
+            f"planner {row['planner_coverage_per_1k']}/1k at {row['planner_speed_m_s']} m/s "
+            f"(reward {row['planner_reward_per_step']}/step), "
             f"{sum(row['seconds'].values()):.2f} s"
             + "".join(
-                f", {k} {v['coverage_per_1k']:.0f}/1k ({v['distance_per_1k']:.0f} m, {v['m_per_new_cell']} m per cell)"
+                f", {k} {v['coverage_per_1k']:.0f}/1k ({v['distance_per_1k']:.0f} m, {v['m_per_new_cell']} m per cell, "
+                f"reward {v['reward_per_step']}/step)"
                 for k, v in row.get("evaluated", {}).items()
             )
         )

@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from navi.cli import build_app
 from navi_env.corpus.freespace import (
+    Flight,
     FreeSpace,
     components,
     components_ref,
@@ -25,6 +26,7 @@ from navi_env.corpus.freespace import (
     surface_distance,
     surface_distance_ref,
 )
+from navi_env.corpus.survey import flight_reward
 from navi_env.sim.config import EnvConfig, RewardConfig
 from navi_env.tracer.scene import load_corpus
 
@@ -263,7 +265,8 @@ def test_bench_freespace_flies_the_reactive_baseline_on_each_scene(small_corpus:
 
 def test_bench_freespace_scores_the_same_flights_with_another_reward(small_corpus: Path) -> None:
     """--reward rescores the --evaluate flights: the same moves (coverage, meters, clearance) and a reward
-    per step that moves by exactly the replaced constant; --reward without --evaluate is refused."""
+    per step that moves by exactly the replaced constant, the planner's as well; an unknown weight is
+    refused."""
     runner, app = CliRunner(), build_app()
     base = [
         "bench",
@@ -286,7 +289,21 @@ def test_bench_freespace_scores_the_same_flights_with_another_reward(small_corpu
         for key in ("coverage_per_1k", "collisions_per_1k", "distance_per_1k", "mean_clearance"):
             assert after[key] == before[key]
         assert after["reward_per_step"] == pytest.approx(before["reward_per_step"] + shift, abs=2e-4)
-    refused = runner.invoke(
-        app, ["bench", "freespace", "--corpus", str(small_corpus), "--reward", "existential_tax=-0.5"]
-    )
-    assert refused.exit_code != 0 and "--evaluate" in refused.output
+        assert b["planner_reward_per_step"] == pytest.approx(a["planner_reward_per_step"] + shift, abs=2e-4)
+        assert b["planner_coverage_per_1k"] == a["planner_coverage_per_1k"]
+    refused = runner.invoke(app, ["bench", "freespace", "--corpus", str(small_corpus), "--reward", "speed=2"])
+    assert refused.exit_code != 0 and "unknown reward weight" in refused.output
+
+
+@pytest.mark.parametrize("clearance", [3.0, 0.5])
+def test_flight_reward_pays_the_env_terms_per_step(clearance: float) -> None:
+    """Ten 0.1 s moves into new cells at one clearance, then hovering to the end of a 100-step episode: the
+    tax, the proximity cost and the escape drain on every step, the bonus once per new cell above the gate."""
+    cfg = EnvConfig()
+    r, step = cfg.reward, cfg.max_speed * cfg.dt
+    flight = Flight(11, 1.0, 5.0, [(cfg.dt, clearance, True)] * 10)
+    near = (1.0 - min(clearance / r.proximity_distance, 1.0)) ** 2
+    phi = r.escape_weight * min(clearance, r.proximity_distance) / step
+    bonus = 10 * r.exploration_weight if clearance >= r.exploration_min_clearance else 0.0
+    expected = r.existential_tax - r.proximity_weight * near - (1.0 - r.shaping_gamma) * phi + bonus / 100
+    assert flight_reward(flight, 100, cfg) == pytest.approx(expected, abs=1e-9)

@@ -29,7 +29,7 @@ import itertools
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -272,11 +272,14 @@ def coverage_bound(reachable: int, episode_steps: int, step_m: float, cell_m: fl
 
 @dataclass(frozen=True)
 class Flight:
-    """What `greedy_coverage` flew: distinct cells entered, the seconds and meters it took."""
+    """What `greedy_coverage` flew: distinct cells entered, the seconds and meters it took, and its moves
+    in order: (seconds, clearance, new) per move, the clearance its end's distance to the nearest surface
+    (the state after the move, which the rewards read), new whether it entered a cell not entered before."""
 
     cells: int
     seconds: float
     meters: float
+    moves: list[tuple[float, float, bool]] = field(default_factory=list)
 
 
 def greedy_coverage(
@@ -318,9 +321,10 @@ def greedy_coverage(
         moves.append((o, o[0] * sx + o[1] * sy + o[2], full, length))
     here = int(((space.voxel(start.reshape(1, 3).cpu())[0]) * torch.tensor([sx, sy, 1])).sum())
     if not ok[here]:
-        return Flight(0, 0.0, 0.0)
+        return Flight(0, 0.0, 0.0, [])
     entered = {cell_of(here)}
     clock = meters = 0.0
+    flown: list[tuple[float, float, bool]] = []  # (seconds, clearance, new cell) per move
     while clock < seconds:
         # Dijkstra on flight time from `here` to the nearest voxel of a cell not entered yet
         best = {here: (0.0, 0.0, -1)}  # voxel -> (seconds, meters, previous voxel)
@@ -354,9 +358,11 @@ def greedy_coverage(
         ):  # the moves from here to the goal, in order
             dt = best[b][0] - best[a][0]
             if clock + dt > seconds:
-                return Flight(len(entered), clock, meters)
+                return Flight(len(entered), clock, meters, flown)
             clock += dt
             meters += best[b][1] - best[a][1]
+            new = cell_of(b) not in entered
             entered.add(cell_of(b))
+            flown.append((dt, float(clear[b]), new))
         here = goal
-    return Flight(len(entered), clock, meters)
+    return Flight(len(entered), clock, meters, flown)

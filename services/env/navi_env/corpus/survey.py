@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ import torch
 
 from navi_env.corpus.folder import load_corpus
 from navi_env.corpus.freespace import (
+    Flight,
     components,
     coverage_bound,
     free_space,
@@ -28,6 +30,7 @@ from navi_env.corpus.freespace import (
 )
 from navi_env.corpus.goals import goal_table
 from navi_env.sim.config import EnvConfig
+from navi_env.sim.rewards import escape_potential, exploration_term, proximity_term
 from navi_env.tracer.scene import SceneCorpus
 
 PLANNER_SPAWNS = 3
@@ -46,6 +49,30 @@ def limiter(cfg: EnvConfig) -> Callable[[float], float]:
     return scale
 
 
+def flight_reward(flight: Flight, steps: int, cfg: EnvConfig) -> float:
+    """The reward per step the env would pay a planner's flight over an episode of `steps` steps, from the
+    env's own terms at each move's end (its distance to the nearest surface standing in for the view's
+    clearance): the existential tax, the proximity cost and the escape shaping's drain ((gamma - 1) Phi per
+    step; Phi(end) - Phi(start) is left out) for every step the move takes, the exploration bonus once per
+    new cell; a flight that ends early (its part covered) hovers at its last clearance for the rest.
+    Foraging and structure read the view, which the lattice does not have, and are left out; the planner
+    flies free voxels, so it never collides."""
+    r, step = cfg.reward, cfg.max_speed * cfg.dt
+    moves = flight.moves or [(0.0, cfg.clearance_range, False)]
+    seconds = torch.tensor([m[0] for m in moves], dtype=torch.float64)  # (M,)
+    clear = torch.tensor([m[1] for m in moves], dtype=torch.float64).clamp(max=cfg.clearance_range)  # (M,)
+    new = torch.tensor([m[2] for m in moves])  # (M,) bool
+    n = seconds / cfg.dt  # (M,) env steps each move takes
+    n[-1] += max(steps - float(n.sum()), 0.0)  # the rest of the episode at the last clearance
+    per_step = (
+        r.existential_tax
+        + proximity_term(clear, r)
+        + (r.shaping_gamma - 1.0) * escape_potential(clear, step, r)
+    )
+    total = (n * per_step).sum() + exploration_term(new, clear, r).sum()  # () float64
+    return float(total) / steps
+
+
 def survey_scene(
     corpus: SceneCorpus,
     scene: int,
@@ -54,9 +81,11 @@ def survey_scene(
     radius: float,
     episode_steps: int,
     goals: int = 0,
+    cfg: EnvConfig | None = None,
 ) -> dict[str, Any]:
-    """One scene's row (see the module docstring); spawns (K, 3) world meters; the env's defaults."""
-    cfg = EnvConfig()
+    """One scene's row (see the module docstring); spawns (K, 3) world meters; cfg the env's (default
+    EnvConfig(): its limits fly the planner, its reward scores the planner's flight)."""
+    cfg = EnvConfig() if cfg is None else cfg
     sync = torch.cuda.synchronize if corpus.device.type == "cuda" else (lambda: None)
     cell = lattice_cell(corpus, scene, cell)  # coarser for a map whose bounds span hundreds of meters
     t0 = time.perf_counter()
@@ -100,6 +129,9 @@ def survey_scene(
             statistics.median(1000.0 * f.cells / episode_steps for f in flights), 1
         ),
         "planner_speed_m_s": round(statistics.median(f.meters / max(f.seconds, 1e-9) for f in flights), 2),
+        "planner_reward_per_step": round(
+            statistics.median(flight_reward(f, episode_steps, cfg) for f in flights), 4
+        ),
         "farthest_path_m": round(float(finite.max()), 2) if finite.numel() else None,
         "seconds": {
             "sample": round(t1 - t0, 3),
@@ -124,14 +156,19 @@ def survey_corpus(
     radius: float | None = None,
     episode_steps: int = 500,
     goals: int = 0,
+    reward: Mapping[str, float] | None = None,
 ) -> dict[str, Any]:
-    """Every scene of the corpus folder (radius: the env's drone radius unless given)."""
+    """Every scene of the corpus folder (radius: the env's drone radius unless given); `reward` replaces
+    RewardConfig fields for the planner's reward per step."""
     cfg = EnvConfig()
+    weights: dict[str, Any] = dict(reward or {})  # float fields, checked by the caller
+    cfg = replace(cfg, reward=replace(cfg.reward, **weights))
     radius = cfg.drone_radius if radius is None else radius
     scenes, manifest = load_corpus(corpus_dir, torch.device(device))
     spawns = manifest.spawn_tensors()
     rows = [
-        survey_scene(scenes, s, spawns[s], cell, radius, episode_steps, goals) for s in range(len(scenes))
+        survey_scene(scenes, s, spawns[s], cell, radius, episode_steps, goals, cfg)
+        for s in range(len(scenes))
     ]
     return {
         "corpus": str(corpus_dir),
