@@ -79,7 +79,8 @@ class RewardConfig:
     mid_range_max: float = 20.0
     """Upper edge (m) of the mid-range band of structure seeking."""
     existential_tax: float = -0.02
-    """Constant reward every step (negative: idling costs)."""
+    """Constant reward every step, whatever the drone does (it does not by itself make hovering cost more than
+    flying: exploring episodes end only by time or starvation)."""
     shaping_gamma: float = 0.99
     """Discount of the potential-based terms; set it to the learner's gamma (PPOConfig.gamma)."""
     progress_weight: float = 0.5
