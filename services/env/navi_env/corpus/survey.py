@@ -2,7 +2,8 @@
 connected parts, a geodesic field from a spawn), timed and sized, and the coverage its spawns can reach
 in the evaluation's episodes, per 1,000 steps: an upper bound from the drone's speed limit and the free
 space of the spawn's part, and what a planner with the map flies under the env's speed limits and
-proximity limiter (navi_env.corpus.freespace.greedy_coverage). With goals G > 0 it also builds the
+proximity limiter (navi_env.corpus.freespace.greedy_coverage), with the reward per step the env would pay
+that flight (flight_reward). With goals G > 0 it also builds the
 scene's point-goal table (navi_env.corpus.goals: G goals 5-30 m from the spawns, their geodesic fields),
 timed and sized."""
 
