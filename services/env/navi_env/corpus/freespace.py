@@ -361,8 +361,9 @@ def greedy_coverage(
                 return Flight(len(entered), clock, meters, flown)
             clock += dt
             meters += best[b][1] - best[a][1]
-            new = cell_of(b) not in entered
-            entered.add(cell_of(b))
+            reached = cell_of(b)
+            new = reached not in entered
+            entered.add(reached)
             flown.append((dt, float(clear[b]), new))
         here = goal
     return Flight(len(entered), clock, meters, flown)
