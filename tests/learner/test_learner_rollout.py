@@ -118,12 +118,13 @@ def test_default_rollout_is_64_steps_at_8192_actors_in_20_gb() -> None:
     assert resolve(TrainConfig(n_actors=8192, device="cpu"), shape, compact=False).rollout_length == 16
 
 
-def test_the_compiled_rollout_step_collects_what_the_eager_one_does() -> None:
-    """`--compile-rollout` traces the rollout's policy step whole (act, RND, memory; fullgraph): traced
-    here with the aot_eager backend (the CPU runs the same graph without code generation), two
-    rollouts fill the storage, the RND normaliser and the episodic memory bit for bit as the eager step
-    does, same seeds."""
-    engine = EngineConfig.tiny()
+@pytest.mark.parametrize("core", ["mamba2", "gru"])
+def test_the_compiled_rollout_step_collects_what_the_eager_one_does(core: str) -> None:
+    """`--compile-rollout` traces the rollout's policy step whole (act, RND, memory; fullgraph), with
+    either temporal core: traced here with the aot_eager backend (the CPU runs the same graph without
+    code generation), two rollouts fill the storage, the RND normaliser and the episodic memory bit for
+    bit as the eager step does, same seeds."""
+    engine = replace(EngineConfig.tiny(), temporal_core=core)
     cfg = TrainConfig(n_actors=ACTORS, rollout_length=T_LEN, engine=engine, ppo=PPOConfig(bptt_chunk=CHUNK))
     cpu = torch.device("cpu")
     filled = []

@@ -104,3 +104,24 @@ def test_gradients_flow_through_the_chunked_scan() -> None:
     y.pow(2).mean().backward()
     assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
     assert core.A_log.grad is not None and core.A_log.grad.abs().sum() > 0
+
+
+def test_gru_step_follows_weights_loaded_copied_and_converted() -> None:
+    """The written-out GRU step reads nn.GRU's own parameters: after load_state_dict, deepcopy and a
+    dtype conversion it still equals the (nn.GRU) sequence pass of the module it belongs to."""
+    import copy
+
+    torch.manual_seed(0)
+    core, other = GRUCore(small("gru")), GRUCore(small("gru"))
+    core.load_state_dict(other.state_dict())
+    core = copy.deepcopy(core).double()
+    x, resets = random_inputs(7)
+    state = tuple(s.double() for s in random_state(core, 8))
+    with torch.no_grad():
+        y_seq, s_seq = core(x.double(), resets, state)
+        y_step, s_step = step_loop(core, x.double(), resets, state)
+        y_other, _ = other(x, resets, tuple(s.float() for s in state))
+    assert y_step.dtype == torch.float64
+    assert torch.allclose(y_seq, y_step, atol=1e-10, rtol=0)
+    assert torch.allclose(s_seq[0], s_step[0], atol=1e-10, rtol=0)
+    assert torch.allclose(y_step.float(), y_other, atol=1e-5, rtol=0)
