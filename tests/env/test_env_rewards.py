@@ -45,7 +45,8 @@ def test_collision_penalty_scales_with_speed() -> None:
 
 
 def test_proximity_shaping_grows_toward_the_surface() -> None:
-    out = proximity_term(t(5.0, 2.0, 1.0, 0.0), R)
+    d = R.proximity_distance
+    out = proximity_term(t(2.5 * d, d, 0.5 * d, 0.0), R)
     assert float(out[0]) == 0.0 and float(out[1]) == 0.0
     assert math.isclose(float(out[2]), -R.proximity_weight * 0.25, rel_tol=1e-6)
     assert math.isclose(float(out[3]), -R.proximity_weight, rel_tol=1e-6)
@@ -87,7 +88,8 @@ def test_every_closed_loop_of_states_earns_no_net_shaping() -> None:
 
 
 def test_exploration_pays_novel_cells_only_with_clearance() -> None:
-    out = exploration_term(torch.tensor([True, True, False]), t(2.0, 0.5, 2.0), R)
+    gate = R.exploration_min_clearance
+    out = exploration_term(torch.tensor([True, True, False]), t(2 * gate, 0.8 * gate, 2 * gate), R)
     assert torch.allclose(out, t(R.exploration_weight, 0.0, 0.0))  # wall hugging earns nothing
 
 

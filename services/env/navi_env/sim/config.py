@@ -42,20 +42,20 @@ class RewardConfig:
     docs/SIMULATION.md gives every term's formula and its bound per step.
     """
 
-    collision_weight: float = 1.0
+    collision_weight: float = 3.0
     """Weight of the collision penalty: -(collision_base + speed / max_speed) on a contact step."""
     collision_base: float = 0.5
     """Part of the collision penalty paid even at zero speed (grazing)."""
     proximity_weight: float = 0.2
     """Proximity cost of the state after the move: -(1 - clearance / proximity_distance)^2 inside it."""
-    proximity_distance: float = 2.0
+    proximity_distance: float = 1.0
     """Clearance (m) under which the proximity cost and the escape potential vary."""
     escape_weight: float = 0.5
     """Escape potential: weight * min(clearance, proximity_distance) / (max_speed * dt); its shaping
     pays for clearance gained near geometry and charges the same amount for clearance lost."""
-    exploration_weight: float = 0.1
+    exploration_weight: float = 0.3
     """Bonus for entering a cell not visited this episode (1 per novel cell)."""
-    exploration_min_clearance: float = 1.0
+    exploration_min_clearance: float = 0.6
     """A novel cell pays only when the clearance there is at least this (m): wall hugging earns nothing."""
     exploration_cell: float = 1.0
     """Edge of an exploration cell, meters."""
