@@ -96,11 +96,12 @@ def test_train_promote_list_evaluate_compare(tmp_path: Path) -> None:
 def test_engine_option_shapes_a_fresh_engine_and_is_ignored_on_resume() -> None:
     args = ("train", "--env", "toy", "--actors", "4", "--rollout-length", "32", "--device", "cpu")
     code, out, err = invoke(
-        *args, "--total-steps", "128", "--engine", "head_hidden=16", "--engine", "rnd_dim=8"
-    )
+        *args, "--total-steps", "128", "--engine", "head_hidden=16", "--engine", "rnd_dim=8",
+        "--engine", "attention=explicit",
+    )  # fmt: skip
     assert code == 0, err
     engine = read_meta(Path(json.loads(out.strip().splitlines()[-1])["checkpoint"])).config["engine"]
-    assert engine["head_hidden"] == 16 and engine["rnd_dim"] == 8
+    assert engine["head_hidden"] == 16 and engine["rnd_dim"] == 8 and engine["attention"] == "explicit"
     code, out, err = invoke(*args, "--total-steps", "256", "--engine", "head_hidden=64")
     assert code == 0, err
     assert "--engine is ignored" in err
@@ -131,6 +132,8 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     assert code == 2 and "unknown engine field" in err and "patch_el" in err
     code, _, err = invoke("train", "--env", "toy", "--engine", "patch_el=wide", "--device", "cpu")
     assert code == 2 and "patch_el expects int" in err
+    code, _, err = invoke("train", "--env", "toy", "--engine", "attention=flash", "--device", "cpu")
+    assert code == 2 and "attention expects one of sdpa, explicit" in err
     code, _, err = invoke(
         "bench", "train", "--env", "toy", "--engine", "temporal_core=gru", "--device", "cpu"
     )

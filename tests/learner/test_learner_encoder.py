@@ -1,4 +1,5 @@
-"""RayViTEncoder: shapes at the canonical 256×48, and fixed spherical positional encodings."""
+"""RayViTEncoder: shapes at the canonical 256×48, fixed spherical positional encodings, and the written-out
+attention against F.scaled_dot_product_attention."""
 
 from __future__ import annotations
 
@@ -6,9 +7,10 @@ from dataclasses import asdict
 
 import pytest
 import torch
+import torch.nn.functional as F
 
-from navi_learner.config import EngineConfig, TrainConfig
-from navi_learner.engine.encoder import RayViTEncoder, patchify, spherical_positions
+from navi_learner.config import EngineConfig, TrainConfig, engine_overrides
+from navi_learner.engine.encoder import RayViTEncoder, attention_explicit, patchify, spherical_positions
 
 
 def test_canonical_shapes() -> None:
@@ -89,3 +91,39 @@ def test_a_patch_longer_than_the_view_is_capped_at_it() -> None:
     assert EngineConfig(patch_size=32, patch_el=4).patch_for(16, 8) == (16, 4)
     with pytest.raises(ValueError, match="divisible"):
         EngineConfig(patch_size=16, patch_el=16).patch_for(24, 8)  # 24 rays: capped at 16, not a divisor
+
+
+def test_explicit_attention_is_the_same_function_as_sdpa() -> None:
+    g = torch.Generator().manual_seed(0)
+    q, k, v = (torch.randn(5, 4, 48, 32, generator=g) for _ in "qkv")  # (N, h, P, d)
+    ref = F.scaled_dot_product_attention(q, k, v)  # (N, h, P, d)
+    assert torch.allclose(attention_explicit(q, k, v), ref, atol=1e-5, rtol=0)
+    half = attention_explicit(*(t.bfloat16() for t in (q, k, v)))  # the softmax stays float32
+    assert half.dtype == torch.bfloat16 and torch.allclose(half.float(), ref, atol=0.05, rtol=0)
+
+
+def test_encoder_with_explicit_attention_matches_sdpa_in_value_and_gradient() -> None:
+    """The option changes how attention is computed, not the function: the same weights give the same
+    embedding and the same gradients, and a checkpoint loads into either."""
+    torch.manual_seed(0)
+    shape = (3, 32, 8)
+    fused = RayViTEncoder(shape, EngineConfig.tiny())
+    written = RayViTEncoder(shape, EngineConfig.tiny(attention="explicit"))
+    written.load_state_dict(fused.state_dict())
+    obs = torch.rand(6, *shape)  # (N, 3, Az, El)
+    outs, grads = [], []
+    for enc in (fused, written):
+        y = enc(obs)  # (N, D)
+        y.square().sum().backward()
+        outs.append(y.detach())
+        grads.append(torch.cat([p.grad.flatten() for p in enc.parameters()]))  # type: ignore[union-attr]
+    assert torch.allclose(outs[0], outs[1], atol=1e-5, rtol=0)
+    assert torch.allclose(grads[0], grads[1], atol=1e-4, rtol=1e-4)
+
+
+def test_engine_option_parses_the_attention_and_refuses_others() -> None:
+    assert engine_overrides(["attention=explicit"]) == {"attention": "explicit"}
+    with pytest.raises(ValueError, match="sdpa, explicit"):
+        engine_overrides(["attention=flash"])
+    with pytest.raises(ValueError, match="sdpa or explicit"):
+        RayViTEncoder((3, 32, 8), EngineConfig.tiny(attention="flash"))

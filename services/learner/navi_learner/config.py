@@ -14,6 +14,8 @@ import torch
 
 TemporalCoreName = Literal["mamba2", "gru", "mambapy"]
 TEMPORAL_CORES: tuple[TemporalCoreName, ...] = ("mamba2", "gru", "mambapy")
+AttentionName = Literal["sdpa", "explicit"]
+ATTENTIONS: tuple[AttentionName, ...] = ("sdpa", "explicit")
 
 
 @dataclass
@@ -29,7 +31,11 @@ class EngineConfig:
     encoder_layers: int = 2
     """Number of pre-norm transformer blocks in the RayViT encoder."""
     encoder_heads: int = 4
-    """Attention heads per encoder block (fused scaled_dot_product_attention)."""
+    """Attention heads per encoder block."""
+    attention: AttentionName = "sdpa"
+    """Encoder attention: sdpa (F.scaled_dot_product_attention, which picks a fused kernel) or explicit
+    (softmax(QKᵀ/√d)V written out, the softmax in float32, for torch.compile to fuse with its
+    neighbours). The same function; the weights and checkpoints do not depend on it."""
     mlp_ratio: int = 2
     """Hidden width of each encoder MLP as a multiple of D (2 keeps the encoder lean)."""
     temporal_core: TemporalCoreName = "mamba2"
@@ -106,6 +112,11 @@ def engine_overrides(items: Sequence[str]) -> dict[str, Any]:
             raise ValueError(f"--engine expects KEY=VALUE, got {item!r}")
         if key not in types:
             raise ValueError(f"unknown engine field {key!r}; known: {', '.join(sorted(types))}")
+        if key == "attention":
+            if value not in ATTENTIONS:
+                raise ValueError(f"--engine attention expects one of {', '.join(ATTENTIONS)}, got {value!r}")
+            out[key] = value
+            continue
         cast = int if types[key] in ("int", int) else float
         try:
             out[key] = cast(value)

@@ -5,8 +5,8 @@ differ by 0.005), so the encoder adds a log-depth channel, `near_field`, that sp
 contact, 0.67 at 1% of the horizon, 0 at the horizon). Non-overlapping patches of the four channels
 (16 azimuth × 16 elevation rays, 22.5° × 60°: 16×3 = 48 tokens at 256×48) are embedded linearly, a fixed
 spherical sin/cos positional encoding (computed once, a buffer, never trained) is added, a few lean
-pre-norm transformer blocks with fused attention (F.scaled_dot_product_attention) mix the tokens,
-and the mean token is projected to the embedding.
+pre-norm transformer blocks mix the tokens (attention by F.scaled_dot_product_attention, or written
+out: `EngineConfig.attention`), and the mean token is projected to the embedding.
 
 Ray layout (docs/ACTOR.md): azimuth bin a is at φ = 2π·a/Az (bin 0 straight ahead, increasing to
 the left); elevation bin e at θ = -π/2 + π·(e + 0.5)/El (bottom to top).
@@ -64,11 +64,21 @@ def near_field(depth: torch.Tensor) -> torch.Tensor:
     return torch.log(depth.clamp(0.0, 1.0) + NEAR_FIELD_EPS) * (1.0 / math.log(NEAR_FIELD_EPS))
 
 
-class Block(nn.Module):
-    """Pre-norm transformer block: fused multi-head attention and a GELU MLP."""
+def attention_explicit(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """softmax(q kᵀ / √d) v written out, the softmax in float32: q, k, v (N, h, P, d) -> (N, h, P, d).
+    The same function as F.scaled_dot_product_attention(q, k, v)."""
+    w = torch.matmul(q, k.transpose(-2, -1)).float() * (1.0 / math.sqrt(q.shape[-1]))  # (N, h, P, P) f32
+    return torch.matmul(w.softmax(dim=-1).to(v.dtype), v)  # (N, h, P, d)
 
-    def __init__(self, dim: int, heads: int, mlp_ratio: int) -> None:
+
+class Block(nn.Module):
+    """Pre-norm transformer block: multi-head attention and a GELU MLP."""
+
+    def __init__(self, dim: int, heads: int, mlp_ratio: int, attention: str = "sdpa") -> None:
         super().__init__()
+        if attention not in ("sdpa", "explicit"):
+            raise ValueError(f"attention must be sdpa or explicit, got {attention!r}")
+        self.attend = F.scaled_dot_product_attention if attention == "sdpa" else attention_explicit
         self.heads = heads
         self.norm1 = nn.LayerNorm(dim)
         self.qkv = nn.Linear(dim, 3 * dim)
@@ -81,7 +91,7 @@ class Block(nn.Module):
         n, p, d = x.shape
         qkv = self.qkv(self.norm1(x)).view(n, p, 3, self.heads, d // self.heads)  # (N, P, 3, h, D/h)
         q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # (N, h, P, D/h) each
-        att = F.scaled_dot_product_attention(q, k, v)  # (N, h, P, D/h)
+        att = self.attend(q, k, v)  # (N, h, P, D/h)
         x = x + self.proj(att.transpose(1, 2).reshape(n, p, d))  # (N, P, D)
         return x + self.fc2(F.gelu(self.fc1(self.norm2(x))))  # (N, P, D)
 
@@ -101,7 +111,8 @@ class RayViTEncoder(nn.Module):
             "pos", spherical_positions(az // pa, el // pe, cfg.embed_dim), persistent=False
         )  # (P, D) float32
         self.blocks = nn.ModuleList(
-            Block(cfg.embed_dim, cfg.encoder_heads, cfg.mlp_ratio) for _ in range(cfg.encoder_layers)
+            Block(cfg.embed_dim, cfg.encoder_heads, cfg.mlp_ratio, cfg.attention)
+            for _ in range(cfg.encoder_layers)
         )
         self.norm = nn.LayerNorm(cfg.embed_dim)
         self.out = nn.Linear(cfg.embed_dim, cfg.embed_dim)
