@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from navi_learner.config import EngineConfig
+from navi_learner.config import ATTENTIONS, EngineConfig
 
 
 def spherical_positions(az_patches: int, el_patches: int, dim: int) -> torch.Tensor:
@@ -76,8 +76,8 @@ class Block(nn.Module):
 
     def __init__(self, dim: int, heads: int, mlp_ratio: int, attention: str = "sdpa") -> None:
         super().__init__()
-        if attention not in ("sdpa", "explicit"):
-            raise ValueError(f"attention must be sdpa or explicit, got {attention!r}")
+        if attention not in ATTENTIONS:
+            raise ValueError(f"attention must be {' or '.join(ATTENTIONS)}, got {attention!r}")
         self.attend = F.scaled_dot_product_attention if attention == "sdpa" else attention_explicit
         self.heads = heads
         self.norm1 = nn.LayerNorm(dim)
