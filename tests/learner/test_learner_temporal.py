@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 
@@ -109,8 +111,6 @@ def test_gradients_flow_through_the_chunked_scan() -> None:
 def test_gru_step_follows_weights_loaded_copied_and_converted() -> None:
     """The written-out GRU step reads nn.GRU's own parameters: after load_state_dict, deepcopy and a
     dtype conversion it still equals the (nn.GRU) sequence pass of the module it belongs to."""
-    import copy
-
     torch.manual_seed(0)
     core, other = GRUCore(small("gru")), GRUCore(small("gru"))
     core.load_state_dict(other.state_dict())

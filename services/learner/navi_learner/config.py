@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
-from typing import Any, Literal
+from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 import torch
 
@@ -104,7 +104,8 @@ def engine_overrides(items: Sequence[str]) -> dict[str, Any]:
     """KEY=VALUE strings (a CLI's --engine) as EngineConfig fields of their declared type, e.g.
     ["patch_el=16", "encoder_heads=2"]; ValueError names an unknown field or a value of the wrong type.
     The temporal core has an option of its own (--temporal-core)."""
-    types = {f.name: f.type for f in fields(EngineConfig) if f.name != "temporal_core"}
+    hints = get_type_hints(EngineConfig)
+    types = {f.name: hints[f.name] for f in fields(EngineConfig) if f.name != "temporal_core"}
     out: dict[str, Any] = {}
     for item in items:
         key, sep, value = (part.strip() for part in item.partition("="))
@@ -112,12 +113,13 @@ def engine_overrides(items: Sequence[str]) -> dict[str, Any]:
             raise ValueError(f"--engine expects KEY=VALUE, got {item!r}")
         if key not in types:
             raise ValueError(f"unknown engine field {key!r}; known: {', '.join(sorted(types))}")
-        if key == "attention":
-            if value not in ATTENTIONS:
-                raise ValueError(f"--engine attention expects one of {', '.join(ATTENTIONS)}, got {value!r}")
+        if get_origin(types[key]) is Literal:  # a named choice, e.g. attention
+            choices = get_args(types[key])
+            if value not in choices:
+                raise ValueError(f"--engine {key} expects one of {', '.join(choices)}, got {value!r}")
             out[key] = value
             continue
-        cast = int if types[key] in ("int", int) else float
+        cast = int if types[key] is int else float
         try:
             out[key] = cast(value)
         except ValueError:

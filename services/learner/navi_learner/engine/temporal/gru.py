@@ -76,4 +76,4 @@ def gru_cell(
     r = torch.sigmoid(i_r + h_r)  # (N, Hg)
     z = torch.sigmoid(i_z + h_z)  # (N, Hg)
     n = torch.tanh(i_n + r * h_n)  # (N, Hg)
-    return (1.0 - z) * n + z * h.to(n.dtype)  # (N, Hg)
+    return (1.0 - z) * n + z * h  # (N, Hg)
