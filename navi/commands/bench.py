@@ -487,6 +487,15 @@ def bench_learn_cmd(
             "each GPU trains one run at a time.",
         ),
     ] = 0,
+    nproc: Annotated[
+        int,
+        typer.Option(
+            "--nproc",
+            min=1,
+            help="Train each run data-parallel (DD-PPO) on this many ranks through torchrun, one GPU each, "
+            "--actors per rank; rank 0 evaluates and its clock times the run.",
+        ),
+    ] = 1,
     resolution: Annotated[
         int, typer.Option("--resolution", help="Cells per cube edge of every scene.")
     ] = 512,
@@ -576,6 +585,7 @@ def bench_learn_cmd(
         compile=compile_encoder,
         parallel=parallel,
         gpus=gpus,
+        nproc=nproc,
         protocol=protocol,
         reward=tuple(overrides.items()),
         engine=tuple(engine_fields.items()),

@@ -318,3 +318,40 @@ def test_a_single_process_run_makes_no_collective_call(
     assert result.step_id == 2 * PER_RANK_UPDATE and "world_size" not in json.loads(
         (tmp_path / "run" / "manifests" / "run.json").read_text()
     )
+
+
+def test_bench_learn_trains_each_run_on_two_ranks(tmp_path: Path) -> None:
+    """`navi bench learn --nproc 2`: one run trained data-parallel, each rank on its own share of the
+    train scenes, rank 0 evaluating during training and at the end; steps count both ranks."""
+    from navi_env.corpus.folder import build_default_corpus
+
+    root = tmp_path / "corpora"
+    build_default_corpus(root / "procedural-train-64", resolution=64, count=2, seed=0)
+    build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
+    out = tmp_path / "out"
+    args = "bench learn --nproc 2 --seeds 1 --temporal-core gru --budget-s 2 --eval-every-s 1"
+    args += f" --actors {ACTORS} --rollout-length 16 --eval-actors 4 --eval-steps 16 --eval-episode-steps 8"
+    args += f" --resolution 64 --no-compile --device cpu --json --corpus-root {root} --out {out}"
+    args += f" --openarena {tmp_path / 'none.pk3'}"
+    done = subprocess.run(
+        [sys.executable, "-m", "navi", *args.split()],
+        cwd=tmp_path,
+        env=navi_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    saved = json.loads((out / "result.json").read_text())
+    assert "x 2 (each run data-parallel on 2 ranks)" in saved["device"] and saved["config"]["nproc"] == 2
+    (run,) = saved["runs"]
+    assert run["ranks"] == 2 and run["train_config"]["n_actors"] == ACTORS
+    assert run["steps"] > 0 and run["steps"] % (2 * ACTORS * 16) == 0  # both ranks' steps per update
+    assert run["train_s"] >= 2.0 and run["curve"] and run["curve"][-1]["step"] == run["steps"]
+    assert set(run["final_by_split"]) == {"procedural"}
+    manifest = json.loads((out / "runs" / "gru-seed0" / "manifests" / "run.json").read_text())
+    assert manifest["world_size"] == 2 and manifest["actors_per_rank"] == ACTORS
+    shares = [r["scenes"] for r in manifest["ranks"]]
+    assert shares == [["rooms_0000"], ["corridors_0001"]]  # scenes[rank::world]: disjoint, all of them
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["gru-seed0"]  # the job's files are gone
+    assert json.loads(done.stdout)["summary"]["gru"]["seeds"] == 1

@@ -11,6 +11,9 @@ Protocol (docs/TRAINING.md, "The learning benchmark"):
   1,000 steps and at least 1.5x its coverage) or at the time budget.
 - Report per run the training time and env steps to competence (null if never), the final metrics
   per unseen part with 95% bootstrap intervals, and per core the median over seeds.
+- With `nproc` > 1 every run trains data-parallel (DD-PPO, ppo/dist.py) on that many ranks through
+  torchrun, `actors` per rank, each rank on its share of the train scenes; rank 0 runs the monitor and
+  the final evaluation (run_ranks, rank_main), and its clock is the run's training time.
 Output folder: result.json, curves.json, learning_curves.png, report.md.
 """
 
@@ -18,7 +21,10 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
+import pickle
 import statistics
+import sys
 import time
 import zipfile
 from collections.abc import Callable
@@ -37,8 +43,16 @@ from navi_learner.evaluation.competence import (
     plot_curves,
 )
 from navi_learner.evaluation.evaluate import EvalMetrics, comparison_table, jsonable
+from navi_learner.ppo import dist as ddp
+from navi_learner.ppo.dist import Dist
 
 Say = Callable[[str], None]
+
+
+def say_stderr(line: str) -> None:
+    """Progress lines of a run (its evaluations) on stderr, so that stdout carries results only."""
+    print(line, file=sys.stderr, flush=True)
+
 
 HELD_OUT_EVERY = 5
 """Every fifth OpenArena map (sorted by name, from the first) is held out of training."""
@@ -86,6 +100,9 @@ class LearnConfig:
     gpus: int = 0
     """> 0: spread the runs round-robin over cuda:0 .. cuda:gpus-1, one process per run and at most
     `parallel` at once (so gpus = parallel = number of runs gives every run a GPU of its own)."""
+    nproc: int = 1
+    """> 1: every run trains data-parallel on this many ranks (one GPU each on CUDA), `actors` per rank;
+    the runs go one after another."""
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
     reward: tuple[tuple[str, float], ...] = ()
     """RewardConfig fields replaced in every env of the job (training, evaluation, baselines)."""
@@ -224,28 +241,33 @@ def run_one(
     device: str,
     run_dir: Path,
     baselines: dict[str, EvalMetrics],
-    say: Say = print,
+    say: Say = say_stderr,
+    dist: Dist | None = None,
 ) -> dict[str, Any]:
-    """Train one (core, seed) from scratch with the competence monitor; returns its result dict."""
+    """Train one (core, seed) from scratch with the competence monitor; returns its result dict. As a
+    rank of a data-parallel run (`dist`), this rank trains its actors on its share of the train scenes;
+    rank 0 alone evaluates and returns the result (the other ranks return {})."""
     from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
     from navi_learner.ppo.train import train
 
+    d = dist or Dist()
     dev = torch.device(device)
     tcfg = train_config(cfg, core, seed, dev)
     reward = dict(cfg.reward)
     env = make_env(
-        splits.train, tcfg.n_actors, device, seed, reward=reward, obstacles=cfg.obstacles, squad=cfg.squad,
-        task=cfg.task,
+        splits.train, tcfg.n_actors, device, seed + d.rank, reward=reward, obstacles=cfg.obstacles,
+        squad=cfg.squad, task=cfg.task, rank=d.rank, world=d.world,
     )  # fmt: skip
-    unseen = eval_env(splits.unseen, cfg, device)
-    monitor = CompetenceMonitor(
-        unseen,
-        cfg.protocol,
-        cfg.eval_every_s,
-        cfg.stop_at_competence,
-        say=lambda line: say(f"[{core} seed {seed}] {line}"),
-        baselines=baselines,
-    )
+    monitor = None
+    if d.main:
+        monitor = CompetenceMonitor(
+            eval_env(splits.unseen, cfg, device),
+            cfg.protocol,
+            cfg.eval_every_s,
+            cfg.stop_at_competence,
+            say=lambda line: say(f"[{core} seed {seed}] {line}"),
+            baselines=baselines,
+        )
     started = time.perf_counter()
     result = train(
         env,
@@ -254,7 +276,10 @@ def run_one(
         corpus_summary=corpus_summary(splits.train, "sdfdag"),
         progress=False,
         monitor=monitor,
+        dist=d,
     )
+    if monitor is None:
+        return {}
     trained = CheckpointPolicy(result.final_checkpoint, dev)
     if (
         not monitor.curve or monitor.curve[-1]["step"] != result.step_id
@@ -278,6 +303,7 @@ def run_one(
         "curve": monitor.curve,
         "final_by_split": final,
         "train_config": tcfg.to_dict(),
+        "ranks": d.world,
     }
 
 
@@ -321,6 +347,52 @@ def _child(args: tuple[Splits, LearnConfig, str, int, str, Path, dict[str, EvalM
     if device.startswith("cuda:"):
         torch.cuda.set_device(torch.device(device))  # extensions and graphs use the current device
     return run_one(splits, cfg, core, seed, device, run_dir, baselines)
+
+
+RANK_ENTRY = ["-m", "navi_learner.evaluation.bench_learn_rank"]
+"""How torchrun starts a rank of a data-parallel run (bench_learn_rank.py calls rank_main)."""
+
+
+def run_ranks(
+    args: tuple[Splits, LearnConfig, str, int, str, Path, dict[str, EvalMetrics]], nproc: int
+) -> dict[str, Any]:
+    """One run of the job (as _child's args) on nproc data-parallel ranks through torchrun: the job goes
+    to a file beside the run folder, rank 0 writes the run's result next to it."""
+    core, seed, run_dir = args[2], args[3], args[5]
+    job = run_dir.parent / f"{run_dir.name}.job"
+    answer = run_dir.parent / f"{run_dir.name}.result.json"
+    job.parent.mkdir(parents=True, exist_ok=True)
+    answer.unlink(missing_ok=True)
+    job.write_bytes(pickle.dumps(args))
+    # the others wait in a collective while rank 0 evaluates (its first evaluation compiles): 300 s
+    env = {ddp.TIMEOUT_ENV: "300", **os.environ}
+    code = ddp.relaunch(nproc, [str(job)], env=env, entry=RANK_ENTRY)
+    if code != 0 or not answer.is_file():
+        raise RuntimeError(
+            f"the {nproc}-rank run of {core} seed {seed} failed with exit code {code} (its error is above)"
+        )
+    result = dict(json.loads(answer.read_text()))
+    job.unlink()
+    answer.unlink()  # the run's result lives on in result.json
+    return result
+
+
+def rank_main(job: Path) -> None:
+    """A rank of run_ranks' run (started by torchrun): join the process group, train this rank's share,
+    and on rank 0 write the run's result beside the job file."""
+    splits, cfg, core, seed, device, run_dir, baselines = pickle.loads(job.read_bytes())
+    d, dev = ddp.setup(device)
+    code = 0
+    try:
+        result = run_one(splits, cfg, core, seed, dev, run_dir, baselines, dist=d)
+        if d.main:
+            (run_dir.parent / f"{run_dir.name}.result.json").write_text(json.dumps(jsonable(result)))
+    except ddp.DistError as err:
+        print(f"error: {err}", file=sys.stderr)
+        code = 1
+    finally:
+        ddp.shutdown(d)
+    ddp.leave(d, code)
 
 
 def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
@@ -404,6 +476,16 @@ def bench_learn(
     for core in cfg.temporal_cores:
         if core not in TEMPORAL_CORES:
             raise ValueError(f"unknown temporal core {core!r}; choose from {', '.join(TEMPORAL_CORES)}")
+    if cfg.nproc < 1:
+        raise ValueError(f"nproc must be at least 1, got {cfg.nproc}")
+    if cfg.nproc > 1 and (cfg.parallel > 1 or cfg.gpus > 0):
+        raise ValueError(
+            "--nproc trains each run on several ranks, one run at a time: leave out --parallel and --gpus"
+        )
+    if cfg.nproc > 1 and device.startswith("cuda") and torch.cuda.device_count() < cfg.nproc:
+        raise ValueError(
+            f"--nproc {cfg.nproc} needs {cfg.nproc} GPUs; this machine has {torch.cuda.device_count()}"
+        )
     out.mkdir(parents=True, exist_ok=True)
     splits = prepare_splits(
         corpus_root, resolution, device, pk3, say=say, procedural_share=cfg.procedural_share
@@ -419,7 +501,9 @@ def bench_learn(
         for (core, seed), place in zip(runs_wanted, places, strict=True)
     ]
     started = time.perf_counter()
-    if cfg.parallel > 1:
+    if cfg.nproc > 1:
+        runs = [run_ranks(job, cfg.nproc) for job in jobs]
+    elif cfg.parallel > 1:
         with multiprocessing.get_context("spawn").Pool(cfg.parallel) as pool:
             runs = pool.map(_child, jobs)
     else:
@@ -427,7 +511,8 @@ def bench_learn(
     notes = list(splits.notes)
     result: dict[str, Any] = {
         "device": (torch.cuda.get_device_name() if device.startswith("cuda") else "cpu")
-        + (f" x {cfg.gpus} (one run per GPU at a time)" if cfg.gpus > 0 else ""),
+        + (f" x {cfg.gpus} (one run per GPU at a time)" if cfg.gpus > 0 else "")
+        + (f" x {cfg.nproc} (each run data-parallel on {cfg.nproc} ranks)" if cfg.nproc > 1 else ""),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "config": asdict(replace(cfg, seeds=list(cfg.seeds), temporal_cores=list(cfg.temporal_cores))),  # type: ignore[arg-type]
         "reward": asdict(reward_config(dict(cfg.reward))),

@@ -326,24 +326,28 @@ def entry_argv() -> list[str]:
     return ["-m", "navi"]
 
 
-def torchrun_argv(nproc: int, args: list[str]) -> list[str]:
-    """`python -m torch.distributed.run --standalone --nproc-per-node N <entry> args`."""
+def torchrun_argv(nproc: int, args: list[str], entry: list[str] | None = None) -> list[str]:
+    """`python -m torch.distributed.run --standalone --nproc-per-node N <entry> args`; the entry is this
+    program (entry_argv) unless given (e.g. ["-m", "some.module"])."""
     return [
         sys.executable,
         "-m",
         "torch.distributed.run",
         "--standalone",
         f"--nproc-per-node={nproc}",
-        *entry_argv(),
+        *(entry_argv() if entry is None else entry),
         *args,
     ]
 
 
-def relaunch(nproc: int, args: list[str], env: dict[str, str] | None = None) -> int:
-    """Run `args` (this program's arguments without --nproc) on nproc ranks through torchrun; returns
-    its exit code. Ctrl+C reaches torchrun and the ranks from the terminal, so this process ignores
-    SIGINT while it waits; SIGTERM is passed on to torchrun, which passes it on to the ranks."""
-    proc = subprocess.Popen(torchrun_argv(nproc, args), env=env)
+def relaunch(
+    nproc: int, args: list[str], env: dict[str, str] | None = None, entry: list[str] | None = None
+) -> int:
+    """Run `args` (this program's arguments without --nproc, or those of `entry`) on nproc ranks through
+    torchrun; returns its exit code. Ctrl+C reaches torchrun and the ranks from the terminal, so this
+    process ignores SIGINT while it waits; SIGTERM is passed on to torchrun, which passes it on to the
+    ranks."""
+    proc = subprocess.Popen(torchrun_argv(nproc, args, entry), env=env)
     main = threading.current_thread() is threading.main_thread()
     previous = {}
     if main:

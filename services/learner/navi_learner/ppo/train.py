@@ -686,7 +686,8 @@ def train(
                 t_call = time.perf_counter()
                 stopped = monitor(policy, st.step_id, clock.train_s())
                 clock.pause(time.perf_counter() - t_call)
-            if cfg.time_limit_s > 0 and clock.train_s() >= cfg.time_limit_s:
+            # the budget by rank 0's clock: only it leaves the monitor's time out (the others wait then)
+            if cfg.time_limit_s > 0 and d.main and clock.train_s() >= cfg.time_limit_s:
                 stopped = True
             if should_stop is not None and should_stop():
                 interrupted = True
