@@ -107,8 +107,27 @@ def test_bench_trace_prints_one_json_object(scene_file: Path) -> None:
     assert result["rays_per_agent"] == 256 and result["agents"] == 4
     assert result["grays_per_s"] > 0 and result["observations_per_s"] > 0
     assert 1.0 <= result["mean_steps"] <= result["p99_steps"] <= 256
+    assert result["mean_steps"] <= result["warp_steps"] <= result["max_steps"]  # a warp: its longest ray
+    assert result["warp_efficiency"] == pytest.approx(result["mean_steps"] / result["warp_steps"])
     assert result["hit_fraction"] == 1.0  # agents at spawns inside a closed room
     assert result["bytes_per_scene"] == load_scene(scene_file).infos[0].nbytes
+
+
+@pytest.mark.parametrize("rays", [64, 70])
+@pytest.mark.parametrize("ordered", [False, True])
+def test_warp_steps_charge_each_ray_its_warps_longest(rays: int, ordered: bool) -> None:
+    from navi_env.tracer.bench import warp_steps, warp_steps_ref
+
+    gen = torch.Generator().manual_seed(rays)
+    steps = torch.randint(1, 40, (3, rays), generator=gen, dtype=torch.int32)  # (B, R) int32
+    order = torch.randperm(rays, generator=gen).to(torch.int32) if ordered else None  # (R,) int32
+    assert warp_steps(steps, order) == pytest.approx(warp_steps_ref(steps, order))
+    assert warp_steps(steps, order) >= steps.float().mean()
+    even = torch.full((2, rays), 7, dtype=torch.int32)  # every ray equally long: nothing is wasted
+    assert warp_steps(even, order) == pytest.approx(7.0)
+    one_long = torch.ones(1, 64, dtype=torch.int32)  # (1, 64): one long ray in the first warp
+    one_long[0, 5] = 33
+    assert warp_steps(one_long, None) == pytest.approx((32 * 33 + 32 * 1) / 64)
 
 
 def test_spherical_pattern_layout() -> None:
@@ -156,7 +175,14 @@ def test_bench_trace_over_a_folder_summarises_every_map(tmp_path: Path) -> None:
     assert [r["scene"] for r in rows] == ["big", "mid", "small"] and summary["maps"] == 3
     for r in rows:
         assert r["dense_ratio"] == 4 * r["resolution"] ** 3 / r["bytes_per_scene"]
-    for key in ("grays_per_s", "mean_steps", "p99_steps", "bytes_per_scene", "dense_ratio"):
+    for key in (
+        "grays_per_s",
+        "mean_steps",
+        "p99_steps",
+        "warp_efficiency",
+        "bytes_per_scene",
+        "dense_ratio",
+    ):
         values = sorted(r[key] for r in rows)
         s = summary[key]
         assert (s["min"], s["median"], s["max"]) == (values[0], values[1], values[2]), key

@@ -66,6 +66,8 @@ class TraceBenchResult:
     observations_per_s: float  # agents x launches per second
     mean_steps: float  # main-loop steps per ray
     p99_steps: float
+    warp_steps: float  # per ray, the steps of the longest ray of its warp (32 rays in the launch's order)
+    warp_efficiency: float  # mean_steps / warp_steps: the share of a warp's step slots that do work
     hit_fraction: float
     ray_order: str  # "tiled 16x2" or "pattern"
     bytes_per_scene: int
@@ -122,6 +124,35 @@ def free_positions(corpus: SceneCorpus, count: int, clearance: float, gen: torch
     raise ValueError(f"scene {info.name}: found only {total} free points with clearance {clearance:.3g} m")
 
 
+WARP = 32
+"""Rays side by side in one GPU warp (consecutive work items of a launch)."""
+
+
+def warp_steps(steps: torch.Tensor, order: torch.Tensor | None) -> float:
+    """Mean over rays of the step count of the longest ray in its warp: steps (B, R) int32 per ray in
+    pattern order; order (R,) the launch's ray order (work item j traces ray order[j]) or None. A warp
+    takes as many steps as its longest ray, so mean_steps / warp_steps is the share of lane-steps that
+    trace (1: every ray of every warp equally long). A last partial warp counts its own rays only."""
+    s = (steps if order is None else steps[:, order.long()]).float()  # (B, R) in launch order
+    b, r = s.shape
+    full = r // WARP * WARP
+    longest = s[:, :full].view(b, -1, WARP).amax(-1) * WARP  # (B, R // 32): longest x rays of the warp
+    total = longest.sum() + (s[:, full:].amax(-1).sum() * (r - full) if full < r else 0.0)
+    return float(total) / (b * r)
+
+
+def warp_steps_ref(steps: torch.Tensor, order: torch.Tensor | None) -> float:
+    """Slow twin of warp_steps: each ray, one at a time, charged its warp's longest ray."""
+    b, r = steps.shape
+    total = 0.0
+    for actor in range(b):
+        items = [int(order[j]) if order is not None else j for j in range(r)]
+        for j in range(r):
+            start = j // WARP * WARP
+            total += max(int(steps[actor, k]) for k in items[start : min(start + WARP, r)])
+    return total / (b * r)
+
+
 def _time_launches(fn: object, device: torch.device, launches: int) -> float:
     """Seconds per launch of fn() averaged over `launches` back-to-back calls."""
     if device.type == "cuda":
@@ -163,10 +194,11 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
               skip_direction_validation=True, prims=prims_or_none, hit_slope=cfg.hit_slope)  # fmt: skip
 
     trace(corpus, agents.scene_ids, agents.origins, dirs, yaw=agents.yaw, out_depth=depth, out_semantic=semantic,
-          out_steps=steps, max_steps=cfg.max_steps, horizon=cfg.horizon, prims=prims_or_none,
+          out_steps=steps, ray_order=order, max_steps=cfg.max_steps, horizon=cfg.horizon, prims=prims_or_none,
           hit_slope=cfg.hit_slope)  # fmt: skip
     obstacle_hits = float((semantic == obstacles.OBSTACLE_CLASS + 1).float().mean()) if moving else 0.0
     step_counts = steps.flatten().float()  # (B*R,)
+    per_warp = warp_steps(steps, order)
     for _ in range(cfg.warmup):
         launch()
     seconds = _time_launches(launch, dev, cfg.launches)
@@ -188,6 +220,8 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
         observations_per_s=b / seconds,
         mean_steps=float(step_counts.mean()),
         p99_steps=float(torch.quantile(sampled, 0.99)),
+        warp_steps=per_warp,
+        warp_efficiency=float(step_counts.mean()) / per_warp if per_warp > 0 else 1.0,
         hit_fraction=float((semantic > 0).float().mean()),
         ray_order="tiled 16x2" if cfg.tiled_order else "pattern",
         bytes_per_scene=info.nbytes,
@@ -238,7 +272,8 @@ def bench_trace_maps(
         rows.append(row)
         say(
             f"[{i + 1}/{len(paths)}] {r.scene}: {r.grays_per_s:.2f} G rays/s, {r.mean_steps:.1f} mean / "
-            f"{r.p99_steps:.0f} p99 steps, {r.bytes_per_scene / 1e6:.1f} MB ({row['dense_ratio']:.0f}x dense)"
+            f"{r.p99_steps:.0f} p99 / {r.warp_steps:.1f} warp steps, {r.bytes_per_scene / 1e6:.1f} MB "
+            f"({row['dense_ratio']:.0f}x dense)"
         )
         del corpus
         if torch.device(cfg.device).type == "cuda":
@@ -269,6 +304,7 @@ def summarise_maps(rows: list[dict[str, object]]) -> dict[str, object]:
         "grays_per_s": spread("grays_per_s"),
         "mean_steps": spread("mean_steps"),
         "p99_steps": spread("p99_steps"),
+        "warp_efficiency": spread("warp_efficiency"),
         "bytes_per_scene": spread("bytes_per_scene"),
         "dense_ratio": spread("dense_ratio"),
         "below_target_grays": below("grays_per_s", TARGET_GRAYS),
