@@ -550,7 +550,7 @@ def bench_learn_cmd(
     from navi_env.sim.config import TASKS
     from navi_learner.config import engine_overrides
     from navi_learner.envs.factory import parse_reward_overrides
-    from navi_learner.evaluation.bench_learn import LearnConfig, bench_learn
+    from navi_learner.evaluation.bench_learn import LearnConfig, RankRunError, bench_learn
     from navi_learner.evaluation.competence import EvalProtocol
     from navi_learner.evaluation.evaluate import jsonable
 
@@ -599,7 +599,7 @@ def bench_learn_cmd(
         result = bench_learn(
             cfg, folder, dev, resolution, corpus_root, openarena, say=lambda m: typer.echo(m, err=True)
         )
-    except ValueError as err:
+    except (ValueError, RankRunError) as err:
         raise fail(str(err)) from err
     summary = {"out": str(folder), "summary": jsonable(result["summary"])}
     if record is not None:

@@ -355,3 +355,20 @@ def test_bench_learn_trains_each_run_on_two_ranks(tmp_path: Path) -> None:
     assert shares == [["rooms_0000"], ["corridors_0001"]]  # scenes[rank::world]: disjoint, all of them
     assert sorted(p.name for p in (out / "runs").iterdir()) == ["gru-seed0"]  # the job's files are gone
     assert json.loads(done.stdout)["summary"]["gru"]["seeds"] == 1
+
+
+def test_bench_learn_nproc_refuses_what_it_cannot_do(tmp_path: Path) -> None:
+    """--nproc with --parallel or --gpus: one clear line, exit status 2, before any corpus is built."""
+    from typer.testing import CliRunner
+
+    from navi.cli import build_app
+
+    base = f"bench learn --nproc 2 --out {tmp_path / 'out'} --corpus-root {tmp_path / 'none'}".split()
+    cases = [
+        (["--parallel", "2", "--device", "cpu"], "leave out --parallel and --gpus"),
+        (["--gpus", "2", "--device", "cpu"], "leave out --parallel and --gpus"),
+    ]
+    for extra, said in cases:
+        result = CliRunner().invoke(build_app(), [*base, *extra])
+        assert result.exit_code == 2 and said in result.output, result.output
+        assert not (tmp_path / "none").exists()  # refused before any corpus is built

@@ -353,14 +353,22 @@ RANK_ENTRY = ["-m", "navi_learner.evaluation.bench_learn_rank"]
 """How torchrun starts a rank of a data-parallel run (bench_learn_rank.py calls rank_main)."""
 
 
+class RankRunError(RuntimeError):
+    """A data-parallel run of the job ended without a result (its ranks' error is on stderr)."""
+
+
+def rank_files(run_dir: Path) -> tuple[Path, Path]:
+    """(job, result) files of a data-parallel run, beside its run folder."""
+    return run_dir.parent / f"{run_dir.name}.job", run_dir.parent / f"{run_dir.name}.result.json"
+
+
 def run_ranks(
     args: tuple[Splits, LearnConfig, str, int, str, Path, dict[str, EvalMetrics]], nproc: int
 ) -> dict[str, Any]:
     """One run of the job (as _child's args) on nproc data-parallel ranks through torchrun: the job goes
     to a file beside the run folder, rank 0 writes the run's result next to it."""
     core, seed, run_dir = args[2], args[3], args[5]
-    job = run_dir.parent / f"{run_dir.name}.job"
-    answer = run_dir.parent / f"{run_dir.name}.result.json"
+    job, answer = rank_files(run_dir)
     job.parent.mkdir(parents=True, exist_ok=True)
     answer.unlink(missing_ok=True)
     job.write_bytes(pickle.dumps(args))
@@ -368,7 +376,7 @@ def run_ranks(
     env = {ddp.TIMEOUT_ENV: "300", **os.environ}
     code = ddp.relaunch(nproc, [str(job)], env=env, entry=RANK_ENTRY)
     if code != 0 or not answer.is_file():
-        raise RuntimeError(
+        raise RankRunError(
             f"the {nproc}-rank run of {core} seed {seed} failed with exit code {code} (its error is above)"
         )
     result = dict(json.loads(answer.read_text()))
@@ -386,7 +394,7 @@ def rank_main(job: Path) -> None:
     try:
         result = run_one(splits, cfg, core, seed, dev, run_dir, baselines, dist=d)
         if d.main:
-            (run_dir.parent / f"{run_dir.name}.result.json").write_text(json.dumps(jsonable(result)))
+            rank_files(run_dir)[1].write_text(json.dumps(jsonable(result)))
     except ddp.DistError as err:
         print(f"error: {err}", file=sys.stderr)
         code = 1
