@@ -51,6 +51,12 @@ def torchrun(*args: str) -> list[str]:
     return [*TORCHRUN, "-m", "navi", *args]
 
 
+def run_navi(args: list[str], cwd: Path, timeout: float) -> subprocess.CompletedProcess[str]:
+    """`python -m navi ARGS` in cwd with this checkout's packages, output captured."""
+    cmd = [sys.executable, "-m", "navi", *args]
+    return subprocess.run(cmd, cwd=cwd, env=navi_env(), capture_output=True, text=True, timeout=timeout)
+
+
 def run_folder(cwd: Path) -> Path:
     (run,) = (cwd / "artifacts" / "runs").iterdir()
     return run
@@ -239,14 +245,7 @@ def test_one_update_on_two_ranks_equals_one_update_on_the_union(tmp_path: Path) 
 
 def test_bench_train_nproc_reports_ranks_totals_and_scaling(tmp_path: Path) -> None:
     args = ["bench", "train", *TRAIN_ARGS, "--updates", "1", "--nproc", "2", "--json"]
-    out = subprocess.run(
-        [sys.executable, "-m", "navi", *args],
-        cwd=tmp_path,
-        env=navi_env(),
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
+    out = run_navi(args, tmp_path, 240)
     assert out.returncode == 0, out.stderr[-3000:]
     report: dict[str, Any] = json.loads(out.stdout)
     assert report["nproc"] == 2 and [r["rank"] for r in report["ranks"]] == [0, 1]
@@ -333,14 +332,7 @@ def test_bench_learn_trains_each_run_on_two_ranks(tmp_path: Path) -> None:
     args += f" --actors {ACTORS} --rollout-length 16 --eval-actors 4 --eval-steps 16 --eval-episode-steps 8"
     args += f" --resolution 64 --no-compile --device cpu --json --corpus-root {root} --out {out}"
     args += f" --openarena {tmp_path / 'none.pk3'}"
-    done = subprocess.run(
-        [sys.executable, "-m", "navi", *args.split()],
-        cwd=tmp_path,
-        env=navi_env(),
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    done = run_navi(args.split(), tmp_path, 300)
     assert done.returncode == 0, done.stderr[-3000:]
     saved = json.loads((out / "result.json").read_text())
     assert "x 2 (each run data-parallel on 2 ranks)" in saved["device"] and saved["config"]["nproc"] == 2

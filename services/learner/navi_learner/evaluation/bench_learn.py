@@ -30,7 +30,7 @@ import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -342,11 +342,22 @@ def run_devices(device: str, gpus: int, runs: int) -> list[str]:
     return [f"cuda:{i % gpus}" for i in range(runs)]
 
 
-def _child(args: tuple[Splits, LearnConfig, str, int, str, Path, dict[str, EvalMetrics]]) -> dict[str, Any]:
-    splits, cfg, core, seed, device, run_dir, baselines = args
-    if device.startswith("cuda:"):
-        torch.cuda.set_device(torch.device(device))  # extensions and graphs use the current device
-    return run_one(splits, cfg, core, seed, device, run_dir, baselines)
+class RunJob(NamedTuple):
+    """One (core, seed) run of the job: what a process needs to train and evaluate it."""
+
+    splits: Splits
+    cfg: LearnConfig
+    core: str
+    seed: int
+    device: str
+    run_dir: Path
+    baselines: dict[str, EvalMetrics]
+
+
+def _child(job: RunJob) -> dict[str, Any]:
+    if job.device.startswith("cuda:"):
+        torch.cuda.set_device(torch.device(job.device))  # extensions and graphs use the current device
+    return run_one(*job)
 
 
 RANK_ENTRY = ["-m", "navi_learner.evaluation.bench_learn_rank"]
@@ -362,22 +373,19 @@ def rank_files(run_dir: Path) -> tuple[Path, Path]:
     return run_dir.parent / f"{run_dir.name}.job", run_dir.parent / f"{run_dir.name}.result.json"
 
 
-def run_ranks(
-    args: tuple[Splits, LearnConfig, str, int, str, Path, dict[str, EvalMetrics]], nproc: int
-) -> dict[str, Any]:
-    """One run of the job (as _child's args) on nproc data-parallel ranks through torchrun: the job goes
-    to a file beside the run folder, rank 0 writes the run's result next to it."""
-    core, seed, run_dir = args[2], args[3], args[5]
-    job, answer = rank_files(run_dir)
+def run_ranks(run: RunJob, nproc: int) -> dict[str, Any]:
+    """One run of the job on nproc data-parallel ranks through torchrun: the job goes to a file beside
+    the run folder, rank 0 writes the run's result next to it."""
+    job, answer = rank_files(run.run_dir)
     job.parent.mkdir(parents=True, exist_ok=True)
     answer.unlink(missing_ok=True)
-    job.write_bytes(pickle.dumps(args))
+    job.write_bytes(pickle.dumps(run))
     # the others wait in a collective while rank 0 evaluates (its first evaluation compiles): 300 s
     env = {ddp.TIMEOUT_ENV: "300", **os.environ}
     code = ddp.relaunch(nproc, [str(job)], env=env, entry=RANK_ENTRY)
     if code != 0 or not answer.is_file():
         raise RankRunError(
-            f"the {nproc}-rank run of {core} seed {seed} failed with exit code {code} (its error is above)"
+            f"the {nproc}-rank run of {run.core} seed {run.seed} failed with exit code {code} (its error is above)"
         )
     result = dict(json.loads(answer.read_text()))
     job.unlink()
@@ -388,13 +396,13 @@ def run_ranks(
 def rank_main(job: Path) -> None:
     """A rank of run_ranks' run (started by torchrun): join the process group, train this rank's share,
     and on rank 0 write the run's result beside the job file."""
-    splits, cfg, core, seed, device, run_dir, baselines = pickle.loads(job.read_bytes())
-    d, dev = ddp.setup(device)
+    run: RunJob = pickle.loads(job.read_bytes())
+    d, dev = ddp.setup(run.device)
     code = 0
     try:
-        result = run_one(splits, cfg, core, seed, dev, run_dir, baselines, dist=d)
+        result = run_one(*run._replace(device=dev), dist=d)
         if d.main:
-            rank_files(run_dir)[1].write_text(json.dumps(jsonable(result)))
+            rank_files(run.run_dir)[1].write_text(json.dumps(jsonable(result)))
     except ddp.DistError as err:
         print(f"error: {err}", file=sys.stderr)
         code = 1
@@ -505,7 +513,7 @@ def bench_learn(
     runs_wanted = [(core, seed) for core in cfg.temporal_cores for seed in cfg.seeds]
     places = run_devices(device, cfg.gpus, len(runs_wanted))
     jobs = [
-        (splits, cfg, core, seed, place, out / "runs" / f"{core}-seed{seed}", baselines["all"])
+        RunJob(splits, cfg, core, seed, place, out / "runs" / f"{core}-seed{seed}", baselines["all"])
         for (core, seed), place in zip(runs_wanted, places, strict=True)
     ]
     started = time.perf_counter()
