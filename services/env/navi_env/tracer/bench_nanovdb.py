@@ -8,8 +8,9 @@ within `band` voxels of the surface, values clamped to +-band and `band` voxels 
 tiles, float32 (the one value type Warp allocates and writes on the device). A Warp kernel
 (`nanovdb_kernel.march`) traces the same world-space rays with trilinear samples and Navi's step and
 hit rules, but without its far-cube skips: in free space it steps by at most the band. That is what a
-narrow-band level set without hierarchical skipping (HDDA) costs; no package that offers a NanoVDB ray
-marcher with HDDA (such as fVDB) is available here.
+narrow-band level set without hierarchical skipping (HDDA) costs. fVDB's HDDA ray query ships as
+source only (`fvdb-core`, whose CMake build downloads NanoVDB and its other dependencies), so it is not
+measured here.
 
 Only when `warp` (warp-lang) imports; otherwise `NanoVDBUnavailable` with the reason.
 
