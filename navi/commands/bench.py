@@ -37,6 +37,7 @@ from navi.commands.compiler import (
 )
 from navi.commands.learner import (
     CompileRolloutOpt,
+    CompileUpdateOpt,
     EngineOpt,
     MaxMinibatchOpt,
     ObsStorageOpt,
@@ -456,6 +457,7 @@ def bench_learn_cmd(
     ] = 3e-4,
     target_kl: TargetKlOpt = 0.0,
     compile_rollout: CompileRolloutOpt = True,
+    compile_update: CompileUpdateOpt = False,
     max_minibatch: Annotated[
         int,
         typer.Option(
@@ -581,6 +583,7 @@ def bench_learn_cmd(
         lr=lr,
         target_kl=target_kl,
         compile_rollout=compile_rollout,
+        compile_update=compile_update,
         max_minibatch=max_minibatch,
         compile=compile_encoder,
         parallel=parallel,
@@ -626,6 +629,7 @@ def bench_train_cmd(
         bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
     ] = True,
     compile_rollout: CompileRolloutOpt = True,
+    compile_update: CompileUpdateOpt = False,
     obs_storage: ObsStorageOpt = "auto",
     max_minibatch: MaxMinibatchOpt = 8_192,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
@@ -671,7 +675,7 @@ def bench_train_cmd(
             )  # fmt: skip
             n = actors or default_actors(torch.device(dev))
             environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)
-            cfg = replace(cfg, n_actors=n, compile_rollout=compile_rollout)
+            cfg = replace(cfg, n_actors=n, compile_rollout=compile_rollout, compile_update=compile_update)
             result = bench_train(environment, cfg, updates=updates, dist=d)
         except (dist.DistError, StorageError) as err:
             raise fail(str(err)) from err

@@ -67,6 +67,15 @@ CompileRolloutOpt = Annotated[
         "actor counts). --no-compile-rollout compiles the encoder alone.",
     ),
 ]
+CompileUpdateOpt = Annotated[
+    bool,
+    typer.Option(
+        "--compile-update/--no-compile-update",
+        help="With --compile on CUDA, compile each PPO minibatch's objective (the policy's sequence pass, "
+        "the PPO and RND losses) and its backward as one graph; --no-compile-update compiles the "
+        "encoder alone there.",
+    ),
+]
 EngineOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -309,6 +318,7 @@ def train(
     ] = 5e-4,
     target_kl: TargetKlOpt = 0.0,
     compile_rollout: CompileRolloutOpt = True,
+    compile_update: CompileUpdateOpt = False,
     total_steps: TotalStepsOpt = 1_000_000,
     time_limit: Annotated[
         float, typer.Option("--time-limit-s", min=0.0, help="Training-seconds budget (0: none).")
@@ -369,7 +379,13 @@ def train(
             engine,
             target_kl,
         )
-        cfg = replace(cfg, time_limit_s=time_limit, task=task, compile_rollout=compile_rollout)
+        cfg = replace(
+            cfg,
+            time_limit_s=time_limit,
+            task=task,
+            compile_rollout=compile_rollout,
+            compile_update=compile_update,
+        )
         resume, cfg = resume_choice(checkpoint, fresh, cfg)
         if resume is not None and engine:
             typer.echo(f"note: --engine is ignored: the engine comes from {resume}", err=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -12,7 +13,7 @@ from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.ppo.loss import ppo_loss
 from navi_learner.ppo.rollout import RolloutStorage
-from navi_learner.ppo.train import adapt_lr, update
+from navi_learner.ppo.train import adapt_lr, compile_graph, make_objective, ppo_objective, update
 
 
 def test_ppo_loss_hand_computed() -> None:
@@ -67,8 +68,9 @@ def test_ppo_loss_advantage_normalisation() -> None:
     assert abs(float(m1["policy_loss"])) < 1e-6
 
 
-def tiny_setup() -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
+def tiny_setup(core: str = "mamba2") -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
     eng = EngineConfig(
+        temporal_core=core,
         embed_dim=16,
         patch_size=4,
         encoder_layers=1,
@@ -218,3 +220,91 @@ def test_update_adapts_the_rate_once_per_minibatch(fused: bool) -> None:
     assert float(opt.param_groups[0]["lr"]) == pytest.approx(1e-3 * 1.5**steps, rel=1e-5)
     mean_rate = sum(1e-3 * 1.5**k for k in range(1, steps + 1)) / steps
     assert float(metrics["lr"]) == pytest.approx(mean_rate, rel=1e-5)
+
+
+@pytest.mark.parametrize("core", ["mamba2", "gru"])
+def test_the_compiled_objective_updates_as_the_eager_one_does(core: str) -> None:
+    """`--compile-update` traces each minibatch's objective (sequence pass, PPO and RND losses; one graph
+    with mamba2, the gru's per-episode segments break it) and its backward: traced here with the
+    aot_eager backend (the CPU runs the same graphs without code generation), one update (2 minibatches)
+    leaves the same weights and metrics as eager."""
+    results = []
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        policy, buf, cfg = tiny_setup(core)
+        objective = ppo_objective(policy, cfg, norm_adv=True)
+        if compiled:
+            objective = compile_graph(objective, backend="aot_eager", fullgraph=core == "mamba2")
+        metrics, skipped = update(
+            policy, adam(policy, False), buf, cfg, torch.Generator().manual_seed(0), objective=objective
+        )
+        results.append((skipped, metrics, policy.state_dict()))
+    (skip_a, ma, a), (skip_b, mb, b) = results
+    assert skip_a == skip_b == 0
+    assert ma.keys() == mb.keys() and "rnd_loss" in ma
+    for k in ma:
+        torch.testing.assert_close(mb[k], ma[k], rtol=1e-5, atol=1e-6, msg=k)
+    for k in a:
+        torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=k)
+
+
+def test_the_update_objective_is_compiled_on_request_on_cuda_only() -> None:
+    """compile_update compiles the objective on CUDA; the CPU, --no-compile and the default keep it
+    eager. A data-parallel run leaves the advantage normalisation to the ranks' pooled statistics."""
+    policy, _, cfg = tiny_setup()
+    on = replace(cfg, compile_update=True)
+    assert not hasattr(make_objective(policy, cfg, torch.device("cuda"), False), "_torchdynamo_orig_callable")
+    assert not hasattr(make_objective(policy, on, torch.device("cpu"), False), "_torchdynamo_orig_callable")
+    off = replace(on, compile=False)
+    assert not hasattr(make_objective(policy, off, torch.device("cuda"), False), "_torchdynamo_orig_callable")
+    assert hasattr(make_objective(policy, on, torch.device("cuda"), False), "_torchdynamo_orig_callable")
+    # norm_adv inside the objective only for a single process: advantages 1..4 against constant ones
+    same = torch.zeros(1, 4)  # (L, M)
+    obs = torch.rand(1, 4, 3, 8, 8)  # (L, M, 3, Az, El)
+    state = policy.initial_state(4, torch.device("cpu"))
+    args = (obs, torch.zeros(1, 4, dtype=torch.bool), state, torch.zeros(1, 4, 4), same)
+    adv = torch.tensor([[1.0, 2.0, 3.0, 4.0]])  # (L, M)
+    with torch.no_grad():
+        _, single = make_objective(policy, cfg, torch.device("cpu"), False)(*args, adv, same, same)
+        _, ranked = make_objective(policy, cfg, torch.device("cpu"), True)(*args, adv, same, same)
+        _, normed = make_objective(policy, cfg, torch.device("cpu"), True)(
+            *args, (adv - adv.mean()) / adv.std(unbiased=False), same, same
+        )
+    torch.testing.assert_close(single["policy_loss"], normed["policy_loss"])
+    assert not torch.allclose(single["policy_loss"], ranked["policy_loss"])
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_inductor_compiled_objective_matches_the_eager_one_on_cuda() -> None:
+    """On CUDA, with bf16 autocast and the default engine, the compiled objective's loss, metrics and
+    gradients match the eager objective's on one minibatch."""
+    from navi_learner.config import EngineConfig as Engine
+
+    torch.manual_seed(0)
+    dev = torch.device("cuda")
+    cfg = TrainConfig(n_actors=64, compile=True, compile_update=True)
+    policy = CognitiveMambaPolicy((3, 256, 48), Engine()).to(dev).train()
+    policy.amp = True
+    policy.encoder.compile(dynamic=False)
+    l_len, m = 32, 64
+    obs = torch.rand(l_len, m, 3, 256, 48, device=dev)  # (L, M, 3, Az, El)
+    resets = torch.rand(l_len, m, device=dev) < 0.05  # (L, M) bool
+    state = tuple(s.normal_() * 0.1 for s in policy.initial_state(m, dev))
+    actions = torch.randn(l_len, m, 4, device=dev)  # (L, M, 4)
+    logp, adv, values, returns = (torch.randn(l_len, m, device=dev) for _ in range(4))  # (L, M) each
+    grads = []
+    outs = []
+    for objective in (make_objective(policy, cfg, dev, False), ppo_objective(policy, cfg, True)):
+        policy.zero_grad(set_to_none=True)
+        total, metrics = objective(obs, resets, state, actions, logp, adv, values, returns)
+        total.backward()
+        outs.append((total.detach(), metrics))
+        grads.append([q.grad.clone() for q in policy.parameters() if q.grad is not None])
+    (got, got_m), (want, want_m) = outs
+    torch.testing.assert_close(got, want, atol=2e-2, rtol=2e-2)
+    for k in want_m:
+        torch.testing.assert_close(got_m[k], want_m[k], atol=2e-2, rtol=2e-2, msg=k)
+    assert len(grads[0]) == len(grads[1])
+    for g, w in zip(*grads, strict=True):
+        torch.testing.assert_close(g, w, atol=5e-2, rtol=5e-2)

@@ -210,6 +210,10 @@ class TrainConfig:
     heads, action sample, RND novelty, episodic memory) as one graph, so the launch-bound forward of
     small actor counts runs fewer, fused kernels (2,048 actors: 3.3 instead of 6.5 ms per step on an
     H100). The same step as the eager one (a CPU parity test); False: the encoder alone is compiled."""
+    compile_update: bool = False
+    """With `compile`, on CUDA: compile each PPO minibatch's objective (the policy's sequence pass with
+    the temporal core's chunked scan, the PPO and RND losses) and its backward as one graph, where
+    otherwise the encoder alone is compiled. The same objective as the eager one (a CPU parity test)."""
     obs_dtype: str = "auto"
     """Rollout observation storage: compact (float16 depth and a semantic byte per ray, 3 bytes; needs
     DistanceMatrix v2 observations, the drone env's), float32 (12 bytes per ray, any env), or auto

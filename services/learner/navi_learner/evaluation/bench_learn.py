@@ -90,6 +90,8 @@ class LearnConfig:
     """> 0: the adaptive learning rate of PPOConfig.target_kl, starting from `lr`."""
     compile_rollout: bool = True
     """TrainConfig.compile_rollout for every run."""
+    compile_update: bool = False
+    """TrainConfig.compile_update for every run."""
     max_minibatch: int = 16_384
     """Most samples per PPO minibatch (about 25 GB of activations at 16,384 with the default engine)."""
     total_steps: int = 10**12
@@ -225,6 +227,7 @@ def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -
         device=str(device),
         compile=cfg.compile,
         compile_rollout=cfg.compile_rollout,
+        compile_update=cfg.compile_update,
         task=cfg.task,
         engine=engine,
         ppo=PPOConfig(

@@ -196,9 +196,11 @@ def rollout_forward(
     return forward
 
 
-def compile_graph(fn: Callable[..., Any], backend: str = "inductor") -> Callable[..., Any]:
-    """`fn` as one compiled graph (fullgraph, fixed shapes)."""
-    return torch.compile(fn, fullgraph=True, dynamic=False, backend=backend)
+def compile_graph(
+    fn: Callable[..., Any], backend: str = "inductor", fullgraph: bool = True
+) -> Callable[..., Any]:
+    """`fn` compiled for fixed shapes: one graph (fullgraph), or graphs split where it must (host reads)."""
+    return torch.compile(fn, fullgraph=fullgraph, dynamic=False, backend=backend)
 
 
 def make_forward(
@@ -218,6 +220,59 @@ def make_forward(
     return rollout_forward(policy, memory, act=compile_graph(policy.act), reduce=reduce)
 
 
+Objective = Callable[..., tuple[torch.Tensor, dict[str, torch.Tensor]]]
+
+
+def ppo_objective(policy: CognitiveMambaPolicy, cfg: TrainConfig, norm_adv: bool) -> Objective:
+    """A minibatch's objective, eager: the policy's sequence pass, the clipped PPO loss (advantages
+    normalised within the minibatch when `norm_adv`) and the RND predictor's loss ->
+    (total loss (), detached metrics {name: ()})."""
+    p = cfg.ppo
+
+    def objective(
+        obs: torch.Tensor,
+        resets: torch.Tensor,
+        state: CoreState,
+        actions: torch.Tensor,
+        logp: torch.Tensor,
+        adv: torch.Tensor,
+        values: torch.Tensor,
+        returns: torch.Tensor,
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        ev = policy.evaluate(obs, resets, state, actions)  # (L, M) logp and value, (L·M, D) emb
+        loss, metrics = ppo_loss(
+            ev.logp,
+            logp,
+            adv,
+            ev.value,
+            values,
+            returns,
+            ev.entropy,
+            clip_coef=p.clip_coef,
+            value_clip_coef=p.value_clip_coef,
+            vf_coef=p.vf_coef,
+            ent_coef=p.ent_coef,
+            norm_adv=norm_adv,
+        )
+        rnd_loss = policy.rnd.loss(ev.emb)  # ()
+        return loss + p.rnd_coef * rnd_loss, {**metrics, "rnd_loss": rnd_loss.detach()}
+
+    return objective
+
+
+def make_objective(
+    policy: CognitiveMambaPolicy, cfg: TrainConfig, device: torch.device, distributed: bool
+) -> Objective:
+    """The PPO update's minibatch objective for a run: eager unless cfg.compile and cfg.compile_update ask
+    for it compiled on CUDA, its backward with it: one graph with mamba2; the gru's sequence pass reads
+    where episodes start on the host, which splits its graph there. Data-parallel runs normalise the
+    advantages over the ranks before the objective (a collective the graph cannot hold)."""
+    fn = ppo_objective(policy, cfg, cfg.ppo.norm_adv and not distributed)
+    if cfg.compile and cfg.compile_update and device.type == "cuda":
+        return cast(Objective, compile_graph(fn, fullgraph=cfg.engine.temporal_core != "gru"))
+    return fn
+
+
 def adapt_lr(optimizer: torch.optim.Optimizer, kl: torch.Tensor, target: float, lo: float, hi: float) -> None:
     """The KL rule of massively parallel PPO, on the device: every group's rate (a () tensor) ÷1.5 where
     `kl` > 2·target, ×1.5 where `kl` < target/2, kept within [lo, hi]. A non-finite `kl` leaves it."""
@@ -235,6 +290,7 @@ def update(
     gen: torch.Generator,
     logger: logging.Logger | None = None,
     sync: Sync | None = None,
+    objective: Objective | None = None,
 ) -> tuple[dict[str, torch.Tensor], int]:
     """PPO epochs over sequence minibatches. A non-finite loss or gradient norm skips that optimizer
     step and is counted. With a fused optimizer (the learner's on CUDA) the skip happens on the device
@@ -244,8 +300,11 @@ def update(
     With `sync` (a data-parallel run, equal minibatches on every rank) the advantages are normalised
     over the union of the ranks' minibatches and the gradients averaged over ranks before clipping (one
     all-reduce of a flat buffer that carries the non-finite-loss flags too): a step on W ranks is a
-    single-process step on the union, and every rank takes the same skip decision."""
+    single-process step on the union, and every rank takes the same skip decision.
+
+    `objective` (make_objective; default the eager one) computes each minibatch's loss and metrics."""
     p = cfg.ppo
+    objective = objective or ppo_objective(policy, cfg, p.norm_adv and sync is None)
     params = [q for q in policy.parameters() if q.requires_grad]
     sums: dict[str, torch.Tensor] = {}
     count, skipped = 0, 0
@@ -253,29 +312,15 @@ def update(
     skips = torch.zeros((), device=params[0].device)  # () float32, steps skipped on the device
     for _ in range(p.ppo_epochs):
         for mb in buf.minibatches(p.num_minibatches, gen):
-            ev = policy.evaluate(mb.obs, mb.resets, mb.state, mb.actions)
-            adv, norm_adv = mb.advantages, p.norm_adv  # (L, M)
+            adv = mb.advantages  # (L, M)
             if sync is not None and p.norm_adv:
-                adv, norm_adv = sync.normalize(mb.advantages), False  # (L, M) over all ranks
-            loss, metrics = ppo_loss(
-                ev.logp,
-                mb.logp,
-                adv,
-                ev.value,
-                mb.values,
-                mb.returns,
-                ev.entropy,
-                clip_coef=p.clip_coef,
-                value_clip_coef=p.value_clip_coef,
-                vf_coef=p.vf_coef,
-                ent_coef=p.ent_coef,
-                norm_adv=norm_adv,
-            )
+                adv = sync.normalize(mb.advantages)  # (L, M) over all ranks
+            total, metrics = objective(
+                mb.obs, mb.resets, mb.state, mb.actions, mb.logp, adv, mb.values, mb.returns
+            )  # (), {name: ()}
             if p.target_kl > 0:
                 kl = metrics["approx_kl"] if sync is None else sync.mean({"kl": metrics["approx_kl"]})["kl"]
                 adapt_lr(optimizer, kl, p.target_kl, p.lr_min, p.lr_max)
-            rnd_loss = policy.rnd.loss(ev.emb)
-            total = loss + p.rnd_coef * rnd_loss
             optimizer.zero_grad(set_to_none=True)
             total.backward()
             if sync is None:
@@ -297,7 +342,7 @@ def update(
                 if logger is not None:
                     logger.warning("non-finite loss or gradient: optimizer step skipped")
             optimizer.zero_grad(set_to_none=True)
-            extra = {"rnd_loss": rnd_loss.detach(), "grad_norm": grad_norm.detach()}
+            extra = {"grad_norm": grad_norm.detach()}
             if p.target_kl > 0:
                 extra["lr"] = optimizer.param_groups[0]["lr"].clone()  # () the rate of this step
             for k, v in {**metrics, **extra}.items():
@@ -360,6 +405,7 @@ class Learner:
     stats: EpisodeStats
     timers: StageTimers
     forward: Forward  # the rollout's policy step (make_forward)
+    objective: Objective  # the update's minibatch objective (make_objective)
     gen: torch.Generator  # minibatch order
     state: TrainState
     ema: torch.Tensor  # () float32, the extrinsic reward's moving average
@@ -513,6 +559,7 @@ def setup(
         stats=EpisodeStats(n, device),
         timers=StageTimers(cfg.sync_timers and device.type == "cuda"),
         forward=make_forward(policy, memory, cfg, device, None if sync is None else sync.sum_),
+        objective=make_objective(policy, cfg, device, sync is not None),
         gen=torch.Generator().manual_seed(rank_seed),
         state=st,
         ema=torch.full((), st.reward_ema, device=device),  # () float32
@@ -676,7 +723,9 @@ def train(
             with lrn.timers("learn"):
                 advantages(policy, buf, cfg, carry)
                 policy.train()
-                metrics, skipped = update(policy, lrn.optimizer, buf, cfg, lrn.gen, lrn.run.logger, sync)
+                metrics, skipped = update(
+                    policy, lrn.optimizer, buf, cfg, lrn.gen, lrn.run.logger, sync, lrn.objective
+                )
             st.skipped_updates += skipped
             st.step_id += per_update
             clock.steps_window += per_update
