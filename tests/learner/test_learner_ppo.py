@@ -222,32 +222,16 @@ def test_update_adapts_the_rate_once_per_minibatch(fused: bool) -> None:
     assert float(metrics["lr"]) == pytest.approx(mean_rate, rel=1e-5)
 
 
-def compact_setup(core: str) -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
-    """tiny_setup's policy and rollout with compact observation storage (random depths and codes)."""
-    policy, flat, cfg = tiny_setup(core)
-    buf = RolloutStorage(
-        8, 3, (3, 8, 8), policy.initial_state(3, torch.device("cpu")), 4, torch.device("cpu"), compact=True
-    )
-    g = torch.Generator().manual_seed(1)
-    buf.depth16.copy_(torch.rand(buf.depth16.shape, generator=g) * 10)  # (T+1, N, Az, El)
-    buf.semantic.copy_(torch.randint(0, 256, buf.semantic.shape, generator=g, dtype=torch.uint8))
-    buf.resets.copy_(torch.rand(8, 3, generator=g) < 0.2)  # (T, N)
-    for name in ("actions", "advantages", "returns"):
-        getattr(buf, name).copy_(getattr(flat, name))
-    return policy, buf, cfg
-
-
-@pytest.mark.parametrize("compact", [False, True])
 @pytest.mark.parametrize("core", ["mamba2", "gru"])
-def test_the_compiled_objective_updates_as_the_eager_one_does(core: str, compact: bool) -> None:
-    """`--compile-update` traces each minibatch's objective (the unpack of compact observations, the
-    sequence pass, PPO and RND losses; one graph with mamba2, the gru's per-episode segments break it)
-    and its backward: traced here with the aot_eager backend (the CPU runs the same graphs without code
-    generation), one update (2 minibatches) leaves the same weights and metrics as eager."""
+def test_the_compiled_objective_updates_as_the_eager_one_does(core: str) -> None:
+    """`--compile-update` traces each minibatch's objective (sequence pass, PPO and RND losses; one graph
+    with mamba2, the gru's per-episode segments break it) and its backward: traced here with the
+    aot_eager backend (the CPU runs the same graphs without code generation), one update (2 minibatches)
+    leaves the same weights and metrics as eager."""
     results = []
     for compiled in (False, True):
         torch.manual_seed(0)
-        policy, buf, cfg = compact_setup(core) if compact else tiny_setup(core)
+        policy, buf, cfg = tiny_setup(core)
         objective = ppo_objective(policy, cfg, norm_adv=True)
         if compiled:
             objective = compile_graph(objective, backend="aot_eager", fullgraph=core == "mamba2")
@@ -267,22 +251,23 @@ def test_the_compiled_objective_updates_as_the_eager_one_does(core: str, compact
 def test_the_update_objective_is_compiled_on_request_on_cuda_only() -> None:
     """compile_update compiles the objective on CUDA; the CPU, --no-compile and the default keep it
     eager. A data-parallel run leaves the advantage normalisation to the ranks' pooled statistics."""
-    policy, buf, cfg = tiny_setup()
+    policy, _, cfg = tiny_setup()
     on = replace(cfg, compile_update=True)
-    cuda, cpu = torch.device("cuda"), torch.device("cpu")
-    for c, device in [(cfg, cuda), (on, cpu), (replace(on, compile=False), cuda)]:
-        assert not hasattr(make_objective(policy, c, device, buf, False), "_torchdynamo_orig_callable")
-    assert hasattr(make_objective(policy, on, cuda, buf, False), "_torchdynamo_orig_callable")
+    assert not hasattr(make_objective(policy, cfg, torch.device("cuda"), False), "_torchdynamo_orig_callable")
+    assert not hasattr(make_objective(policy, on, torch.device("cpu"), False), "_torchdynamo_orig_callable")
+    off = replace(on, compile=False)
+    assert not hasattr(make_objective(policy, off, torch.device("cuda"), False), "_torchdynamo_orig_callable")
+    assert hasattr(make_objective(policy, on, torch.device("cuda"), False), "_torchdynamo_orig_callable")
     # norm_adv inside the objective only for a single process: advantages 1..4 against constant ones
     same = torch.zeros(1, 4)  # (L, M)
     obs = torch.rand(1, 4, 3, 8, 8)  # (L, M, 3, Az, El)
     state = policy.initial_state(4, torch.device("cpu"))
-    args = ((obs,), torch.zeros(1, 4, dtype=torch.bool), state, torch.zeros(1, 4, 4), same)
+    args = (obs, torch.zeros(1, 4, dtype=torch.bool), state, torch.zeros(1, 4, 4), same)
     adv = torch.tensor([[1.0, 2.0, 3.0, 4.0]])  # (L, M)
     with torch.no_grad():
-        _, single = make_objective(policy, cfg, cpu, buf, False)(*args, adv, same, same)
-        _, ranked = make_objective(policy, cfg, cpu, buf, True)(*args, adv, same, same)
-        _, normed = make_objective(policy, cfg, cpu, buf, True)(
+        _, single = make_objective(policy, cfg, torch.device("cpu"), False)(*args, adv, same, same)
+        _, ranked = make_objective(policy, cfg, torch.device("cpu"), True)(*args, adv, same, same)
+        _, normed = make_objective(policy, cfg, torch.device("cpu"), True)(
             *args, (adv - adv.mean()) / adv.std(unbiased=False), same, same
         )
     torch.testing.assert_close(single["policy_loss"], normed["policy_loss"])
@@ -292,35 +277,27 @@ def test_the_update_objective_is_compiled_on_request_on_cuda_only() -> None:
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_the_inductor_compiled_objective_matches_the_eager_one_on_cuda() -> None:
-    """On CUDA, with bf16 autocast and the default engine, the compiled objective (compact observations
-    unpacked inside it) gives the eager objective's loss, metrics and gradients on one minibatch."""
-    from navi_env.sim.observation import semantic_table
+    """On CUDA, with bf16 autocast and the default engine, the compiled objective's loss, metrics and
+    gradients match the eager objective's on one minibatch."""
+    from navi_learner.config import EngineConfig as Engine
 
     torch.manual_seed(0)
     dev = torch.device("cuda")
-    l_len, m = 32, 64
-    cfg = TrainConfig(n_actors=m, compile=True, compile_update=True)
-    policy = CognitiveMambaPolicy((3, 256, 48), cfg.engine).to(dev).train()
+    cfg = TrainConfig(n_actors=64, compile=True, compile_update=True)
+    policy = CognitiveMambaPolicy((3, 256, 48), Engine()).to(dev).train()
     policy.amp = True
     policy.encoder.compile(dynamic=False)
-    buf = RolloutStorage(l_len, m, (3, 256, 48), policy.initial_state(m, dev), l_len, dev, compact=True)
-    packed = (
-        (torch.rand(l_len + 1, m, 256, 48, device=dev) * 20).half(),  # (L+1, M, Az, El) float16
-        torch.randint(0, 256, (l_len, m, 256, 48), device=dev, dtype=torch.uint8),  # (L, M, Az, El)
-        semantic_table(dev, False),  # (256,)
-    )
+    l_len, m = 32, 64
+    obs = torch.rand(l_len, m, 3, 256, 48, device=dev)  # (L, M, 3, Az, El)
     resets = torch.rand(l_len, m, device=dev) < 0.05  # (L, M) bool
     state = tuple(s.normal_() * 0.1 for s in policy.initial_state(m, dev))
     actions = torch.randn(l_len, m, 4, device=dev)  # (L, M, 4)
     logp, adv, values, returns = (torch.randn(l_len, m, device=dev) for _ in range(4))  # (L, M) each
     grads = []
     outs = []
-    for objective in (
-        make_objective(policy, cfg, buf, False),
-        ppo_objective(policy, cfg, True, buf.observations),
-    ):
+    for objective in (make_objective(policy, cfg, dev, False), ppo_objective(policy, cfg, True)):
         policy.zero_grad(set_to_none=True)
-        total, metrics = objective(packed, resets, state, actions, logp, adv, values, returns)
+        total, metrics = objective(obs, resets, state, actions, logp, adv, values, returns)
         total.backward()
         outs.append((total.detach(), metrics))
         grads.append([q.grad.clone() for q in policy.parameters() if q.grad is not None])

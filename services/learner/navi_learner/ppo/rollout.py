@@ -37,27 +37,11 @@ def _compiled(fn: F) -> F:
     return cast(F, torch.compile(fn, fullgraph=True, dynamic=False))
 
 
-Packed = tuple[torch.Tensor, ...]
-"""A minibatch's stored observations: compact (depth16 (L+1, M, Az, El) float16 from the frame before,
-semantic (L, M, Az, El) uint8, the semantic table (256,) float32) or float32 ((L, M, 3, Az, El),)."""
-
-
-def observations(
-    packed: Packed, resets: torch.Tensor, unpack_fn: Callable[..., torch.Tensor] = unpack
-) -> torch.Tensor:
-    """The observations (L, M, 3, Az, El) float32 of a minibatch's `packed` form, resets (L, M) bool;
-    compact ones rebuilt by `unpack_fn` (navi_env.sim.observation.unpack or its compiled twin)."""
-    if len(packed) == 1:
-        return packed[0]
-    depth16, semantic, table = packed
-    return unpack_fn(depth16, semantic, resets, table)  # (L, M, 3, Az, El)
-
-
 @dataclass
 class Minibatch:
     """M whole sequences of length L (time-major)."""
 
-    packed: Packed  # the observations as stored (observations() rebuilds them)
+    obs: torch.Tensor  # (L, M, 3, Az, El) float32, exactly what the policy acted on
     actions: torch.Tensor  # (L, M, 4) float32
     logp: torch.Tensor  # (L, M) float32
     values: torch.Tensor  # (L, M) float32
@@ -67,11 +51,6 @@ class Minibatch:
     state: CoreState  # each (M, ...) float32: the recurrent state entering the first step
     chunks: torch.Tensor  # (M,) int64 BPTT chunk of each sequence: steps chunk·L .. chunk·L + L - 1
     actors: torch.Tensor  # (M,) int64 actor of each sequence
-
-    @property
-    def obs(self) -> torch.Tensor:
-        """(L, M, 3, Az, El) float32, exactly what the policy acted on."""
-        return observations(self.packed, self.resets)
 
 
 class RolloutStorage:
@@ -143,11 +122,6 @@ class RolloutStorage:
         frames = unpack(self.depth16[t : t + 2], self.semantic[t : t + 1], self.resets[t : t + 1], self.table)
         return frames[0]  # (N, 3, Az, El)
 
-    def observations(self, packed: Packed, resets: torch.Tensor) -> torch.Tensor:
-        """A minibatch's observations (L, M, 3, Az, El) float32, compact ones unpacked by this storage's
-        unpack (compiled on CUDA)."""
-        return observations(packed, resets, self._unpack if self.compact else unpack)
-
     def store_state(self, t: int, state: CoreState) -> None:
         """Keep the recurrent state entering step t when t starts a BPTT chunk."""
         if t % self.chunk == 0:
@@ -171,15 +145,14 @@ class RolloutStorage:
                 return view[c, :, a].transpose(0, 1)  # (L, M, ...)
 
             resets = seq(self.resets)  # (L, M) bool
-            packed: Packed
             if self.compact:
                 frames = c[None] * self.chunk + self.frame_steps  # (L+1, M) from the frame before
                 depth16 = self.depth16[frames, a[None]]  # (L+1, M, Az, El) float16, from the frame before
-                packed = (depth16, seq(self.semantic), self.table)  # (L+1, M, Az, El), (L, M, Az, El), (256,)
+                obs = self._unpack(depth16, seq(self.semantic), resets, self.table)  # (L, M, 3, Az, El)
             else:
-                packed = (seq(self.obs),)  # (L, M, 3, Az, El)
+                obs = seq(self.obs)  # (L, M, 3, Az, El)
             yield Minibatch(
-                packed=packed,
+                obs=obs,
                 actions=seq(self.actions),
                 logp=seq(self.logp),
                 values=seq(self.values),

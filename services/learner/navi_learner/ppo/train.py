@@ -24,7 +24,7 @@ from navi_learner.envs.protocol import BatchedEnv
 from navi_learner.ppo.dist import Dist, Sync, write_debug
 from navi_learner.ppo.gae import bootstrap_truncated, gae
 from navi_learner.ppo.loss import ppo_loss
-from navi_learner.ppo.rollout import Packed, RolloutStorage, observations
+from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.runs import Progress, RunFiles, new_run_id, write_report
 from navi_learner.ppo.stats import EpisodeStats
 from navi_learner.serving.checkpoint import (
@@ -223,19 +223,14 @@ def make_forward(
 Objective = Callable[..., tuple[torch.Tensor, dict[str, torch.Tensor]]]
 
 
-def ppo_objective(
-    policy: CognitiveMambaPolicy,
-    cfg: TrainConfig,
-    norm_adv: bool,
-    obs_of: Callable[[Packed, torch.Tensor], torch.Tensor] = observations,
-) -> Objective:
-    """A minibatch's objective, eager: its observations rebuilt from their stored form (`obs_of`), the
-    policy's sequence pass, the clipped PPO loss (advantages normalised within the minibatch when
-    `norm_adv`) and the RND predictor's loss -> (total loss (), detached metrics {name: ()})."""
+def ppo_objective(policy: CognitiveMambaPolicy, cfg: TrainConfig, norm_adv: bool) -> Objective:
+    """A minibatch's objective, eager: the policy's sequence pass, the clipped PPO loss (advantages
+    normalised within the minibatch when `norm_adv`) and the RND predictor's loss ->
+    (total loss (), detached metrics {name: ()})."""
     p = cfg.ppo
 
     def objective(
-        packed: Packed,
+        obs: torch.Tensor,
         resets: torch.Tensor,
         state: CoreState,
         actions: torch.Tensor,
@@ -244,7 +239,6 @@ def ppo_objective(
         values: torch.Tensor,
         returns: torch.Tensor,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        obs = obs_of(packed, resets)  # (L, M, 3, Az, El) float32
         ev = policy.evaluate(obs, resets, state, actions)  # (L, M) logp and value, (L·M, D) emb
         loss, metrics = ppo_loss(
             ev.logp,
@@ -267,22 +261,16 @@ def ppo_objective(
 
 
 def make_objective(
-    policy: CognitiveMambaPolicy,
-    cfg: TrainConfig,
-    device: torch.device,
-    buf: RolloutStorage,
-    distributed: bool,
+    policy: CognitiveMambaPolicy, cfg: TrainConfig, device: torch.device, distributed: bool
 ) -> Objective:
-    """The PPO update's minibatch objective for a run: eager (the storage's own unpack, compiled on CUDA)
-    unless cfg.compile and cfg.compile_update ask for it compiled on CUDA, its backward with it and the
-    unpack of compact observations inside it: one graph with mamba2; the gru's sequence pass reads
+    """The PPO update's minibatch objective for a run: eager unless cfg.compile and cfg.compile_update ask
+    for it compiled on CUDA, its backward with it: one graph with mamba2; the gru's sequence pass reads
     where episodes start on the host, which splits its graph there. Data-parallel runs normalise the
     advantages over the ranks before the objective (a collective the graph cannot hold)."""
-    norm_adv = cfg.ppo.norm_adv and not distributed
+    fn = ppo_objective(policy, cfg, cfg.ppo.norm_adv and not distributed)
     if cfg.compile and cfg.compile_update and device.type == "cuda":
-        fn = ppo_objective(policy, cfg, norm_adv)
         return cast(Objective, compile_graph(fn, fullgraph=cfg.engine.temporal_core != "gru"))
-    return ppo_objective(policy, cfg, norm_adv, buf.observations)
+    return fn
 
 
 def adapt_lr(optimizer: torch.optim.Optimizer, kl: torch.Tensor, target: float, lo: float, hi: float) -> None:
@@ -316,7 +304,7 @@ def update(
 
     `objective` (make_objective; default the eager one) computes each minibatch's loss and metrics."""
     p = cfg.ppo
-    objective = objective or ppo_objective(policy, cfg, p.norm_adv and sync is None, buf.observations)
+    objective = objective or ppo_objective(policy, cfg, p.norm_adv and sync is None)
     params = [q for q in policy.parameters() if q.requires_grad]
     sums: dict[str, torch.Tensor] = {}
     count, skipped = 0, 0
@@ -328,7 +316,7 @@ def update(
             if sync is not None and p.norm_adv:
                 adv = sync.normalize(mb.advantages)  # (L, M) over all ranks
             total, metrics = objective(
-                mb.packed, mb.resets, mb.state, mb.actions, mb.logp, adv, mb.values, mb.returns
+                mb.obs, mb.resets, mb.state, mb.actions, mb.logp, adv, mb.values, mb.returns
             )  # (), {name: ()}
             if p.target_kl > 0:
                 kl = metrics["approx_kl"] if sync is None else sync.mean({"kl": metrics["approx_kl"]})["kl"]
@@ -571,7 +559,7 @@ def setup(
         stats=EpisodeStats(n, device),
         timers=StageTimers(cfg.sync_timers and device.type == "cuda"),
         forward=make_forward(policy, memory, cfg, device, None if sync is None else sync.sum_),
-        objective=make_objective(policy, cfg, device, buf, sync is not None),
+        objective=make_objective(policy, cfg, device, sync is not None),
         gen=torch.Generator().manual_seed(rank_seed),
         state=st,
         ema=torch.full((), st.reward_ema, device=device),  # () float32
