@@ -44,6 +44,7 @@ from navi.commands.learner import (
     ObstaclesOpt,
     SquadOpt,
     TargetKlOpt,
+    Tf32Opt,
     build_env,
     train_config,
 )
@@ -458,6 +459,7 @@ def bench_learn_cmd(
     target_kl: TargetKlOpt = 0.0,
     compile_rollout: CompileRolloutOpt = True,
     compile_update: CompileUpdateOpt = False,
+    tf32: Tf32Opt = False,
     max_minibatch: Annotated[
         int,
         typer.Option(
@@ -584,6 +586,7 @@ def bench_learn_cmd(
         target_kl=target_kl,
         compile_rollout=compile_rollout,
         compile_update=compile_update,
+        tf32=tf32,
         max_minibatch=max_minibatch,
         compile=compile_encoder,
         parallel=parallel,
@@ -630,6 +633,7 @@ def bench_train_cmd(
     ] = True,
     compile_rollout: CompileRolloutOpt = True,
     compile_update: CompileUpdateOpt = False,
+    tf32: Tf32Opt = False,
     obs_storage: ObsStorageOpt = "auto",
     max_minibatch: MaxMinibatchOpt = 8_192,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
@@ -675,7 +679,9 @@ def bench_train_cmd(
             )  # fmt: skip
             n = actors or default_actors(torch.device(dev))
             environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)
-            cfg = replace(cfg, n_actors=n, compile_rollout=compile_rollout, compile_update=compile_update)
+            cfg = replace(
+                cfg, n_actors=n, compile_rollout=compile_rollout, compile_update=compile_update, tf32=tf32
+            )
             result = bench_train(environment, cfg, updates=updates, dist=d)
         except (dist.DistError, StorageError) as err:
             raise fail(str(err)) from err

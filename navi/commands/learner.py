@@ -76,6 +76,14 @@ CompileUpdateOpt = Annotated[
         "encoder alone there.",
     ),
 ]
+Tf32Opt = Annotated[
+    bool,
+    typer.Option(
+        "--tf32/--no-tf32",
+        help="On CUDA, let float32 matrix products (temporal core, heads, RND; the encoder runs in bf16) "
+        "use TF32 tensor cores.",
+    ),
+]
 EngineOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -319,6 +327,7 @@ def train(
     target_kl: TargetKlOpt = 0.0,
     compile_rollout: CompileRolloutOpt = True,
     compile_update: CompileUpdateOpt = False,
+    tf32: Tf32Opt = False,
     total_steps: TotalStepsOpt = 1_000_000,
     time_limit: Annotated[
         float, typer.Option("--time-limit-s", min=0.0, help="Training-seconds budget (0: none).")
@@ -385,6 +394,7 @@ def train(
             task=task,
             compile_rollout=compile_rollout,
             compile_update=compile_update,
+            tf32=tf32,
         )
         resume, cfg = resume_choice(checkpoint, fresh, cfg)
         if resume is not None and engine:

@@ -216,3 +216,17 @@ def test_onnx_export_matches_pytorch_step(tmp_path: Path) -> None:
     assert np.allclose(value, want.value.numpy(), atol=1e-4)
     for got, ref in zip(new_state, want.state, strict=True):
         assert np.allclose(got, ref.numpy(), atol=1e-4)
+
+
+def test_train_records_the_update_options_and_keeps_tf32_to_cuda() -> None:
+    """--compile-update and --tf32 reach the run's config (its manifest); on the CPU neither changes how
+    it runs: the objective stays eager and float32 matrix products keep full precision."""
+    code, out, err = invoke(
+        "train", "--env", "toy", "--actors", "4", "--rollout-length", "32", "--total-steps", "128",
+        "--device", "cpu", "--compile-update", "--tf32",
+    )  # fmt: skip
+    assert code == 0, err
+    run_dir = Path(json.loads(out.strip().splitlines()[-1])["checkpoint"]).parents[1]
+    config = json.loads((run_dir / "manifests" / "run.json").read_text())["config"]
+    assert config["compile_update"] is True and config["tf32"] is True
+    assert torch.backends.cuda.matmul.allow_tf32 is False

@@ -214,6 +214,10 @@ class TrainConfig:
     """With `compile`, on CUDA: compile each PPO minibatch's objective (the policy's sequence pass with
     the temporal core's chunked scan, the PPO and RND losses) and its backward as one graph, where
     otherwise the encoder alone is compiled. The same objective as the eager one (a CPU parity test)."""
+    tf32: bool = False
+    """On CUDA: let float32 matrix products (the temporal core's, the heads' and RND's; the encoder runs
+    in bf16 under `amp`) use TF32 tensor cores (torch.backends.cuda.matmul.allow_tf32, for the whole
+    process from the run's start)."""
     obs_dtype: str = "auto"
     """Rollout observation storage: compact (float16 depth and a semantic byte per ray, 3 bytes; needs
     DistanceMatrix v2 observations, the drone env's), float32 (12 bytes per ray, any env), or auto

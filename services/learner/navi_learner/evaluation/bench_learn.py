@@ -92,6 +92,8 @@ class LearnConfig:
     """TrainConfig.compile_rollout for every run."""
     compile_update: bool = False
     """TrainConfig.compile_update for every run."""
+    tf32: bool = False
+    """TrainConfig.tf32 for every run."""
     max_minibatch: int = 16_384
     """Most samples per PPO minibatch (about 25 GB of activations at 16,384 with the default engine)."""
     total_steps: int = 10**12
@@ -228,6 +230,7 @@ def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -
         compile=cfg.compile,
         compile_rollout=cfg.compile_rollout,
         compile_update=cfg.compile_update,
+        tf32=cfg.tf32,
         task=cfg.task,
         engine=engine,
         ppo=PPOConfig(

@@ -115,6 +115,7 @@ def bench_train(
         "compile": cfg.compile and device.type == "cuda",
         "compile_rollout": cfg.compile and cfg.compile_rollout and device.type == "cuda",
         "compile_update": cfg.compile and cfg.compile_update and device.type == "cuda",
+        "tf32": cfg.tf32 and device.type == "cuda",
     }
     if sync is not None:
         sync.barrier()

@@ -524,6 +524,8 @@ def setup(
         manifest.update(world_size=d.world, actors_per_rank=cfg.n_actors, ranks=ranks)
     if cfg.compile and device.type == "cuda":
         policy.encoder.compile(dynamic=False)
+    if cfg.tf32 and device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = True
     run.write_manifest("run", manifest)
     run.logger.info(f"start: {cfg.n_actors} actors, T={cfg.rollout_length}, core={cfg.engine.temporal_core}")
     shaping_gamma = getattr(getattr(getattr(env, "config", None), "reward", None), "shaping_gamma", None)
