@@ -458,7 +458,7 @@ def bench_learn_cmd(
     ] = 3e-4,
     target_kl: TargetKlOpt = 0.0,
     compile_rollout: CompileRolloutOpt = True,
-    compile_update: CompileUpdateOpt = False,
+    compile_update: CompileUpdateOpt = True,
     tf32: Tf32Opt = False,
     max_minibatch: Annotated[
         int,
@@ -632,7 +632,7 @@ def bench_train_cmd(
         bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
     ] = True,
     compile_rollout: CompileRolloutOpt = True,
-    compile_update: CompileUpdateOpt = False,
+    compile_update: CompileUpdateOpt = True,
     tf32: Tf32Opt = False,
     obs_storage: ObsStorageOpt = "auto",
     max_minibatch: MaxMinibatchOpt = 8_192,

@@ -72,8 +72,8 @@ CompileUpdateOpt = Annotated[
     typer.Option(
         "--compile-update/--no-compile-update",
         help="With --compile on CUDA, compile each PPO minibatch's objective (the policy's sequence pass, "
-        "the PPO and RND losses) and its backward as one graph; --no-compile-update compiles the "
-        "encoder alone there.",
+        "the PPO and RND losses) and its backward as one graph (the default); --no-compile-update "
+        "compiles the encoder alone there.",
     ),
 ]
 Tf32Opt = Annotated[
@@ -326,7 +326,7 @@ def train(
     ] = 5e-4,
     target_kl: TargetKlOpt = 0.0,
     compile_rollout: CompileRolloutOpt = True,
-    compile_update: CompileUpdateOpt = False,
+    compile_update: CompileUpdateOpt = True,
     tf32: Tf32Opt = False,
     total_steps: TotalStepsOpt = 1_000_000,
     time_limit: Annotated[

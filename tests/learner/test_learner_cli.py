@@ -219,14 +219,16 @@ def test_onnx_export_matches_pytorch_step(tmp_path: Path) -> None:
 
 
 def test_train_records_the_update_options_and_keeps_tf32_to_cuda() -> None:
-    """--compile-update and --tf32 reach the run's config (its manifest); on the CPU neither changes how
-    it runs: the objective stays eager and float32 matrix products keep full precision."""
-    code, out, err = invoke(
-        "train", "--env", "toy", "--actors", "4", "--rollout-length", "32", "--total-steps", "128",
-        "--device", "cpu", "--compile-update", "--tf32",
-    )  # fmt: skip
-    assert code == 0, err
-    run_dir = Path(json.loads(out.strip().splitlines()[-1])["checkpoint"]).parents[1]
-    config = json.loads((run_dir / "manifests" / "run.json").read_text())["config"]
-    assert config["compile_update"] is True and config["tf32"] is True
-    assert torch.backends.cuda.matmul.allow_tf32 is False
+    """The update options reach the run's config (its manifest): the compiled objective by default,
+    --no-compile-update and --tf32 on request. On the CPU neither changes how it runs: the objective
+    stays eager and float32 matrix products keep full precision."""
+    for flags, want in (((), True), (("--no-compile-update",), False)):
+        code, out, err = invoke(
+            "train", "--env", "toy", "--actors", "4", "--rollout-length", "32", "--total-steps", "128",
+            "--device", "cpu", "--tf32", *flags,
+        )  # fmt: skip
+        assert code == 0, err
+        run_dir = Path(json.loads(out.strip().splitlines()[-1])["checkpoint"]).parents[1]
+        config = json.loads((run_dir / "manifests" / "run.json").read_text())["config"]
+        assert config["compile_update"] is want and config["tf32"] is True
+        assert torch.backends.cuda.matmul.allow_tf32 is False

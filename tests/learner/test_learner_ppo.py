@@ -248,16 +248,15 @@ def test_the_compiled_objective_updates_as_the_eager_one_does(core: str) -> None
         torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=k)
 
 
-def test_the_update_objective_is_compiled_on_request_on_cuda_only() -> None:
-    """compile_update compiles the objective on CUDA; the CPU, --no-compile and the default keep it
-    eager. A data-parallel run leaves the advantage normalisation to the ranks' pooled statistics."""
+def test_the_update_objective_is_compiled_by_default_on_cuda_only() -> None:
+    """By default the objective is compiled on CUDA; the CPU, --no-compile and --no-compile-update keep
+    it eager. A data-parallel run leaves the advantage normalisation to the ranks' pooled statistics."""
     policy, _, cfg = tiny_setup()
-    on = replace(cfg, compile_update=True)
-    assert not hasattr(make_objective(policy, cfg, torch.device("cuda"), False), "_torchdynamo_orig_callable")
-    assert not hasattr(make_objective(policy, on, torch.device("cpu"), False), "_torchdynamo_orig_callable")
-    off = replace(on, compile=False)
-    assert not hasattr(make_objective(policy, off, torch.device("cuda"), False), "_torchdynamo_orig_callable")
-    assert hasattr(make_objective(policy, on, torch.device("cuda"), False), "_torchdynamo_orig_callable")
+    assert cfg.compile and cfg.compile_update
+    assert hasattr(make_objective(policy, cfg, torch.device("cuda"), False), "_torchdynamo_orig_callable")
+    assert not hasattr(make_objective(policy, cfg, torch.device("cpu"), False), "_torchdynamo_orig_callable")
+    for off in (replace(cfg, compile=False), replace(cfg, compile_update=False)):
+        assert not hasattr(make_objective(policy, off, torch.device("cuda"), False), "_torchdynamo_orig_callable")
     # norm_adv inside the objective only for a single process: advantages 1..4 against constant ones
     same = torch.zeros(1, 4)  # (L, M)
     obs = torch.rand(1, 4, 3, 8, 8)  # (L, M, 3, Az, El)

@@ -210,10 +210,11 @@ class TrainConfig:
     heads, action sample, RND novelty, episodic memory) as one graph, so the launch-bound forward of
     small actor counts runs fewer, fused kernels (2,048 actors: 3.3 instead of 6.5 ms per step on an
     H100). The same step as the eager one (a CPU parity test); False: the encoder alone is compiled."""
-    compile_update: bool = False
+    compile_update: bool = True
     """With `compile`, on CUDA: compile each PPO minibatch's objective (the policy's sequence pass with
-    the temporal core's chunked scan, the PPO and RND losses) and its backward as one graph, where
-    otherwise the encoder alone is compiled. The same objective as the eager one (a CPU parity test)."""
+    the temporal core's chunked scan, the PPO and RND losses) and its backward as one graph (8,192
+    actors on an H100: the update 15.2 instead of 21-24 ms per step); False: the encoder alone is
+    compiled. The same objective as the eager one (a CPU parity test)."""
     tf32: bool = False
     """On CUDA: let float32 matrix products (the temporal core's, the heads' and RND's; the encoder runs
     in bf16 under `amp`) use TF32 tensor cores (torch.backends.cuda.matmul.allow_tf32, for the whole

@@ -90,7 +90,7 @@ class LearnConfig:
     """> 0: the adaptive learning rate of PPOConfig.target_kl, starting from `lr`."""
     compile_rollout: bool = True
     """TrainConfig.compile_rollout for every run."""
-    compile_update: bool = False
+    compile_update: bool = True
     """TrainConfig.compile_update for every run."""
     tf32: bool = False
     """TrainConfig.tf32 for every run."""
