@@ -256,7 +256,9 @@ def test_the_update_objective_is_compiled_by_default_on_cuda_only() -> None:
     assert hasattr(make_objective(policy, cfg, torch.device("cuda"), False), "_torchdynamo_orig_callable")
     assert not hasattr(make_objective(policy, cfg, torch.device("cpu"), False), "_torchdynamo_orig_callable")
     for off in (replace(cfg, compile=False), replace(cfg, compile_update=False)):
-        assert not hasattr(make_objective(policy, off, torch.device("cuda"), False), "_torchdynamo_orig_callable")
+        assert not hasattr(
+            make_objective(policy, off, torch.device("cuda"), False), "_torchdynamo_orig_callable"
+        )
     # norm_adv inside the objective only for a single process: advantages 1..4 against constant ones
     same = torch.zeros(1, 4)  # (L, M)
     obs = torch.rand(1, 4, 3, 8, 8)  # (L, M, 3, Az, El)
