@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
@@ -10,7 +11,7 @@ import torch
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.engine.temporal import make_core
 from navi_learner.envs.toy import ToyEnv
-from navi_learner.ppo.train import train
+from navi_learner.ppo.train import StageTimers, train
 
 pytestmark = [
     pytest.mark.gpu,
@@ -63,3 +64,33 @@ def test_bf16_training_on_cuda_learns_and_stays_finite(tmp_path: Path) -> None:
     result = train(ToyEnv(256, "cuda", az=64, el=16, seed=1), cfg, run_dir=tmp_path / "run", progress=False)
     assert result.skipped_updates == 0
     assert result.last_metrics["reward_per_step"] > 0.3
+
+
+def test_exact_stage_timers_measure_gpu_time_without_waiting_for_it() -> None:
+    """With sync, a stage's time is the GPU's (events around it, read at the log line): a stage that only
+    queues GPU work returns to the host at once but is timed as long as that work runs."""
+    cycles = 20_000_000  # torch.cuda._sleep: about 10-20 ms of GPU time
+
+    def gpu_ms() -> float:  # the same work, timed alone
+        probe = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        probe[0].record()
+        torch.cuda._sleep(cycles)
+        probe[1].record()
+        probe[1].synchronize()
+        return probe[0].elapsed_time(probe[1])
+
+    gpu_ms()  # clocks up
+    timers = StageTimers(sync=True)
+    for _ in range(2):  # the second read reuses the first read's events
+        t0 = time.perf_counter()
+        with timers("env"):
+            torch.cuda._sleep(cycles)
+        with timers("learn"):
+            pass
+        host_ms = 1000.0 * (time.perf_counter() - t0)
+        ms = timers.read(steps=2)  # ms per step: 2 steps
+        want = gpu_ms() / 2
+        assert host_ms < want
+        assert abs(ms["ms_env"] - want) < 0.2 * want, (ms, want)
+        assert ms["ms_learn"] < 0.1 * want and ms["ms_forward"] == 0.0
+    assert len(timers.pool) == 4 and not timers.spans

@@ -15,7 +15,7 @@ from navi_learner.envs.protocol import StepOut
 from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
 from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
-from navi_learner.ppo.train import train
+from navi_learner.ppo.train import StageTimers, train
 from navi_learner.serving.checkpoint import load_checkpoint
 from navi_learner.serving.registry import ModelRegistry
 
@@ -162,3 +162,15 @@ def test_adaptive_rate_is_a_device_tensor_that_moves_and_resumes(tmp_path: Path)
     c2 = load_checkpoint(second.final_checkpoint)
     assert c2.optimizer is not None
     assert float(c2.optimizer["param_groups"][0]["lr"]) == pytest.approx(float(rate))
+
+
+def test_stage_timers_without_sync_sum_the_host_time_per_stage_and_clear_on_read() -> None:
+    timers = StageTimers(sync=False)
+    for _ in range(3):
+        with timers("env"):
+            time.sleep(0.01)
+    with timers("forward"):
+        pass
+    ms = timers.read(steps=3)  # ms per step
+    assert 9.0 < ms["ms_env"] < 30.0 and ms["ms_forward"] < 1.0 and ms["ms_learn"] == 0.0
+    assert timers.read(steps=1) == {"ms_env": 0.0, "ms_forward": 0.0, "ms_learn": 0.0}

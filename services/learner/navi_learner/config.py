@@ -230,7 +230,8 @@ class TrainConfig:
     """What the env's episodes ask (EnvConfig.task): explore or pointgoal; stored so that evaluations of a
     checkpoint fly the task it learned."""
     sync_timers: bool = False
-    """Synchronise CUDA at stage boundaries so the per-stage timers are exact (benchmarks)."""
+    """Exact per-stage times on CUDA (benchmarks): CUDA events bracket every stage and are read once per
+    log line, with no host wait inside the loop (StageTimers)."""
     engine: EngineConfig = field(default_factory=EngineConfig)
     """The cognitive engine."""
     ppo: PPOConfig = field(default_factory=PPOConfig)

@@ -9,9 +9,10 @@ independently with truncated BPTT.
 Observations are stored in one of two forms. Compact (the drone env, DistanceMatrix v2): channel 0 as
 float16 and the semantic code as a byte per ray, 3 bytes per ray; a minibatch's observations are
 rebuilt on the device by navi_env.sim.observation.unpack (channel 2 from consecutive frames and the reset
-flags), bit-identical to the float32 observations the policy acted on. On CUDA pack and unpack run
-torch.compile'd (one pass each instead of a few eager kernels; the same exact operations, so the same
-values: tests/learner/test_learner_rollout.py checks both devices). Float32 (any other env): the
+flags), bit-identical to the float32 observations the policy acted on. On CUDA pack, and a minibatch's
+gather with its unpack, run torch.compile'd (one pass each instead of a few eager kernels, the gathered
+frames never written out; the same exact operations, so the same values: tests/learner/test_learner_rollout.py
+checks both devices). Float32 (any other env): the
 observations as they came, 12 bytes per ray.
 """
 
@@ -35,6 +36,31 @@ F = TypeVar("F", bound=Callable[..., Any])
 def _compiled(fn: F) -> F:
     """fn compiled once per process (one program per input shape)."""
     return cast(F, torch.compile(fn, fullgraph=True, dynamic=False))
+
+
+def sequences(buf: torch.Tensor, chunks: torch.Tensor, actors: torch.Tensor, chunk: int) -> torch.Tensor:
+    """The whole BPTT sequences (chunk c, actor a) of a (T, N, ...) buffer -> (L, M, ...), time-major."""
+    view = buf.view(buf.shape[0] // chunk, chunk, *buf.shape[1:])  # (T/L, L, N, ...)
+    return view[chunks, :, actors].transpose(0, 1)  # (L, M, ...)
+
+
+def gather_frames(
+    depth16: torch.Tensor,
+    semantic: torch.Tensor,
+    resets: torch.Tensor,
+    table: torch.Tensor,
+    chunks: torch.Tensor,
+    actors: torch.Tensor,
+    chunk: int,
+) -> torch.Tensor:
+    """The observations (L, M, 3, Az, El) float32 of the sequences (chunk c, actor a) from compact storage:
+    depth16 (T+1, N, Az, El) float16 from the frame before the rollout, semantic (T, N, Az, El) uint8,
+    the sequences' resets (L, M) bool. Compiled on CUDA, the gathers become indirect loads of unpack's
+    one pass."""
+    steps = torch.arange(chunk + 1, device=chunks.device)[:, None]  # (L+1, 1) int64
+    frames = chunks[None] * chunk + steps  # (L+1, M) from the frame before each sequence
+    depth = depth16[frames, actors[None]]  # (L+1, M, Az, El) float16
+    return unpack(depth, sequences(semantic, chunks, actors, chunk), resets, table)  # (L, M, 3, Az, El)
 
 
 @dataclass
@@ -83,10 +109,9 @@ class RolloutStorage:
             )  # (T+1, N, Az, El)
             self.semantic = torch.zeros(t_len, n, az, el, dtype=torch.uint8, device=device)  # (T, N, Az, El)
             self.table = semantic_table(device, goal_marks)  # (256,) float32
-            self.frame_steps = torch.arange(bptt_chunk + 1, device=device)[:, None]  # (L+1, 1) int64
             fast = device.type == "cuda"
             self._pack = _compiled(pack) if fast else pack
-            self._unpack = _compiled(unpack) if fast else unpack
+            self._gather = _compiled(gather_frames) if fast else gather_frames
         else:
             self.obs = torch.zeros(t_len, n, c, az, el, device=device)  # (T, N, 3, Az, El) float32
         self.actions = torch.zeros(t_len, n, ACTION_DIM, device=device)  # (T, N, 4) float32
@@ -141,14 +166,13 @@ class RolloutStorage:
             c, a = ids // self.n, ids % self.n  # (M,) each
 
             def seq(buf: torch.Tensor, c: torch.Tensor = c, a: torch.Tensor = a) -> torch.Tensor:
-                view = buf.view(self.n_chunks, self.chunk, self.n, *buf.shape[2:])  # (T/L, L, N, ...)
-                return view[c, :, a].transpose(0, 1)  # (L, M, ...)
+                return sequences(buf, c, a, self.chunk)  # (L, M, ...)
 
             resets = seq(self.resets)  # (L, M) bool
             if self.compact:
-                frames = c[None] * self.chunk + self.frame_steps  # (L+1, M) from the frame before
-                depth16 = self.depth16[frames, a[None]]  # (L+1, M, Az, El) float16, from the frame before
-                obs = self._unpack(depth16, seq(self.semantic), resets, self.table)  # (L, M, 3, Az, El)
+                obs = self._gather(
+                    self.depth16, self.semantic, resets, self.table, c, a, self.chunk
+                )  # (L, M, 3, Az, El)
             else:
                 obs = seq(self.obs)  # (L, M, 3, Az, El)
             yield Minibatch(

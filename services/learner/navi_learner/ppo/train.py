@@ -51,24 +51,44 @@ class Monitor(Protocol):
 
 
 class StageTimers:
-    """Wall time per stage; with sync=True CUDA is synchronised at each boundary so times are exact."""
+    """Time per stage, read as ms per env step once per log line.
+
+    Without `sync` (training's default) a stage's time is the host's wall time between its boundaries; on
+    CUDA that is mostly launch time, since kernels run on after the host moves on. With `sync` on CUDA
+    (benchmarks) a pair of CUDA events brackets every stage on the current stream and the GPU time
+    between them is read at the log line, with one wait for the last event: exact stage times with no
+    host wait inside the loop, so that timing them does not slow the run it measures."""
 
     def __init__(self, sync: bool) -> None:
         self.sync = sync
         self.seconds = dict.fromkeys(STAGES, 0.0)
+        self.spans: list[tuple[str, torch.cuda.Event, torch.cuda.Event]] = []  # recorded, not yet read
+        self.pool: list[torch.cuda.Event] = []  # events already read, recorded again (allocated once)
+
+    def _event(self) -> torch.cuda.Event:
+        event = self.pool.pop() if self.pool else torch.cuda.Event(enable_timing=True)
+        event.record()
+        return event
 
     @contextmanager
     def __call__(self, stage: str) -> Iterator[None]:
         if self.sync:
-            torch.cuda.synchronize()
+            start = self._event()
+            yield
+            self.spans.append((stage, start, self._event()))
+            return
         t0 = time.perf_counter()
         yield
-        if self.sync:
-            torch.cuda.synchronize()
         self.seconds[stage] += time.perf_counter() - t0
 
     def read(self, steps: int) -> dict[str, float]:
         """ms per env step (all actors) per stage since the last read, then clear."""
+        if self.spans:
+            self.spans[-1][2].synchronize()
+            for stage, start, end in self.spans:
+                self.seconds[stage] += start.elapsed_time(end) / 1000.0
+                self.pool += (start, end)
+            self.spans.clear()
         out = {f"ms_{k}": 1000.0 * v / max(steps, 1) for k, v in self.seconds.items()}
         self.seconds = dict.fromkeys(STAGES, 0.0)
         return out
