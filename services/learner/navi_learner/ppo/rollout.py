@@ -9,11 +9,11 @@ independently with truncated BPTT.
 Observations are stored in one of two forms. Compact (the drone env, DistanceMatrix v2): channel 0 as
 float16 and the semantic code as a byte per ray, 3 bytes per ray; a minibatch's observations are
 rebuilt on the device by navi_env.sim.observation.unpack (channel 2 from consecutive frames and the reset
-flags), bit-identical to the float32 observations the policy acted on. On CUDA pack, and a minibatch's
-gather with its unpack, run torch.compile'd (one pass each instead of a few eager kernels, the gathered
-frames never written out; the same exact operations, so the same values: tests/learner/test_learner_rollout.py
-checks both devices). Float32 (any other env): the
-observations as they came, 12 bytes per ray.
+flags), bit-identical to the float32 observations the policy acted on. On CUDA the pack, and a
+minibatch's gather with its unpack, run torch.compile'd: one pass each instead of a few eager kernels,
+the gathered frames never written out, and the same exact operations, so the same values
+(tests/learner/test_learner_rollout.py checks both devices). Float32 (any other env): the observations
+as they came, 12 bytes per ray.
 """
 
 from __future__ import annotations
