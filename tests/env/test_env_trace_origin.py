@@ -12,9 +12,10 @@ import torch
 
 from navi_env.sim.rays import tiled_ray_order
 from navi_env.tracer import primitives as obstacles
+from navi_env.tracer.abi import ORIGIN_SAMPLE_BYTES, check_layout
 from navi_env.tracer.analytic_scenes import AnalyticScene, free_points, leaf_kind_scenes, random_directions
 from navi_env.tracer.scene import SceneCorpus, load_corpus
-from navi_env.tracer.trace import ORIGIN_SAMPLE_BYTES, trace
+from navi_env.tracer.trace import cpu_launcher, trace
 from navi_env.tracer.trace_ref import trace_ref
 
 R = 256  # rays per actor (a 16 x 16 pattern, so that tiled_ray_order applies)
@@ -109,7 +110,16 @@ def test_origin_samples_keep_the_reference_parity() -> None:
 
 
 def test_origin_record_size_matches_the_build() -> None:
-    assert ORIGIN_SAMPLE_BYTES == 48  # static_assert(sizeof(OriginSample) == 48) in csrc/ray_walk.h
+    # The launch allocates ORIGIN_SAMPLE_BYTES per actor for records the build writes at its own size.
+    assert cpu_launcher().origin_sample_size() == ORIGIN_SAMPLE_BYTES
+
+
+def test_a_stale_origin_record_size_is_refused() -> None:
+    lib = cpu_launcher()
+    with pytest.raises(RuntimeError, match=r"sizeof\(OriginSample\) is 48 bytes.*expects 64"):
+        check_layout(
+            lib.trace_args_size, lib.sample_args_size, lib.sweep_args_size, lambda: 48, "a stale build"
+        )
 
 
 @pytest.mark.gpu

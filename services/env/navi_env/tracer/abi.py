@@ -1,5 +1,5 @@
 """ctypes mirrors of the launcher argument structs in csrc/launch_args.h (TraceArgs, SampleArgs,
-SweepArgs).
+SweepArgs), and the size of the per-actor origin record (OriginSample, csrc/ray_walk.h).
 
 Both launchers (CPU extension and CUDA library) take the address of one of these structs. Each
 build reports sizeof() of its structs; `check_layout` compares them with these mirrors at load.
@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import ctypes
 from collections.abc import Callable
+
+ORIGIN_SAMPLE_BYTES = 64
+"""sizeof(OriginSample): one actor's origin sample in the launch's origin scratch (csrc/ray_walk.h)."""
 
 
 class TraceArgs(ctypes.Structure):
@@ -101,13 +104,18 @@ class SweepArgs(ctypes.Structure):
 
 
 def check_layout(
-    trace_size: Callable[[], int], sample_size: Callable[[], int], sweep_size: Callable[[], int], where: str
+    trace_size: Callable[[], int],
+    sample_size: Callable[[], int],
+    sweep_size: Callable[[], int],
+    origin_size: Callable[[], int],
+    where: str,
 ) -> None:
     """Raise RuntimeError when a build's struct sizes disagree with these mirrors (a stale build)."""
     for name, got, want in (
         ("TraceArgs", trace_size(), ctypes.sizeof(TraceArgs)),
         ("SampleArgs", sample_size(), ctypes.sizeof(SampleArgs)),
         ("SweepArgs", sweep_size(), ctypes.sizeof(SweepArgs)),
+        ("OriginSample", origin_size(), ORIGIN_SAMPLE_BYTES),
     ):
         if got != want:
             raise RuntimeError(

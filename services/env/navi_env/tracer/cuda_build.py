@@ -108,7 +108,12 @@ def cuda_library() -> ctypes.CDLL:
         fn = getattr(lib, name)
         fn.argtypes = [ctypes.c_void_p]
         fn.restype = ctypes.c_int
-    for name in ("navi_trace_args_size", "navi_sample_args_size", "navi_sweep_args_size"):
+    for name in (
+        "navi_trace_args_size",
+        "navi_sample_args_size",
+        "navi_sweep_args_size",
+        "navi_origin_sample_size",
+    ):
         getattr(lib, name).argtypes = []
         getattr(lib, name).restype = ctypes.c_int
     lib.navi_atlas_create_cuda.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
@@ -122,6 +127,7 @@ def cuda_library() -> ctypes.CDLL:
         lib.navi_trace_args_size,
         lib.navi_sample_args_size,
         lib.navi_sweep_args_size,
+        lib.navi_origin_sample_size,
         "the CUDA tracer library",
     )
     return lib

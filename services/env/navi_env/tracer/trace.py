@@ -18,7 +18,7 @@ from types import ModuleType
 import numpy as np
 import torch
 
-from navi_env.tracer.abi import SampleArgs, SweepArgs, TraceArgs, check_layout
+from navi_env.tracer.abi import ORIGIN_SAMPLE_BYTES, SampleArgs, SweepArgs, TraceArgs, check_layout
 from navi_env.tracer.primitives import check_prims
 from navi_env.tracer.scene import SceneCorpus
 
@@ -28,7 +28,6 @@ DEFAULT_HIT_EPSILON_VOXELS = 0.1  # used per scene when hit_epsilon is None (kDe
 NORM_TOLERANCE = 1e-3  # | |direction| - 1 | allowed
 RAY_GROUP = 128  # work items per ray group (kRayGroup in csrc/primitives.h)
 MASK_PRIMS = 64  # most primitives per world with per-group masks (kMaskPrims)
-ORIGIN_SAMPLE_BYTES = 48  # one actor's origin sample (sizeof(OriginSample) in csrc/ray_walk.h)
 
 
 def prim_scratch_bytes(batch: int, rays: int, per_world: int, shared: bool) -> int:
@@ -210,6 +209,7 @@ def cpu_launcher() -> ModuleType:
         _trace_cpu.trace_args_size,
         _trace_cpu.sample_args_size,
         _trace_cpu.sweep_args_size,
+        _trace_cpu.origin_sample_size,
         "navi_env.tracer._trace_cpu",
     )
     return _trace_cpu
@@ -309,7 +309,7 @@ def trace(
         # the launch's origin samples: like the primitive tables a fresh buffer per call (free from the
         # caching allocator, private to a CUDA graph's pool, correct when calls overlap on streams)
         nbytes = p.batch * ORIGIN_SAMPLE_BYTES
-        origin = torch.empty(nbytes, dtype=torch.uint8, device=scenes.device)  # (B * 48,) OriginSample
+        origin = torch.empty(nbytes, dtype=torch.uint8, device=scenes.device)  # (B * 64,) OriginSample
     args = TraceArgs(
         nodes=scenes.nodes.data_ptr(),
         grid=scenes.grid.data_ptr(),

@@ -20,4 +20,5 @@ PYBIND11_MODULE(_trace_cpu, m) {
   m.def("trace_args_size", &navi_trace_args_size, "sizeof(TraceArgs) in this build");
   m.def("sweep_args_size", &navi_sweep_args_size, "sizeof(SweepArgs) in this build");
   m.def("sample_args_size", &navi_sample_args_size, "sizeof(SampleArgs) in this build");
+  m.def("origin_sample_size", &navi_origin_sample_size, "sizeof(OriginSample) in this build");
 }

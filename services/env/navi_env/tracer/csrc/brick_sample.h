@@ -62,27 +62,49 @@ NAVI_HD BrickStore brick_store(const uint32_t* words, uint64_t atlas, int32_t sh
   return b;
 }
 
-#ifdef __CUDA_ARCH__
-// The field in cell (li, lj, lk) of brick b at fractions ux, uy, uz, from the atlas: brick b's tile
-// starts at texel 9 (b mod 2^p, (b >> p) mod 2^p, b >> 2p), and texel (x, y, z) of a tile holds sample
-// (x, y, z) as a signed normalised byte (sample / 127). With linear filtering and unnormalised
-// coordinates the unit interpolates the 8 texels around (x - 0.5, y - 0.5, z - 0.5), so the sample
-// point is the cell's texel plus the fraction plus 0.5. Its weights are 8-bit fixed point (CUDA C++
-// Programming Guide, "Linear Filtering"): the field differs from the exact trilinear of the CPU build
-// by at most about 1/256 of the samples' spread across the cell (docs/SDFDAG_RUNTIME.md).
-__device__ __forceinline__ float atlas_distance(const BrickStore& bs, uint32_t b, int li, int lj, int lk,
-                                                float quant, float ux, float uy, float uz) {
-  const uint32_t mask = (1u << bs.shift) - 1u;
-  const int tx = static_cast<int>((b & mask) * 9u) + li;
-  const int ty = static_cast<int>(((b >> bs.shift) & mask) * 9u) + lj;
-  const int tz = static_cast<int>((b >> (2 * bs.shift)) * 9u) + lk;
-  // small non-negative ints to float exactly without a conversion instruction (bits of 2^23 + n)
-  const float x = (__int_as_float(kTwo23Bits + tx) - kTwo23) + (ux + 0.5f);
-  const float y = (__int_as_float(kTwo23Bits + ty) - kTwo23) + (uy + 0.5f);
-  const float z = (__int_as_float(kTwo23Bits + tz) - kTwo23) + (uz + 0.5f);
-  return tex3D<float>(static_cast<cudaTextureObject_t>(bs.atlas), x, y, z) * (127.0f * quant);
+// Where a brick's samples are read on the device: the atlas texel coordinate of point p is
+// p + (ax, ay, az), taken once when a walk enters the brick (brick_frame) instead of from p's cell and
+// its fractions at every sample. Brick b's tile starts at texel 9 t with t = (b mod 2^s, (b >> s) mod
+// 2^s, b >> 2s) for the store's shift s, and texel (x, y, z) of a tile holds sample (x, y, z) as a
+// signed normalised byte (sample / 127). With linear filtering and unnormalised coordinates the unit
+// interpolates the 8 texels around (x - 0.5, y - 0.5, z - 0.5), so a point at fraction u of the
+// brick's local cell l samples at 9 t + l + u + 0.5. With the brick's corner c that is p + a for
+// a = 9 t - c + 0.5: both sums are exact until the last addition, so they round to the same float.
+// The host build reads the corner words instead and leaves the frame at zero.
+struct BrickFrame {
+  float ax, ay, az;
+};
+
+NAVI_HD BrickFrame no_frame() {
+  BrickFrame f;
+  f.ax = f.ay = f.az = 0.0f;
+  return f;
 }
+
+// The frame of brick b (corpus index) whose cube has corner (cx, cy, cz).
+NAVI_HD BrickFrame brick_frame(const BrickStore& bs, uint32_t b, int cx, int cy, int cz) {
+#ifdef __CUDA_ARCH__
+  // a = (9 t - c + 2^22) - 2^22 + 0.5, with 0 <= 9 t - c + 2^22 < 2^23 for texels and corners below
+  // 2^22: one exact conversion per axis through the bits of 2^23 + n.
+  constexpr int kBias = 1 << 22;
+  constexpr float kBiasedZero = kTwo23 + static_cast<float>(kBias);
+  const uint32_t mask = (1u << bs.shift) - 1u;
+  const int tx = static_cast<int>((b & mask) * 9u), ty = static_cast<int>(((b >> bs.shift) & mask) * 9u);
+  const int tz = static_cast<int>((b >> (2 * bs.shift)) * 9u);
+  BrickFrame f;
+  f.ax = (__int_as_float(kTwo23Bits + kBias + tx - cx) - kBiasedZero) + 0.5f;
+  f.ay = (__int_as_float(kTwo23Bits + kBias + ty - cy) - kBiasedZero) + 0.5f;
+  f.az = (__int_as_float(kTwo23Bits + kBias + tz - cz) - kBiasedZero) + 0.5f;
+  return f;
+#else
+  (void)bs;
+  (void)b;
+  (void)cx;
+  (void)cy;
+  (void)cz;
+  return no_frame();
 #endif
+}
 
 // The field at a voxel-space point p inside the cube whose cell (ix, iy, iz) lies in `leaf`.
 // Far codes give their lower bound (negative for solid); `solid` marks a far-solid cube.
@@ -92,20 +114,27 @@ struct FieldSample {
   bool far_free;  // inside a far-free cube (dist is its lower bound)
 };
 
-// The field in cell c of `leaf` at fractions ux, uy, uz of the cell (cell_fraction).
-NAVI_HD FieldSample leaf_field(const BrickStore& bricks, const Scene& s, const Leaf& leaf, const Cell& c, float ux,
-                               float uy, float uz) {
+// The field at point p, in cell c of `leaf` (c clamped into the cube; p on its faces or inside it).
+NAVI_HD FieldSample leaf_field(const BrickStore& bricks, const Scene& s, const Leaf& leaf, const BrickFrame& frame,
+                               const Cell& c, float px, float py, float pz) {
   FieldSample f;
   f.solid = leaf.tag == kTagFarSolid;
   f.far_free = leaf.tag != kTagBrick && leaf.tag != kTagFarSolid;
   if (leaf.tag == kTagBrick) {
+#ifdef __CUDA_ARCH__
+    // The unit's weights are 8-bit fixed point (CUDA C++ Programming Guide, "Linear Filtering"): the
+    // field differs from the exact trilinear of the host build by at most about 1/256 of the samples'
+    // spread across the cell (docs/SDFDAG_RUNTIME.md).
+    (void)c;
+    f.dist = tex3D<float>(static_cast<cudaTextureObject_t>(bricks.atlas), px + frame.ax, py + frame.ay,
+                          pz + frame.az) *
+             (127.0f * s.quant);
+#else
     // The cell lies in this brick, so its local index is in [0, 7] and its corner words are
     // leaf.words + corner_offset(ix, iy, iz) (the brick corner's offset cancels mod 2^32).
-#ifdef __CUDA_ARCH__
-    f.dist = atlas_distance(bricks, s.brick_offset + leaf.payload, c.ix - leaf.cx, c.iy - leaf.cy, c.iz - leaf.cz,
-                            s.quant, ux, uy, uz);
-#else
-    f.dist = brick_distance(bricks.words + (leaf.words + corner_offset(c.ix, c.iy, c.iz)), s.quant, ux, uy, uz);
+    (void)frame;
+    f.dist = brick_distance(bricks.words + (leaf.words + corner_offset(c.ix, c.iy, c.iz)), s.quant,
+                            cell_fraction(px, c.fx), cell_fraction(py, c.fy), cell_fraction(pz, c.fz));
 #endif
   } else if (leaf.tag == kTagFarSolid) {
     f.dist = -(static_cast<float>(leaf.payload) * kFarUnit);
@@ -122,6 +151,7 @@ constexpr int kNoCorner = 0x40000000;
 // Per-ray state for the walk: the cached leaf (the macro-cell void cache) and the last brick sampled.
 struct Walker {
   Leaf leaf;            // starts with corner kNoCorner, which contains no cell
+  BrickFrame frame;     // the brick's frame while the leaf is a brick
   uint32_t last_brick;  // corpus index of the last brick sampled (the class of a hit), or kNoBrick
 };
 
@@ -131,6 +161,7 @@ NAVI_HD void walker_init(Walker& w) {
   w.leaf.tag = kTagFarFree;
   w.leaf.payload = 0;
   w.leaf.words = 0;
+  w.frame = no_frame();
   w.last_brick = kNoBrick;
 }
 
@@ -144,21 +175,23 @@ NAVI_HD FieldSample walk_sample(const uint32_t* grid, const uint32_t* nodes, con
   cell_axis_unclamped(px, res, c.ix, c.fx);
   cell_axis_unclamped(py, res, c.iy, c.fy);
   cell_axis_unclamped(pz, res, c.iz, c.fz);
-  // The fractions before the leaf lookup: then p need not live across it (on an H100 the device code
-  // recomputed p after the lookup instead, and ran 5-10% slower).
-  float ux = cell_fraction(px, c.fx), uy = cell_fraction(py, c.fy), uz = cell_fraction(pz, c.fz);
+  // A sample in the cached leaf needs only p on the device (the brick frame) and the cell on the host;
+  // the lookup below runs on most warp steps in some lane, so it is kept short (docs/PERFORMANCE.md).
   if (!leaf_contains(w.leaf, c.ix, c.iy, c.iz)) {
-    if (!cell_in_cube(c, s.resolution)) {  // on a face or just past it: the nearest cell of the cube
+    if (!cell_in_cube(c, s.resolution)) {  // on a face or just past it: the nearest point of the cube
+      px = fminf(fmaxf(px, 0.0f), res);
+      py = fminf(fmaxf(py, 0.0f), res);
+      pz = fminf(fmaxf(pz, 0.0f), res);
       c = cell_of(px, py, pz, cell_max(s));
-      ux = cell_fraction(px, c.fx);
-      uy = cell_fraction(py, c.fy);
-      uz = cell_fraction(pz, c.fz);
     }
     w.leaf = find_leaf(grid, nodes, s, c.ix, c.iy, c.iz);
     // Samples in the cached leaf are in the same brick, so the last brick sampled changes only here.
-    if (w.leaf.tag == kTagBrick) w.last_brick = s.brick_offset + w.leaf.payload;
+    if (w.leaf.tag == kTagBrick) {
+      w.last_brick = s.brick_offset + w.leaf.payload;
+      w.frame = brick_frame(bricks, w.last_brick, w.leaf.cx, w.leaf.cy, w.leaf.cz);
+    }
   }
-  return leaf_field(bricks, s, w.leaf, c, ux, uy, uz);
+  return leaf_field(bricks, s, w.leaf, w.frame, c, px, py, pz);
 }
 
 }  // namespace navi

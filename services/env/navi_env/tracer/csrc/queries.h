@@ -61,10 +61,12 @@ NAVI_HD void sample_point(const SampleArgs& a, int64_t i) {
   if (ex > 0.0f || ey > 0.0f || ez > 0.0f) {
     dist = sqrtf(ex * ex + ey * ey + ez * ez) * s.voxel;
   } else {
+    const BrickStore bricks = brick_store(a.bricks, a.brick_atlas, a.atlas_shift);
     const Cell c = cell_of(px, py, pz, cell_max(s));
     const Leaf leaf = find_leaf(a.grid, a.nodes, s, c.ix, c.iy, c.iz);
-    dist = leaf_field(brick_store(a.bricks, a.brick_atlas, a.atlas_shift), s, leaf, c, cell_fraction(px, c.fx), cell_fraction(py, c.fy), cell_fraction(pz, c.fz))
-               .dist * s.voxel;
+    const BrickFrame frame =
+        leaf.tag == kTagBrick ? brick_frame(bricks, s.brick_offset + leaf.payload, leaf.cx, leaf.cy, leaf.cz) : no_frame();
+    dist = leaf_field(bricks, s, leaf, frame, c, px, py, pz).dist * s.voxel;
   }
   if (a.prims != nullptr && a.prims_per_world > 0) {
     const int64_t wid = static_cast<int64_t>(load_ro(a.prim_world + i));

@@ -28,12 +28,13 @@ constexpr int32_t kOriginFarFree = 4;   // FieldSample.far_free
 
 struct alignas(16) OriginSample {
   Leaf leaf;            // the walker's leaf after the sample
+  BrickFrame frame;     // its brick frame
   uint32_t last_brick;  // the walker's last brick after the sample
   float dist;           // FieldSample.dist, voxels
   int32_t flags;        // kOriginValid | kOriginSolid | kOriginFarFree
 };
 
-static_assert(sizeof(OriginSample) == 48, "mirrored by navi_env.tracer.trace.ORIGIN_SAMPLE_BYTES");
+static_assert(sizeof(OriginSample) == 64, "mirrored by navi_env.tracer.abi.ORIGIN_SAMPLE_BYTES");
 
 // Actor b's origin sample (flags 0 where its rays cannot use one: bad scene id, non-finite origin, an
 // origin outside the cube, whose rays start at their own entry times).
@@ -42,6 +43,7 @@ NAVI_HD OriginSample origin_sample(const TraceArgs& a, int64_t b) {
   walker_init(w);
   OriginSample o;
   o.leaf = w.leaf;
+  o.frame = w.frame;
   o.last_brick = w.last_brick;
   o.dist = 0.0f;
   o.flags = 0;
@@ -57,6 +59,7 @@ NAVI_HD OriginSample origin_sample(const TraceArgs& a, int64_t b) {
   const FieldSample f = walk_sample(a.grid, a.nodes, brick_store(a.bricks, a.brick_atlas, a.atlas_shift), s, w,
                                     ox, oy, oz);
   o.leaf = w.leaf;
+  o.frame = w.frame;
   o.last_brick = w.last_brick;
   o.dist = f.dist;
   o.flags = kOriginValid | (f.solid ? kOriginSolid : 0) | (f.far_free ? kOriginFarFree : 0);
@@ -305,6 +308,7 @@ NAVI_HD void first_step(const TraceArgs& a, Ray& ray, const OriginSample& origin
   if ((origin.flags & kOriginValid) == 0 || ray.t != 0.0f || ray.res.steps != 0 || a.max_steps <= 0) return;
   ray.res.steps = 1;
   ray.w.leaf = origin.leaf;
+  ray.w.frame = origin.frame;
   ray.w.last_brick = origin.last_brick;
   FieldSample f;
   f.dist = origin.dist;

@@ -94,3 +94,5 @@ extern "C" int navi_trace_args_size() { return static_cast<int>(sizeof(navi::Tra
 extern "C" int navi_sample_args_size() { return static_cast<int>(sizeof(navi::SampleArgs)); }
 
 extern "C" int navi_sweep_args_size() { return static_cast<int>(sizeof(navi::SweepArgs)); }
+
+extern "C" int navi_origin_sample_size() { return static_cast<int>(sizeof(navi::OriginSample)); }

@@ -219,6 +219,8 @@ extern "C" int navi_sample_args_size() { return static_cast<int>(sizeof(navi::Sa
 
 extern "C" int navi_sweep_args_size() { return static_cast<int>(sizeof(navi::SweepArgs)); }
 
+extern "C" int navi_origin_sample_size() { return static_cast<int>(sizeof(navi::OriginSample)); }
+
 extern "C" const char* navi_cuda_error_string(int code) {
   return cudaGetErrorString(static_cast<cudaError_t>(code));
 }

@@ -20,6 +20,7 @@ NAVI_EXPORT int navi_sweep_cuda(const navi::SweepArgs* args);
 NAVI_EXPORT int navi_trace_args_size();
 NAVI_EXPORT int navi_sample_args_size();
 NAVI_EXPORT int navi_sweep_args_size();
+NAVI_EXPORT int navi_origin_sample_size();
 NAVI_EXPORT const char* navi_cuda_error_string(int code);
 // The CUDA build's brick atlas (scene.py BrickAtlas): a 3-d texture of int8 samples, made and freed.
 NAVI_EXPORT int navi_atlas_create_cuda(const int8_t* host, int64_t w, int64_t h, int64_t d, int device,
