@@ -256,6 +256,11 @@ def test_bench_train_nproc_reports_ranks_totals_and_scaling(tmp_path: Path) -> N
         expected = report["total"][col] / (2 * report["single"][col])
         assert report["scaling_efficiency"][col.removesuffix("_sps")] == pytest.approx(expected, abs=1e-3)
     assert report["single"]["actors"] == ACTORS and all(r["actors"] == ACTORS for r in report["ranks"])
+    # time in collectives: none in one process; on each rank some, and less than forward and learn together
+    assert report["single"]["ms_per_step"]["sync"] == 0.0
+    for r in report["ranks"]:
+        ms = r["ms_per_step"]
+        assert 0.0 < ms["sync"] < ms["forward"] + ms["learn"]
 
 
 def test_one_gpu_per_rank_is_checked_before_joining(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -173,4 +173,4 @@ def test_stage_timers_without_sync_sum_the_host_time_per_stage_and_clear_on_read
         pass
     ms = timers.read(steps=3)  # ms per step
     assert 9.0 < ms["ms_env"] < 100.0 and ms["ms_forward"] < 5.0 and ms["ms_learn"] == 0.0
-    assert timers.read(steps=1) == {"ms_env": 0.0, "ms_forward": 0.0, "ms_learn": 0.0}
+    assert timers.read(steps=1) == {"ms_env": 0.0, "ms_forward": 0.0, "ms_learn": 0.0, "ms_sync": 0.0}

@@ -135,7 +135,8 @@ def bench_train(
         )
     measured = rows[warmup:] or rows
     mean = {
-        k: sum(r[k] for r in measured) / len(measured) for k in ("sps", "ms_env", "ms_forward", "ms_learn")
+        k: sum(r[k] for r in measured) / len(measured)
+        for k in ("sps", "ms_env", "ms_forward", "ms_learn", "ms_sync")
     }
     out.update(
         {

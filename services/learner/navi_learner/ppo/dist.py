@@ -33,6 +33,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Callable, Iterable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -153,20 +154,28 @@ def collective(d: Dist, what: str, call: Callable[[], T]) -> T:
 
 
 class Sync:
-    """The collectives of one data-parallel run on `device`; the gradient buffer is allocated once."""
+    """The collectives of one data-parallel run on `device`; the gradient buffer is allocated once.
+    With `timers` (training's StageTimers) every all-reduce is timed as the stage "sync"."""
 
-    def __init__(self, d: Dist, params: list[nn.Parameter], device: torch.device) -> None:
+    def __init__(
+        self,
+        d: Dist,
+        params: list[nn.Parameter],
+        device: torch.device,
+        timers: Callable[[str], AbstractContextManager[None]] | None = None,
+    ) -> None:
         if not d.active:
             raise ValueError("Sync needs a process group (world size > 1)")
         if any(p.dtype != torch.float32 for p in params):
             raise ValueError("the flat gradient buffer holds float32 parameters only")
-        self.d, self.params, self.device = d, params, device
+        self.d, self.params, self.device, self.timers = d, params, device, timers
         sizes = [p.numel() for p in params]
         self.flat = torch.zeros(sum(sizes) + 1, device=device)  # (P + 1,) float32 gradients, then the flag
         self.views = list(self.flat[:-1].split(sizes))  # each (numel_i,) float32, a view into flat
 
     def _all_reduce(self, what: str, t: torch.Tensor, op: Any = tdist.ReduceOp.SUM) -> torch.Tensor:
-        collective(self.d, what, lambda: tdist.all_reduce(t, op=op))
+        with self.timers("sync") if self.timers is not None else nullcontext():
+            collective(self.d, what, lambda: tdist.all_reduce(t, op=op))
         return t
 
     def sum_(self, t: torch.Tensor) -> torch.Tensor:

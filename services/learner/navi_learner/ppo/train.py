@@ -37,6 +37,12 @@ from navi_learner.serving.checkpoint import (
 from navi_learner.serving.registry import ModelRegistry
 
 STAGES = ("env", "forward", "learn")
+"""The stages a step's time is split into (they do not overlap)."""
+TIMED = (*STAGES, "sync")
+"""What StageTimers reports: the stages, and "sync", the time a data-parallel run spends in its collectives
+(ppo.dist.Sync): mostly the rollout's per-step normaliser sum and each minibatch's normalisation and
+gradient all-reduces, which lie within forward and learn, plus a few per update and per log line. Timed by
+CUDA events, a collective's time is its wait for the other ranks plus its transfer."""
 
 
 class Monitor(Protocol):
@@ -61,7 +67,7 @@ class StageTimers:
 
     def __init__(self, sync: bool) -> None:
         self.sync = sync
-        self.seconds = dict.fromkeys(STAGES, 0.0)
+        self.seconds = dict.fromkeys(TIMED, 0.0)
         self.spans: list[tuple[str, torch.cuda.Event, torch.cuda.Event]] = []  # recorded, not yet read
         self.pool: list[torch.cuda.Event] = []  # events already read, recorded again (allocated once)
 
@@ -90,7 +96,7 @@ class StageTimers:
                 self.pool += (start, end)
             self.spans.clear()
         out = {f"ms_{k}": 1000.0 * v / max(steps, 1) for k, v in self.seconds.items()}
-        self.seconds = dict.fromkeys(STAGES, 0.0)
+        self.seconds = dict.fromkeys(TIMED, 0.0)
         return out
 
 
@@ -520,7 +526,8 @@ def setup(
     policy.amp = cfg.amp and device.type == "cuda"
     params = [q for q in policy.parameters() if q.requires_grad]
     optimizer = torch.optim.Adam(params, lr=cfg.ppo.lr, eps=1e-5, fused=device.type == "cuda")
-    sync = Sync(d, params, device) if d.active else None
+    timers = StageTimers(cfg.sync_timers and device.type == "cuda")
+    sync = Sync(d, params, device, timers) if d.active else None
     if sync is not None:
         run_id, root = sync.broadcast_object((run_id, root))
     run = RunFiles(root, run_id, on_log, write=d.main)
@@ -579,7 +586,7 @@ def setup(
         buf=buf,
         memory=memory,
         stats=EpisodeStats(n, device),
-        timers=StageTimers(cfg.sync_timers and device.type == "cuda"),
+        timers=timers,
         forward=make_forward(policy, memory, cfg, device, None if sync is None else sync.sum_),
         objective=make_objective(policy, cfg, device, sync is not None),
         gen=torch.Generator().manual_seed(rank_seed),
