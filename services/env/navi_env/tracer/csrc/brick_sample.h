@@ -81,9 +81,11 @@ NAVI_HD BrickFrame no_frame() {
   return f;
 }
 
-// The frame of brick b (corpus index) whose cube has corner (cx, cy, cz).
-NAVI_HD BrickFrame brick_frame(const BrickStore& bs, uint32_t b, int cx, int cy, int cz) {
+// The frame of brick leaf `leaf` of scene s.
+NAVI_HD BrickFrame brick_frame(const BrickStore& bs, const Scene& s, const Leaf& leaf) {
 #ifdef __CUDA_ARCH__
+  const uint32_t b = s.brick_offset + leaf.payload;  // corpus index
+  const int cx = leaf.cx, cy = leaf.cy, cz = leaf.cz;
   // a = (9 t - c + 2^22) - 2^22 + 0.5, with 0 <= 9 t - c + 2^22 < 2^23 for texels and corners below
   // 2^22: one exact conversion per axis through the bits of 2^23 + n.
   constexpr int kBias = 1 << 22;
@@ -98,10 +100,8 @@ NAVI_HD BrickFrame brick_frame(const BrickStore& bs, uint32_t b, int cx, int cy,
   return f;
 #else
   (void)bs;
-  (void)b;
-  (void)cx;
-  (void)cy;
-  (void)cz;
+  (void)s;
+  (void)leaf;
   return no_frame();
 #endif
 }
@@ -188,7 +188,7 @@ NAVI_HD FieldSample walk_sample(const uint32_t* grid, const uint32_t* nodes, con
     // Samples in the cached leaf are in the same brick, so the last brick sampled changes only here.
     if (w.leaf.tag == kTagBrick) {
       w.last_brick = s.brick_offset + w.leaf.payload;
-      w.frame = brick_frame(bricks, w.last_brick, w.leaf.cx, w.leaf.cy, w.leaf.cz);
+      w.frame = brick_frame(bricks, s, w.leaf);
     }
   }
   return leaf_field(bricks, s, w.leaf, w.frame, c, px, py, pz);

@@ -64,8 +64,7 @@ NAVI_HD void sample_point(const SampleArgs& a, int64_t i) {
     const BrickStore bricks = brick_store(a.bricks, a.brick_atlas, a.atlas_shift);
     const Cell c = cell_of(px, py, pz, cell_max(s));
     const Leaf leaf = find_leaf(a.grid, a.nodes, s, c.ix, c.iy, c.iz);
-    const BrickFrame frame =
-        leaf.tag == kTagBrick ? brick_frame(bricks, s.brick_offset + leaf.payload, leaf.cx, leaf.cy, leaf.cz) : no_frame();
+    const BrickFrame frame = leaf.tag == kTagBrick ? brick_frame(bricks, s, leaf) : no_frame();
     dist = leaf_field(bricks, s, leaf, frame, c, px, py, pz).dist * s.voxel;
   }
   if (a.prims != nullptr && a.prims_per_world > 0) {
