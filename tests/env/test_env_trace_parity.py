@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from navi_env.sim.rays import spherical_directions, tiled_ray_order
+from navi_env.tracer import primitives
 from navi_env.tracer.analytic_scenes import (
     AnalyticScene,
     Box,
@@ -241,6 +242,33 @@ def test_cuda_matches_cpu(corpus: tuple[list[AnalyticScene], SceneCorpus]) -> No
     got, want = sample_distance(cuda, sid.cuda(), p.cuda()).cpu(), sample_distance(c, sid, p)  # (N,) each
     voxel_n = torch.tensor([s.voxel_size for s in scenes])[sid]  # (N,) meters
     assert float(((got - want).abs() / voxel_n).max()) <= 0.02
+
+
+@gpu
+@pytest.mark.parametrize("obstacles", [0, 2])
+def test_cuda_blocks_that_trace_several_actors_change_no_output(
+    corpus: tuple[list[AnalyticScene], SceneCorpus], obstacles: int
+) -> None:
+    """Above 2,048 actors a CUDA block traces its ray group for several actors in turn: every actor's
+    depth, semantic and steps are those of a launch that holds that actor alone in its blocks."""
+    scenes, _ = corpus
+    cuda = load_corpus([s.gmdag() for s in scenes], "cuda")
+    ids, origins = _batch(scenes, 2600, seed=40)  # (B,), (B, 3): B = 10,400, 4 actors per block
+    dirs = torch.tensor(random_directions(32, seed=41), dtype=torch.float32).cuda()  # (R, 3)
+    yaw = torch.linspace(-3.0, 3.0, len(ids)).cuda()  # (B,)
+    gen = torch.Generator().manual_seed(42)
+    prims = primitives.scatter(origins, obstacles, gen, near=0.5, far=3.0).cuda() if obstacles else None
+    ids, origins = ids.cuda(), origins.cuda()
+    kw = {"yaw": yaw, "hit_slope": 0.01}
+    many = _run(trace, cuda, ids, origins, dirs, prims=prims, **kw)
+    part = torch.arange(0, len(ids), 97, device="cuda")  # (P,) 108 actors, one per block
+    few = _run(trace, cuda, ids[part], origins[part], dirs, yaw=yaw[part], hit_slope=0.01,
+               prims=None if prims is None else prims[part])  # fmt: skip
+    torch.cuda.synchronize()
+    for a, b in zip(many, few, strict=True):
+        assert torch.equal(a[part].nan_to_num(-7.0), b.nan_to_num(-7.0))
+    assert float((many[1] > 0).float().mean()) > 0.3  # most rays hit a surface
+    assert int(many[2].min()) >= 0  # every ray of every actor was traced
 
 
 @gpu
