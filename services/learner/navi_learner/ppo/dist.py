@@ -197,17 +197,18 @@ class Sync:
     def average_grads(self, loss: torch.Tensor) -> torch.Tensor:
         """One all-reduce of every gradient and of a non-finite-loss flag, gradients divided by the world
         size in place; returns () bool: some rank's loss was non-finite (the same on every rank)."""
-        for view, p in zip(self.views, self.params, strict=True):
-            if p.grad is None:
-                view.zero_()
-            else:
-                view.copy_(p.grad.reshape(-1))
+        # multi-tensor copies (a few kernels for all parameters, not one per parameter and direction)
+        have = [(view, p.grad) for view, p in zip(self.views, self.params, strict=True) if p.grad is not None]
+        missing = [view for view, p in zip(self.views, self.params, strict=True) if p.grad is None]
+        if missing:
+            torch._foreach_zero_(missing)
+        if have:
+            torch._foreach_copy_([v for v, _ in have], [g.reshape(-1) for _, g in have])
         self.flat[-1:].copy_((~torch.isfinite(loss.detach())).float().reshape(1))
         self._all_reduce("gradient all-reduce", self.flat)
         self.flat[:-1].div_(self.d.world)
-        for view, p in zip(self.views, self.params, strict=True):
-            if p.grad is not None:
-                p.grad.copy_(view.view_as(p))
+        if have:
+            torch._foreach_copy_([g for _, g in have], [v.view_as(g) for v, g in have])
         return self.flat[-1] > 0  # () bool
 
     def normalize(self, x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
