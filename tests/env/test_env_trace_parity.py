@@ -259,8 +259,7 @@ def test_cuda_blocks_that_trace_several_actors_change_no_output(
     gen = torch.Generator().manual_seed(42)
     prims = primitives.scatter(origins, obstacles, gen, near=0.5, far=3.0).cuda() if obstacles else None
     ids, origins = ids.cuda(), origins.cuda()
-    kw = {"yaw": yaw, "hit_slope": 0.01}
-    many = _run(trace, cuda, ids, origins, dirs, prims=prims, **kw)
+    many = _run(trace, cuda, ids, origins, dirs, yaw=yaw, hit_slope=0.01, prims=prims)
     part = torch.arange(0, len(ids), 97, device="cuda")  # (P,) 108 actors, one per block
     few = _run(trace, cuda, ids[part], origins[part], dirs, yaw=yaw[part], hit_slope=0.01,
                prims=None if prims is None else prims[part])  # fmt: skip

@@ -14,10 +14,10 @@
 // actor's rays in blocks of 128, y the actors, so no thread divides to find its actor. A block traces
 // its ray group for several actors, strided by the grid's height (grid_rows): each of its warps goes
 // on to its next actor without waiting for the block's slowest warp, and the GPU schedules a quarter
-// of the blocks. At 8,192 actors, 4 actors per block traced each of 9 OpenArena maps 2.3-8% faster
-// than one (H200, docs/PERFORMANCE.md); 8 per block did as well, 2 and 16 less, 32 threads per block
-// worse, and persistent warps taking tiles from an atomic counter gained most on the slowest maps but
-// lost 13% on the fastest.
+// of the blocks. At 8,192 actors, 4 actors per block traced every one of the 50 OpenArena maps 1.9-8.0%
+// faster than one actor per block (H200, docs/PERFORMANCE.md); on 9 of them 8 per block did as well, 2
+// and 16 less, 32 threads per block worse, and persistent warps taking tiles from an atomic counter
+// gained most on the slowest map but lost 13% against one actor per block on the fastest.
 #include <cuda_runtime.h>
 
 #include <cstdint>
