@@ -116,7 +116,7 @@ def test_origin_record_size_matches_the_build() -> None:
 
 def test_a_stale_origin_record_size_is_refused() -> None:
     lib = cpu_launcher()
-    with pytest.raises(RuntimeError, match=r"sizeof\(OriginSample\) is 48 bytes.*expects 64"):
+    with pytest.raises(RuntimeError, match=r"sizeof\(OriginSample\) is 48 bytes.*expects 80"):
         check_layout(
             lib.trace_args_size, lib.sample_args_size, lib.sweep_args_size, lambda: 48, "a stale build"
         )

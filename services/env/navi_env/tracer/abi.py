@@ -10,7 +10,7 @@ from __future__ import annotations
 import ctypes
 from collections.abc import Callable
 
-ORIGIN_SAMPLE_BYTES = 64
+ORIGIN_SAMPLE_BYTES = 80
 """sizeof(OriginSample): one actor's origin sample in the launch's origin scratch (csrc/ray_walk.h)."""
 
 

@@ -309,7 +309,7 @@ def trace(
         # the launch's origin samples: like the primitive tables a fresh buffer per call (free from the
         # caching allocator, private to a CUDA graph's pool, correct when calls overlap on streams)
         nbytes = p.batch * ORIGIN_SAMPLE_BYTES
-        origin = torch.empty(nbytes, dtype=torch.uint8, device=scenes.device)  # (B * 64,) OriginSample
+        origin = torch.empty(nbytes, dtype=torch.uint8, device=scenes.device)  # (B * 80,) OriginSample
     args = TraceArgs(
         nodes=scenes.nodes.data_ptr(),
         grid=scenes.grid.data_ptr(),

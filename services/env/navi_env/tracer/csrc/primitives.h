@@ -316,19 +316,29 @@ NAVI_HD bool cone_may_hit(const PrimCull& c, Vec3 u, float cos_half, float sin_h
   return lhs >= rhs - 1e-5f * sqrtf(l2);
 }
 
-// The body-frame direction rotated by yaw about +Z (cos/sin as the platform's libm computes them).
-NAVI_HD void rotate_yaw(float yaw, float& dx, float& dy) {
-  float c, sn;
+// cos and sin of a yaw angle, as the platform's libm computes them.
+NAVI_HD void yaw_cos_sin(float yaw, float& c, float& sn) {
 #ifdef __CUDA_ARCH__
   sincosf(yaw, &sn, &c);
 #else
   c = cosf(yaw);
   sn = sinf(yaw);
 #endif
+}
+
+// (dx, dy) rotated about +Z by the angle whose cosine and sine are c and sn.
+NAVI_HD void rotate_cs(float c, float sn, float& dx, float& dy) {
   const float rx = c * dx - sn * dy;
   const float ry = sn * dx + c * dy;
   dx = rx;
   dy = ry;
+}
+
+// The body-frame direction rotated by yaw about +Z.
+NAVI_HD void rotate_yaw(float yaw, float& dx, float& dy) {
+  float c, sn;
+  yaw_cos_sin(yaw, c, sn);
+  rotate_cs(c, sn, dx, dy);
 }
 
 // Group g's mask for actor b: bit k when primitive k may be hit by one of the group's rays.

@@ -24,8 +24,9 @@ template <bool kPrims>
 NAVI_HD void trace_item(const TraceArgs& a, int64_t b, int64_t j, const PrimTables& t) {
   const int64_t r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
   if (r < 0 || r >= a.num_rays) return;
-  Ray ray = start_ray<kPrims>(a, b, j, r, t);
-  if (!ray.done && a.origin_scratch != nullptr) first_step(a, ray, load_origin(a, b));
+  const ActorFrame frame = load_frame(a, b);
+  Ray ray = start_ray<kPrims>(a, b, j, r, t, frame);
+  if (!ray.done) first_step(a, ray, b, frame);
   if (!ray.done) walk_ray(a, ray);
   if (!ray.done) {
     end_out_of_steps(a, ray);

@@ -17,36 +17,64 @@ constexpr int kRefineIterations = 6;    // bisection halvings after a sign chang
 constexpr float kSecantReach = 16.0f;   // a stop within the threshold reports the secant's zero, at most this many d ahead
 
 // ---------------------------------------------------------------------------------------------
-// The origin sample. Every ray of an actor whose origin lies in its scene's cube starts at t = 0, so
-// its first sample is at the origin itself (o + 0 d = o exactly, fused or not): the same field, leaf
-// and brick for all R rays. A launch with origin_scratch takes that sample once per actor before the
-// rays (one thread per actor), and each ray's first step starts from the record (first_step): one
-// sample and leaf lookup less per ray, bit-identical to sampling the origin itself.
-constexpr int32_t kOriginValid = 1;     // the record holds the sample (origin finite and in the cube)
+// The origin sample and the actor's frame. Every ray of an actor whose origin lies in its scene's cube
+// starts at t = 0, so its first sample is at the origin itself (o + 0 d = o exactly, fused or not): the
+// same field, leaf and brick for all R rays. A launch with origin_scratch takes that sample once per
+// actor before the rays (one thread per actor), together with what every ray of the actor would
+// otherwise derive again: the scene id, the origin in voxel space and the cosine and sine of the yaw.
+// Each ray then starts from the record (start_ray) and takes its first step from it (first_step):
+// bit-identical to each ray loading, converting and sampling for itself, and on an 8,192-actor launch
+// of short rays the per-ray set-up was as many instructions as the walk (docs/PERFORMANCE.md).
+constexpr int32_t kOriginValid = 1;     // the record holds the frame and the sample (origin finite, in the cube)
 constexpr int32_t kOriginSolid = 2;     // FieldSample.solid
 constexpr int32_t kOriginFarFree = 4;   // FieldSample.far_free
 
-struct alignas(16) OriginSample {
+// What a ray of the actor starts from (the first 32 bytes of the record: two 16-byte loads).
+struct alignas(16) ActorFrame {
+  float ox, oy, oz;        // origin, voxel space of the actor's scene
+  int32_t flags;           // kOriginValid | kOriginSolid | kOriginFarFree; 0: the rays start on their own
+  float cos_yaw, sin_yaw;  // yaw_cos_sin of the actor's yaw (1, 0 without yaw)
+  int32_t scene;           // scene id
+  float dist;              // FieldSample.dist at the origin, voxels
+};
+
+// The walker after the origin sample (read by first_step only).
+struct alignas(16) OriginWalker {
   Leaf leaf;            // the walker's leaf after the sample
   BrickFrame frame;     // its brick frame
   uint32_t last_brick;  // the walker's last brick after the sample
-  float dist;           // FieldSample.dist, voxels
-  int32_t flags;        // kOriginValid | kOriginSolid | kOriginFarFree
 };
 
-static_assert(sizeof(OriginSample) == 64, "mirrored by navi_env.tracer.abi.ORIGIN_SAMPLE_BYTES");
+struct alignas(16) OriginSample {
+  ActorFrame actor;
+  OriginWalker walker;
+};
 
-// Actor b's origin sample (flags 0 where its rays cannot use one: bad scene id, non-finite origin, an
-// origin outside the cube, whose rays start at their own entry times).
+static_assert(sizeof(ActorFrame) == 32 && sizeof(OriginSample) == 80,
+              "mirrored by navi_env.tracer.abi.ORIGIN_SAMPLE_BYTES");
+
+// A frame no ray starts from (launches without origin samples).
+NAVI_HD ActorFrame no_frame_record() {
+  ActorFrame f;
+  f.ox = f.oy = f.oz = 0.0f;
+  f.flags = 0;
+  f.cos_yaw = 1.0f;
+  f.sin_yaw = 0.0f;
+  f.scene = -1;
+  f.dist = 0.0f;
+  return f;
+}
+
+// Actor b's record (flags 0 where its rays cannot use one: bad scene id, non-finite origin, an origin
+// outside the cube, whose rays start at their own entry times).
 NAVI_HD OriginSample origin_sample(const TraceArgs& a, int64_t b) {
   Walker w;
   walker_init(w);
   OriginSample o;
-  o.leaf = w.leaf;
-  o.frame = w.frame;
-  o.last_brick = w.last_brick;
-  o.dist = 0.0f;
-  o.flags = 0;
+  o.actor = no_frame_record();
+  o.walker.leaf = w.leaf;
+  o.walker.frame = w.frame;
+  o.walker.last_brick = w.last_brick;
   const int64_t sid = load_scene_id(a.scene_ids, a.scene_id_bytes, b);
   if (sid < 0 || sid >= a.num_scenes) return o;
   const Scene s = load_scene(a.scenes, sid);
@@ -58,26 +86,38 @@ NAVI_HD OriginSample origin_sample(const TraceArgs& a, int64_t b) {
   if (!(ox >= 0.0f && ox <= res && oy >= 0.0f && oy <= res && oz >= 0.0f && oz <= res)) return o;
   const FieldSample f = walk_sample(a.grid, a.nodes, brick_store(a.bricks, a.brick_atlas, a.atlas_shift), s, w,
                                     ox, oy, oz);
-  o.leaf = w.leaf;
-  o.frame = w.frame;
-  o.last_brick = w.last_brick;
-  o.dist = f.dist;
-  o.flags = kOriginValid | (f.solid ? kOriginSolid : 0) | (f.far_free ? kOriginFarFree : 0);
+  o.actor.ox = ox;
+  o.actor.oy = oy;
+  o.actor.oz = oz;
+  if (a.yaw != nullptr) yaw_cos_sin(load_ro(a.yaw + b), o.actor.cos_yaw, o.actor.sin_yaw);
+  o.actor.scene = static_cast<int32_t>(sid);
+  o.actor.dist = f.dist;
+  o.actor.flags = kOriginValid | (f.solid ? kOriginSolid : 0) | (f.far_free ? kOriginFarFree : 0);
+  o.walker.leaf = w.leaf;
+  o.walker.frame = w.frame;
+  o.walker.last_brick = w.last_brick;
   return o;
 }
 
-// Record b of origin_scratch (16-byte loads on the device).
-NAVI_HD OriginSample load_origin(const TraceArgs& a, int64_t b) {
-  const OriginSample* p = static_cast<const OriginSample*>(a.origin_scratch) + b;
+// A record in origin_scratch (16-byte read-only loads on the device).
+template <typename T>
+NAVI_HD T load_record(const T* p) {
 #ifdef __CUDA_ARCH__
-  OriginSample o;
+  static_assert(sizeof(T) % 16 == 0, "whole 16-byte words");
+  T v;
   const int4* src = reinterpret_cast<const int4*>(p);
-  int4* dst = reinterpret_cast<int4*>(&o);
-  for (int k = 0; k < static_cast<int>(sizeof(OriginSample) / 16); ++k) dst[k] = __ldg(src + k);
-  return o;
+  int4* dst = reinterpret_cast<int4*>(&v);
+  for (int k = 0; k < static_cast<int>(sizeof(T) / 16); ++k) dst[k] = __ldg(src + k);
+  return v;
 #else
   return *p;
 #endif
+}
+
+// Actor b's frame (a frame with flags 0 for a launch without origin samples).
+NAVI_HD ActorFrame load_frame(const TraceArgs& a, int64_t b) {
+  if (a.origin_scratch == nullptr) return no_frame_record();
+  return load_record(&(static_cast<const OriginSample*>(a.origin_scratch) + b)->actor);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -172,19 +212,29 @@ NAVI_HD float actor_prim_hit(const TraceArgs& a, const PrimTables& t, int64_t b,
                         a.prims_per_world, t.masks != nullptr, mask, o, d, semantic);
 }
 
+// Where a ray from a point inside the closed slab [0, res] leaves it along one axis: t1 narrowed to the
+// face ahead. The same time as clip_slab's for such a point (the time to the face behind is <= 0).
+NAVI_HD float slab_exit(float o, float d, float inv, float res, float t1) {
+  return d != 0.0f ? fminf(t1, ((d > 0.0f ? res : 0.0f) - o) * inv) : t1;
+}
+
 // Sets up work item j (ray r) of actor b (writing to element b * R + r); rays that are decided before
-// the first sample (bad scene id, non-finite input, missing the cube) come back done. kPrims: the
-// launch has primitives (a separate instantiation, so a launch without them runs the plain walk:
-// measured 6-8% slower on an H100 when one kernel served both); `t`: its tables (prim_tables).
+// the first sample (bad scene id, non-finite input, missing the cube) come back done. `f`: the actor's
+// frame (load_frame); with kOriginValid the scene id, the voxel-space origin and the yaw come from it
+// and the origin lies in the cube (the clip starts at t = 0), else the ray derives them itself.
+// kPrims: the launch has primitives (a separate instantiation, so a launch without them runs the plain
+// walk: measured 6-8% slower on an H100 when one kernel served both); `t`: its tables (prim_tables).
 template <bool kPrims>
-NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const PrimTables& t) {
+NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const PrimTables& t,
+                      const ActorFrame& f) {
+  const bool framed = (f.flags & kOriginValid) != 0;
   Ray ray;
   ray.out = b * a.num_rays + r;
   ray.res.depth = a.horizon;
   ray.res.semantic = 0;
   ray.res.steps = 0;
   ray.done = true;
-  const int64_t sid = load_scene_id(a.scene_ids, a.scene_id_bytes, b);
+  const int64_t sid = framed ? static_cast<int64_t>(f.scene) : load_scene_id(a.scene_ids, a.scene_id_bytes, b);
   if (sid < 0 || sid >= a.num_scenes) {
     ray.res.depth = kNaN();
     return ray;
@@ -192,8 +242,18 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const
   const float* dir = a.directions + (a.directions_shared ? r : b * a.num_rays + r) * 3;
   float dx = load_ro(dir), dy = load_ro(dir + 1);
   const float dz = load_ro(dir + 2);
-  if (a.yaw != nullptr) rotate_yaw(load_ro(a.yaw + b), dx, dy);
-  const Vec3 world = v3(load_ro(a.origins + b * 3), load_ro(a.origins + b * 3 + 1), load_ro(a.origins + b * 3 + 2));
+  if (a.yaw != nullptr) {
+    if (framed) {
+      rotate_cs(f.cos_yaw, f.sin_yaw, dx, dy);
+    } else {
+      rotate_yaw(load_ro(a.yaw + b), dx, dy);
+    }
+  }
+  // A framed actor's origin is finite (it lies in the cube); the world point is needed for primitives.
+  Vec3 world = v3(0.0f, 0.0f, 0.0f);
+  if (!framed || kPrims) {
+    world = v3(load_ro(a.origins + b * 3), load_ro(a.origins + b * 3 + 1), load_ro(a.origins + b * 3 + 2));
+  }
   if (!(finite(world.x) && finite(world.y) && finite(world.z) && finite(dx) && finite(dy) && finite(dz))) {
     ray.res.semantic = kOutOfSteps;
     return ray;
@@ -213,12 +273,15 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const
   }
   const Scene s = load_scene(a.scenes, sid);
   ray.s = s;
-  const float ox = (world.x - s.ox) * s.inv_voxel;
-  const float oy = (world.y - s.oy) * s.inv_voxel;
-  const float oz = (world.z - s.oz) * s.inv_voxel;
-  if (!(finite(ox) && finite(oy) && finite(oz))) {
-    ray.res.semantic = kOutOfSteps;
-    return ray;
+  float ox = f.ox, oy = f.oy, oz = f.oz;
+  if (!framed) {
+    ox = (world.x - s.ox) * s.inv_voxel;
+    oy = (world.y - s.oy) * s.inv_voxel;
+    oz = (world.z - s.oz) * s.inv_voxel;
+    if (!(finite(ox) && finite(oy) && finite(oz))) {
+      ray.res.semantic = kOutOfSteps;
+      return ray;
+    }
   }
   const float res = static_cast<float>(s.resolution);
   ray.eps = a.hit_epsilon > 0.0f ? a.hit_epsilon * s.inv_voxel : kDefaultHitEpsilonVoxels;
@@ -228,9 +291,15 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const
   ray.inv_y = dy != 0.0f ? 1.0f / dy : kBig;
   ray.inv_z = dz != 0.0f ? 1.0f / dz : kBig;
   float t0 = 0.0f, t1 = reach * s.inv_voxel;
-  clip_slab(ox, dx, ray.inv_x, res, t0, t1);
-  clip_slab(oy, dy, ray.inv_y, res, t0, t1);
-  clip_slab(oz, dz, ray.inv_z, res, t0, t1);
+  if (framed) {  // from inside the cube: only the faces ahead
+    t1 = slab_exit(ox, dx, ray.inv_x, res, t1);
+    t1 = slab_exit(oy, dy, ray.inv_y, res, t1);
+    t1 = slab_exit(oz, dz, ray.inv_z, res, t1);
+  } else {
+    clip_slab(ox, dx, ray.inv_x, res, t0, t1);
+    clip_slab(oy, dy, ray.inv_y, res, t0, t1);
+    clip_slab(oz, dz, ray.inv_z, res, t0, t1);
+  }
   if (t0 > t1) return ray;
   ray.ox = ox;
   ray.oy = oy;
@@ -304,12 +373,13 @@ NAVI_HD bool take_step(const TraceArgs& a, Ray& ray, const Walker& w, const Fiel
 // The first step of a ray that starts at its actor's origin (t = 0), taken from the actor's origin
 // sample instead of sampling the field; rays that start elsewhere (an origin outside the cube) and
 // launches without origin samples leave it to walk_ray.
-NAVI_HD void first_step(const TraceArgs& a, Ray& ray, const OriginSample& origin) {
+NAVI_HD void first_step(const TraceArgs& a, Ray& ray, int64_t b, const ActorFrame& origin) {
   if ((origin.flags & kOriginValid) == 0 || ray.t != 0.0f || ray.res.steps != 0 || a.max_steps <= 0) return;
+  const OriginWalker w = load_record(&(static_cast<const OriginSample*>(a.origin_scratch) + b)->walker);
   ray.res.steps = 1;
-  ray.w.leaf = origin.leaf;
-  ray.w.frame = origin.frame;
-  ray.w.last_brick = origin.last_brick;
+  ray.w.leaf = w.leaf;
+  ray.w.frame = w.frame;
+  ray.w.last_brick = w.last_brick;
   FieldSample f;
   f.dist = origin.dist;
   f.solid = (origin.flags & kOriginSolid) != 0;
