@@ -54,7 +54,7 @@ static_assert(sizeof(ActorFrame) == 32 && sizeof(OriginSample) == 80,
               "mirrored by navi_env.tracer.abi.ORIGIN_SAMPLE_BYTES");
 
 // A frame no ray starts from (launches without origin samples).
-NAVI_HD ActorFrame no_frame_record() {
+NAVI_HD ActorFrame no_actor_frame() {
   ActorFrame f;
   f.ox = f.oy = f.oz = 0.0f;
   f.flags = 0;
@@ -71,7 +71,7 @@ NAVI_HD OriginSample origin_sample(const TraceArgs& a, int64_t b) {
   Walker w;
   walker_init(w);
   OriginSample o;
-  o.actor = no_frame_record();
+  o.actor = no_actor_frame();
   o.walker.leaf = w.leaf;
   o.walker.frame = w.frame;
   o.walker.last_brick = w.last_brick;
@@ -116,7 +116,7 @@ NAVI_HD T load_record(const T* p) {
 
 // Actor b's frame (a frame with flags 0 for a launch without origin samples).
 NAVI_HD ActorFrame load_frame(const TraceArgs& a, int64_t b) {
-  if (a.origin_scratch == nullptr) return no_frame_record();
+  if (a.origin_scratch == nullptr) return no_actor_frame();
   return load_record(&(static_cast<const OriginSample*>(a.origin_scratch) + b)->actor);
 }
 
