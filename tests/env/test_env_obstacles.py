@@ -389,3 +389,39 @@ def test_ray_group_masks_keep_every_primitive_a_ray_can_hit(
             _check_cuda_pair(kernel, want, torch.tensor([s.voxel_size for s in scenes])[ids][:, None])
         else:
             _check_pair(kernel, want, static)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=gpu)])
+def test_rays_no_primitive_reaches_trace_as_without_primitives(
+    setting: tuple[list[AnalyticScene], SceneCorpus], device: str
+) -> None:
+    """With primitives in one part of the view, a ray that no primitive lies along (float64, at any
+    distance) reports bit for bit what the launch without primitives reports, whether its ray group's
+    mask is zero (no test) or not (tests that miss): the primitive walk takes the static scene's steps
+    exactly as the plain walk does. Some groups must see primitives and some none."""
+    scenes, corpus = setting
+    dirs = spherical_directions(64, 24, torch.device("cpu"))  # (R, 3)
+    order = tiled_ray_order(64, 24)  # (R,)
+    ids, origins, _, _ = _step_inputs(scenes, 2, 0)
+    b = len(ids)
+    rng = np.random.default_rng(13)
+    ahead = np.array([1.0, 0.4, 0.1])  # (3,) every primitive lies within a narrow cone about this axis
+    offsets = ahead + rng.normal(0.0, 0.08, size=(b, 8, 3))  # (B, 8, 3)
+    offsets *= (rng.uniform(1.0, 4.0, (b, 8)) / np.linalg.norm(offsets, axis=2))[..., None]
+    prims = _random_prims(b, 8, np.zeros(3), np.zeros(3), seed=17)  # (B, 8, 16) every kind at 0
+    prims[:, :, ob.CENTER : ob.CENTER + 3] = origins[:, None, :] + torch.tensor(offsets, dtype=torch.float32)
+    reach, sem = ob.prim_hit_ref(prims, torch.arange(b), origins, dirs.expand(b, -1, -1))  # (B, R) each
+    clear = torch.isinf(reach)  # (B, R) no primitive along the ray
+    per_group = clear[:, order].reshape(b, -1, 128)  # (B, G, 128) in work-item order
+    assert bool(per_group.all(dim=2).any()) and bool((~per_group).any(dim=2).any())
+    assert 0.3 < float(clear.float().mean()) < 0.99
+    dev = torch.device(device)
+    if device == "cuda":
+        corpus = load_corpus([s.gmdag() for s in scenes], "cuda")
+    args = (corpus, ids.to(dev), origins.to(dev), dirs.to(dev))
+    plain = _trace(trace, *args, ray_order=order.to(dev))
+    with_prims = _trace(trace, *args, ray_order=order.to(dev), prims=prims.contiguous().to(dev))
+    assert torch.equal(with_prims[0].cpu()[clear], plain[0].cpu()[clear])
+    assert torch.equal(with_prims[1].cpu()[clear], plain[1].cpu()[clear])
+    seen = with_prims[1].cpu()[~clear] == sem[~clear]  # rays with a primitive along them: most see it first
+    assert float(seen.float().mean()) > 0.5
