@@ -15,7 +15,15 @@ from navi.commands import bench as cli_bench
 from navi.commands import env as cli_env
 from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag, write_gmdag
-from navi_env.corpus.folder import CorpusError, build_corpus, find_sources, load_corpus, read_manifest
+from navi_env.corpus.folder import (
+    CorpusError,
+    SceneEntry,
+    build_corpus,
+    find_sources,
+    load_corpus,
+    rank_share,
+    read_manifest,
+)
 from navi_env.sim.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 
@@ -90,14 +98,53 @@ def test_build_list_and_load(sources: Path, tmp_path: Path) -> None:
 
 
 def test_data_parallel_ranks_load_disjoint_shares_of_the_scenes(sources: Path, tmp_path: Path) -> None:
+    """Each scene records its trace cost (the env's mean steps per probe ray from its spawns), and two
+    ranks take one scene each, the costlier to rank 0; `scene` loads one scene alone."""
     out = tmp_path / "corpus"
     full = build_corpus(find_sources(sources), out, resolution=32)
+    costs = [s.trace_cost() for s in full.scenes]
+    assert all(1.0 <= c <= EnvConfig().trace_max_steps for c in costs) and costs[0] != costs[1]
     shares = [load_corpus(out, "cpu", rank, 2) for rank in (0, 1)]
-    assert [[s.name for s in m.scenes] for _, m in shares] == [["room_a"], ["room_b"]]  # scenes[rank::2]
     assert [len(scenes) for scenes, _ in shares] == [1, 1]
-    assert [m.scenes[0] for _, m in shares] == list(full.scenes)
+    first = max(range(2), key=lambda i: costs[i])
+    assert [m.scenes[0] for _, m in shares] == [full.scenes[first], full.scenes[1 - first]]
+    scenes, alone = load_corpus(out, "cpu", scene=1)
+    assert len(scenes) == 1 and alone.scenes == (full.scenes[1],)
     with pytest.raises(CorpusError, match="cannot be shared by 3 ranks"):
         load_corpus(out, "cpu", 0, 3)
+    with pytest.raises(CorpusError, match="scene 2 alone"):
+        load_corpus(out, "cpu", scene=2)
+
+
+def _entry(name: str, cost: float) -> SceneEntry:
+    return SceneEntry(name, f"{name}.gmdag", name, 32, VOXEL, 1, {"verdict": "pass", "trace_cost": cost})
+
+
+def test_ranks_share_the_scenes_out_by_trace_cost() -> None:
+    """Dealt costliest first, there and back: the shares are disjoint, cover the corpus, differ in size
+    by at most one, keep manifest order, and their mean costs spread less than taking every W-th scene;
+    a manifest without costs falls back to every W-th scene."""
+    costs = [8.17, 8.31, 8.74, 9.39, 7.35, 8.23, 7.36, 10.16, 6.0, 12.5, 9.0]
+    scenes = [_entry(f"s{i}", c) for i, c in enumerate(costs)]
+
+    def spread(shares: list[tuple[SceneEntry, ...]]) -> float:
+        means = [sum(s.trace_cost() for s in share) / len(share) for share in shares]
+        return max(means) - min(means)
+
+    for n, world in ((8, 4), (11, 4), (5, 2), (3, 3)):
+        shares = [rank_share(scenes[:n], r, world) for r in range(world)]
+        names = [s.name for share in shares for s in share]
+        assert sorted(names) == sorted(s.name for s in scenes[:n]) and len(set(names)) == n
+        assert max(map(len, shares)) - min(map(len, shares)) <= 1
+        assert all(list(share) == sorted(share, key=scenes.index) for share in shares)
+        assert spread(shares) <= spread([tuple(scenes[:n][r::world]) for r in range(world)]) + 1e-9
+    shares = [rank_share(scenes[:8], r, 4) for r in range(4)]
+    assert [s.name for s in shares[0]] == ["s4", "s7"]  # the costliest with the cheapest
+    unmeasured = [*scenes[:4], _entry("old", 0.0)]
+    assert [rank_share(unmeasured, r, 2) for r in (0, 1)] == [
+        tuple(unmeasured[0::2]),
+        tuple(unmeasured[1::2]),
+    ]
 
 
 def test_a_failing_source_leaves_the_old_corpus_intact(sources: Path, tmp_path: Path) -> None:

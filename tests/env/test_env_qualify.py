@@ -14,7 +14,10 @@ from navi_env.corpus.qualify import (
     observation_profile,
     qualify_scene,
 )
+from navi_env.sim.config import EnvConfig, SensorConfig
+from navi_env.sim.sensor import ray_pattern
 from navi_env.tracer.scene import load_corpus
+from navi_env.tracer.trace_ref import trace_ref
 
 RES, VOXEL = 32, 0.5
 
@@ -70,6 +73,24 @@ def test_a_closed_room_passes() -> None:
     spawns = torch.tensor(q.spawns)
     assert torch.all((spawns > torch.tensor([1.5, 1.5, 1.5])) & (spawns < torch.tensor([14.5, 14.5, 6.5])))
     assert q.scores == sorted(q.scores, reverse=True)
+
+
+def test_the_trace_cost_is_the_envs_mean_steps_per_ray_from_the_best_spawns() -> None:
+    """A passing scene's trace cost is the mean number of steps the reference tracer takes per ray of
+    the probe pattern from its best spawns, with the env's hit threshold and step cap; a scene that fails
+    records none."""
+    corpus = load_corpus([room()], "cpu")
+    q = qualify_scene(corpus, 0, QualifyConfig(cost_spawns=5))
+    spawns = torch.tensor(q.spawns[:5])  # (5, 3)
+    dirs = ray_pattern(48, 12, SensorConfig(), torch.device("cpu"))  # (R, 3)
+    env = EnvConfig()
+    depth = torch.empty(5, dirs.shape[0])  # (5, R)
+    steps = torch.empty(5, dirs.shape[0], dtype=torch.int32)  # (5, R)
+    trace_ref(corpus, torch.zeros(5, dtype=torch.int64), spawns, dirs, out_depth=depth, out_steps=steps,
+              max_steps=env.trace_max_steps, horizon=env.horizon, hit_epsilon=env.hit_epsilon,
+              hit_slope=env.hit_slope)  # fmt: skip
+    assert q.trace_cost == round(float(steps.double().mean()), 4) and q.trace_cost > 1.0
+    assert qualify_scene(load_corpus([all_solid()], "cpu"), 0).trace_cost == 0.0
 
 
 def test_a_view_of_the_void_fails_on_starvation() -> None:

@@ -3,7 +3,8 @@
 Layout of a corpus folder:
   manifest.json    {"format": "navi-corpus", "version": 1, "created_at", "resolution", "scenes": [...],
                     "rejected": [...]}; each scene: name, file, source, resolution, voxel_size, bytes,
-                    qualification (navi_env.corpus.qualify.Qualification as JSON, with the viable spawns),
+                    qualification (navi_env.corpus.qualify.Qualification as JSON, with the viable spawns
+                    and the trace cost),
                     obstacles (moving obstacles it declares, from a mesh's sidecar or edited in; may be
                     absent)
   <name>.gmdag     one file per scene that passed qualification
@@ -65,6 +66,12 @@ class SceneEntry:
         points = self.qualification.get("spawns", [])
         return torch.tensor(points, dtype=torch.float32).reshape(-1, 3)  # (K, 3)
 
+    def trace_cost(self) -> float:
+        """Mean sphere-tracing steps per ray from the scene's spawns (qualify.trace_cost); 0.0 where the
+        manifest predates the measurement."""
+        cost = self.qualification.get("trace_cost", 0.0)
+        return float(cost) if isinstance(cost, (int, float)) else 0.0
+
 
 @dataclass(frozen=True)
 class CorpusManifest:
@@ -124,24 +131,55 @@ def read_manifest(corpus_dir: str | os.PathLike[str]) -> CorpusManifest:
         raise CorpusError(f"{path}: malformed manifest ({exc})") from exc
 
 
+def rank_share(scenes: Sequence[SceneEntry], rank: int, world: int) -> tuple[SceneEntry, ...]:
+    """Rank `rank`'s share of `scenes` among `world` data-parallel ranks, in manifest order.
+
+    Every rank flies its own scenes with the same number of actors, spread evenly over them, so a
+    step of the slowest rank's scenes sets the pace of all (the ranks meet at every step's
+    collectives). Where every scene records its trace cost, the scenes are dealt out costliest first,
+    to ranks 0, 1, ..., W - 1 and then back W - 1, ..., 0, and so on: the shares differ in size by at
+    most one and their costs are close. Otherwise (a manifest from before the measurement) rank r
+    takes scenes[r::W]. Either way the shares are disjoint and cover the corpus."""
+    if not all(s.trace_cost() > 0.0 for s in scenes):
+        return tuple(scenes[rank::world])
+    order = sorted(range(len(scenes)), key=lambda i: (-scenes[i].trace_cost(), i))  # costliest first
+    mine = []
+    for k, i in enumerate(order):
+        turn, seat = divmod(k, world)
+        if (seat if turn % 2 == 0 else world - 1 - seat) == rank:
+            mine.append(i)
+    return tuple(scenes[i] for i in sorted(mine))
+
+
 def load_corpus(
-    corpus_dir: str | os.PathLike[str], device: torch.device | str = "cpu", rank: int = 0, world: int = 1
+    corpus_dir: str | os.PathLike[str],
+    device: torch.device | str = "cpu",
+    rank: int = 0,
+    world: int = 1,
+    scene: int | None = None,
 ) -> tuple[SceneCorpus, CorpusManifest]:
     """Load the scenes of a corpus onto `device`, in manifest order, with its manifest.
 
-    With world > 1 (data-parallel training) only this rank's share, scenes[rank::world], is loaded and
-    the returned manifest lists just those. Use `manifest.spawn_tensors()` as SdfDagEnv's `spawns`.
+    With world > 1 (data-parallel training) only this rank's share (rank_share) is loaded and the
+    returned manifest lists just those. `scene` loads that one scene (its index in the manifest) alone.
+    Use `manifest.spawn_tensors()` as SdfDagEnv's `spawns`.
     """
     root = Path(corpus_dir)
     manifest = read_manifest(root)
     if not manifest.scenes:
         raise CorpusError(f"{root}: the corpus holds no scene")
-    if world > 1:
+    if scene is not None:
+        if world > 1 or not 0 <= scene < len(manifest.scenes):
+            raise CorpusError(
+                f"{root}: scene {scene} alone needs one rank and 0 <= scene < {len(manifest.scenes)}"
+            )
+        manifest = replace(manifest, scenes=manifest.scenes[scene : scene + 1])
+    elif world > 1:
         if len(manifest.scenes) < world:
             raise CorpusError(
                 f"{root}: {len(manifest.scenes)} scenes cannot be shared by {world} ranks (one scene each at least)"
             )
-        manifest = replace(manifest, scenes=manifest.scenes[rank::world])
+        manifest = replace(manifest, scenes=rank_share(manifest.scenes, rank, world))
     files = []
     for s in manifest.scenes:
         path = root / s.file

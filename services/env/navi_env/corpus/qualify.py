@@ -8,6 +8,10 @@ of rays that miss (starvation) and the fraction closer than `near_distance`. A c
 when it is free, its starvation is below `max_starvation` and its near fraction below `max_near`;
 viable candidates are ranked by score = (1 - starvation) * (1 - near) * min(clearance / 2 m, 1).
 The scene fails with no viable candidate or when its best (lowest) starvation is >= max_starvation.
+
+A passing scene also records its trace cost: the mean sphere-tracing steps per ray of the same
+pattern cast from its best spawns with the env's hit threshold and step cap. The tracer's time per
+ray follows its mean steps per ray, so data-parallel ranks share the scenes out by it (load_corpus).
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 
-from navi_env.sim.config import SensorConfig
+from navi_env.sim.config import EnvConfig, SensorConfig
 from navi_env.sim.sensor import ray_pattern
 from navi_env.tracer.scene import SceneCorpus
 from navi_env.tracer.trace import sample_distance, trace
@@ -44,6 +48,8 @@ class QualifyConfig:
     """Viable candidates have fewer near-field rays than this fraction."""
     trace_max_steps: int = 256
     """Sphere-tracing iteration cap per probe ray."""
+    cost_spawns: int = 64
+    """The trace cost is measured from this many of the best spawns."""
 
 
 @dataclass(frozen=True)
@@ -58,6 +64,7 @@ class Qualification:
     best_starvation: float  # lowest miss fraction over free candidates (1.0 when none is free)
     spawns: list[list[float]] = field(default_factory=list)  # viable positions (meters), best first
     scores: list[float] = field(default_factory=list)  # their scores, same order
+    trace_cost: float = 0.0  # mean steps per probe ray from the best spawns, env's threshold (0: failed)
 
     def to_json(self) -> dict[str, object]:
         """Plain JSON-ready dict."""
@@ -137,6 +144,9 @@ def qualify_scene(corpus: SceneCorpus, scene: int, config: QualifyConfig | None 
     else:
         verdict, reason = "pass", f"{keep.numel()} viable of {c} candidates, best starvation {best:.2f}"
     return Qualification(
+        trace_cost=trace_cost(corpus, scene, points[keep[: cfg.cost_spawns]], cfg)
+        if verdict == "pass"
+        else 0.0,
         verdict=verdict,
         reason=reason,
         candidates=c,
@@ -146,6 +156,24 @@ def qualify_scene(corpus: SceneCorpus, scene: int, config: QualifyConfig | None 
         spawns=points[keep].cpu().tolist(),
         scores=[round(v, 6) for v in score[keep].cpu().tolist()],
     )
+
+
+def trace_cost(
+    corpus: SceneCorpus, scene: int, spawns: torch.Tensor, config: QualifyConfig | None = None
+) -> float:
+    """Mean sphere-tracing steps per ray of the probe pattern cast from `spawns` (P, 3) in scene `scene`,
+    with the env's hit threshold, step cap and horizon (EnvConfig's defaults): how much tracing an actor
+    of the scene costs relative to other scenes. Rounded to 1e-4."""
+    cfg, env = config or QualifyConfig(), EnvConfig()
+    dev = corpus.device
+    points = spawns.to(dev, torch.float32).contiguous()  # (P, 3)
+    ids = torch.full((points.shape[0],), scene, dtype=torch.int64, device=dev)  # (P,)
+    dirs = ray_pattern(cfg.azimuth_bins, cfg.elevation_bins, SensorConfig(), dev)  # (R, 3)
+    depth = torch.empty(points.shape[0], dirs.shape[0], dtype=torch.float32, device=dev)  # (P, R)
+    steps = torch.empty(points.shape[0], dirs.shape[0], dtype=torch.int32, device=dev)  # (P, R)
+    trace(corpus, ids, points, dirs, out_depth=depth, out_steps=steps, max_steps=env.trace_max_steps,
+          horizon=env.horizon, hit_epsilon=env.hit_epsilon, hit_slope=env.hit_slope)  # fmt: skip
+    return round(float(steps.to(torch.float64).mean()), 4) if points.shape[0] else 0.0
 
 
 def scene_spawns(corpus: SceneCorpus, scene: int, config: QualifyConfig | None = None) -> torch.Tensor:

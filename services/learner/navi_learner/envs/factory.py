@@ -75,6 +75,7 @@ def make_env(
     episode_steps: int = 0,
     rank: int = 0,
     world: int = 1,
+    scene: int | None = None,
     reward: Mapping[str, float] | None = None,
     obstacles: int = 0,
     squad: int = 0,
@@ -82,7 +83,8 @@ def make_env(
 ) -> BatchedEnv:
     """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
     qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation). With
-    world > 1 the drone env flies only this rank's scenes, scenes[rank::world] (data-parallel training).
+    world > 1 the drone env flies only this rank's scenes (data-parallel training; navi_env's
+    `rank_share`), and with `scene` that scene of the corpus alone.
     `reward` replaces RewardConfig fields by name (see `reward_config`). `obstacles` > 0 gives every actor
     that many scripted moving obstacles (EnvConfig.obstacles, default motions and sizes); `squad` >= 2
     makes squads of that many actors share a scene and see and collide with each other. `task` is
@@ -100,7 +102,7 @@ def make_env(
     except ImportError as err:
         raise EnvUnavailable(f"navi_env's SdfDagEnv is not importable: {err}") from err
     try:
-        scenes, manifest = load_corpus(corpus, torch.device(device), rank, world)
+        scenes, manifest = load_corpus(corpus, torch.device(device), rank, world, scene)
     except CorpusError as err:
         raise EnvUnavailable(str(err)) from err
     steps = episode_steps if episode_steps > 0 else POINTGOAL_EPISODE_STEPS if task == "pointgoal" else 0

@@ -240,7 +240,7 @@ def per_scene(
     rows = []
     for s in range(scenes):
         env = make_env(corpus, protocol.actors, device, protocol.seed, episode_steps=protocol.episode_steps,
-                       rank=s, world=scenes, reward=reward)  # fmt: skip
+                       scene=s, reward=reward)  # fmt: skip
         policies: list[EvalPolicy] = [reactive_for_env(env)]
         if checkpoint is not None:
             policies.append(CheckpointPolicy(checkpoint, env.device))
