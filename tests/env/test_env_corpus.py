@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -97,9 +98,12 @@ def test_build_list_and_load(sources: Path, tmp_path: Path) -> None:
     assert not list(tmp_path.glob(".corpus.*"))  # no temporary folder left behind
 
 
-def test_data_parallel_ranks_load_disjoint_shares_of_the_scenes(sources: Path, tmp_path: Path) -> None:
+def test_data_parallel_ranks_load_disjoint_shares_of_the_scenes(
+    sources: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     """Each scene records its trace cost (the env's mean steps per probe ray from its spawns), and two
-    ranks take one scene each, the costlier to rank 0; `scene` loads one scene alone."""
+    ranks take one scene each, the costlier to rank 0 (without the costs, every 2nd scene from the rank,
+    with a warning); `scene` loads one scene alone."""
     out = tmp_path / "corpus"
     full = build_corpus(find_sources(sources), out, resolution=32)
     costs = [s.trace_cost() for s in full.scenes]
@@ -112,6 +116,13 @@ def test_data_parallel_ranks_load_disjoint_shares_of_the_scenes(sources: Path, t
     assert len(scenes) == 1 and alone.scenes == (full.scenes[1],)
     with pytest.raises(CorpusError, match="cannot be shared by 3 ranks"):
         load_corpus(out, "cpu", 0, 3)
+    raw = json.loads((out / "manifest.json").read_text())
+    del raw["scenes"][1]["qualification"]["trace_cost"]  # a manifest from before the measurement
+    (out / "manifest.json").write_text(json.dumps(raw))
+    with caplog.at_level(logging.WARNING, logger="navi_env.corpus.folder"):
+        shares = [load_corpus(out, "cpu", rank, 2) for rank in (0, 1)]
+    assert [m.scenes[0].name for _, m in shares] == ["room_a", "room_b"]  # every 2nd scene from the rank
+    assert "no trace cost" in caplog.text and "navi corpus build" in caplog.text
     with pytest.raises(CorpusError, match="scene 2 alone"):
         load_corpus(out, "cpu", scene=2)
 

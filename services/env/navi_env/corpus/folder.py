@@ -18,6 +18,7 @@ it was. A scene that fails qualification is left out and listed under "rejected"
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import tempfile
@@ -32,6 +33,8 @@ import torch
 from navi_env.corpus.qualify import Qualification, QualifyConfig, qualify_scene
 from navi_env.tracer.scene import SceneCorpus
 from navi_env.tracer.scene import load_corpus as load_scenes
+
+log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
 FORMAT = "navi-corpus"
@@ -178,6 +181,14 @@ def load_corpus(
         if len(manifest.scenes) < world:
             raise CorpusError(
                 f"{root}: {len(manifest.scenes)} scenes cannot be shared by {world} ranks (one scene each at least)"
+            )
+        if rank == 0 and not all(s.trace_cost() > 0.0 for s in manifest.scenes):
+            log.warning(
+                "%s records no trace cost for some scenes: rank r takes every %d-th scene from r; "
+                "`navi corpus build %s --out NEW` rebuilds it with the costs, which balance the ranks",
+                root,
+                world,
+                root,
             )
         manifest = replace(manifest, scenes=rank_share(manifest.scenes, rank, world))
     files = []
