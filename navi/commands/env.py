@@ -48,7 +48,8 @@ def qualify(
         typer.echo(f"{file}: {result.verdict.upper()} - {result.reason}")
         typer.echo(
             f"  viable spawns {result.viable_spawns} / {result.candidates} candidates "
-            f"({result.free_candidates} free), best starvation {result.best_starvation:.3f}"
+            f"({result.free_candidates} free), best starvation {result.best_starvation:.3f}, "
+            f"trace cost {result.trace_cost:.2f} steps per ray"
         )
     if not result.passed:
         raise typer.Exit(1)
@@ -112,6 +113,7 @@ def corpus_list(
         typer.echo(
             f"  {s.name:<28} {s.resolution:>5}^3  {s.voxel_size:8.4f} m  {s.bytes / 1e6:8.2f} MB  "
             f"spawns {q.get('viable_spawns')}  best starvation {q.get('best_starvation')}"
+            + (f"  trace cost {s.trace_cost():.2f}" if s.trace_cost() > 0.0 else "")
             + (f"  obstacles {s.obstacles}" if s.obstacles else "")
         )
     for r in manifest.rejected:

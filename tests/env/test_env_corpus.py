@@ -237,6 +237,9 @@ def test_cli_qualify_corpus_and_bench(sources: Path, tmp_path: Path) -> None:
     assert good.exit_code == 0, good.output
     verdict = json.loads(good.stdout)
     assert verdict["verdict"] == "pass" and verdict["viable_spawns"] > 0 and verdict["best_starvation"] == 0.0
+    assert verdict["trace_cost"] > 1.0
+    text = runner.invoke(app(), ["qualify", str(sources / "room_a.gmdag")])
+    assert f"trace cost {verdict['trace_cost']:.2f} steps per ray" in text.stdout
     bad = runner.invoke(app(), ["qualify", str(sources / "void.gmdag"), "--json"])
     assert bad.exit_code == 1 and json.loads(bad.stdout)["verdict"] == "fail"
     missing = runner.invoke(app(), ["qualify", str(tmp_path / "nope.gmdag")])
@@ -249,6 +252,7 @@ def test_cli_qualify_corpus_and_bench(sources: Path, tmp_path: Path) -> None:
     assert json.loads(built.stdout)["scenes"] == 2
     listed = runner.invoke(app(), ["corpus", "list", str(out)])
     assert listed.exit_code == 0 and "room_a" in listed.stdout and "rejected" in listed.stdout
+    assert listed.stdout.count("trace cost") == 2
     both = runner.invoke(app(), ["corpus", "build", str(sources), "--default", "--out", str(out)])
     assert both.exit_code == 2
     res = runner.invoke(

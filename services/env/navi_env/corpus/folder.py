@@ -184,7 +184,7 @@ def load_corpus(
             )
         if rank == 0 and not all(s.trace_cost() > 0.0 for s in manifest.scenes):
             log.warning(
-                "%s records no trace cost for some scenes: rank r takes every %d-th scene from r; "
+                "%s records no trace cost for some scenes: rank r takes scenes r, r + %d, ...; "
                 "`navi corpus build %s --out NEW` rebuilds it with the costs, which balance the ranks",
                 root,
                 world,

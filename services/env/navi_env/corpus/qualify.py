@@ -143,10 +143,8 @@ def qualify_scene(corpus: SceneCorpus, scene: int, config: QualifyConfig | None 
         verdict, reason = "fail", f"best starvation {best:.2f} >= {cfg.max_starvation}"
     else:
         verdict, reason = "pass", f"{keep.numel()} viable of {c} candidates, best starvation {best:.2f}"
+    cost = trace_cost(corpus, scene, points[keep[: cfg.cost_spawns]], cfg) if verdict == "pass" else 0.0
     return Qualification(
-        trace_cost=trace_cost(corpus, scene, points[keep[: cfg.cost_spawns]], cfg)
-        if verdict == "pass"
-        else 0.0,
         verdict=verdict,
         reason=reason,
         candidates=c,
@@ -155,6 +153,7 @@ def qualify_scene(corpus: SceneCorpus, scene: int, config: QualifyConfig | None 
         best_starvation=round(best, 6),
         spawns=points[keep].cpu().tolist(),
         scores=[round(v, 6) for v in score[keep].cpu().tolist()],
+        trace_cost=cost,
     )
 
 
