@@ -134,6 +134,11 @@ def read_manifest(corpus_dir: str | os.PathLike[str]) -> CorpusManifest:
         raise CorpusError(f"{path}: malformed manifest ({exc})") from exc
 
 
+def costs_recorded(scenes: Sequence[SceneEntry]) -> bool:
+    """Whether every scene records its trace cost (manifests from before the measurement do not)."""
+    return all(s.trace_cost() > 0.0 for s in scenes)
+
+
 def rank_share(scenes: Sequence[SceneEntry], rank: int, world: int) -> tuple[SceneEntry, ...]:
     """Rank `rank`'s share of `scenes` among `world` data-parallel ranks, in manifest order.
 
@@ -143,7 +148,7 @@ def rank_share(scenes: Sequence[SceneEntry], rank: int, world: int) -> tuple[Sce
     to ranks 0, 1, ..., W - 1 and then back W - 1, ..., 0, and so on: the shares differ in size by at
     most one and their costs are close. Otherwise (a manifest from before the measurement) rank r
     takes scenes[r::W]. Either way the shares are disjoint and cover the corpus."""
-    if not all(s.trace_cost() > 0.0 for s in scenes):
+    if not costs_recorded(scenes):
         return tuple(scenes[rank::world])
     order = sorted(range(len(scenes)), key=lambda i: (-scenes[i].trace_cost(), i))  # costliest first
     mine = []
@@ -182,7 +187,7 @@ def load_corpus(
             raise CorpusError(
                 f"{root}: {len(manifest.scenes)} scenes cannot be shared by {world} ranks (one scene each at least)"
             )
-        if rank == 0 and not all(s.trace_cost() > 0.0 for s in manifest.scenes):
+        if rank == 0 and not costs_recorded(manifest.scenes):
             log.warning(
                 "%s records no trace cost for some scenes: rank r takes scenes r, r + %d, ...; "
                 "`navi corpus build %s --out NEW` rebuilds it with the costs, which balance the ranks",
