@@ -124,11 +124,13 @@ NAVI_HD FieldSample leaf_field(const BrickStore& bricks, const Scene& s, const L
 #ifdef __CUDA_ARCH__
     // The unit's weights are 8-bit fixed point (CUDA C++ Programming Guide, "Linear Filtering"): the
     // field differs from the exact trilinear of the host build by at most about 1/256 of the samples'
-    // spread across the cell (docs/SDFDAG_RUNTIME.md).
+    // spread across the cell (docs/SDFDAG_RUNTIME.md). The atlas has one level, so the read names
+    // level 0 (a TEX.LZ, with no level operand to set on every step), and the scale 127 quant comes
+    // with the scene record rather than from a multiply per sample.
     (void)c;
-    f.dist = tex3D<float>(static_cast<cudaTextureObject_t>(bricks.atlas), px + frame.ax, py + frame.ay,
-                          pz + frame.az) *
-             (127.0f * s.quant);
+    f.dist = tex3DLod<float>(static_cast<cudaTextureObject_t>(bricks.atlas), px + frame.ax, py + frame.ay,
+                             pz + frame.az, 0.0f) *
+             s.atlas_scale;
 #else
     // The cell lies in this brick, so its local index is in [0, 7] and its corner words are
     // leaf.words + corner_offset(ix, iy, iz) (the brick corner's offset cancels mod 2^32).

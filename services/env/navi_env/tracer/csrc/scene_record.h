@@ -50,6 +50,7 @@ struct Scene {
   int grid_depth;  // D
   int grid_shift;  // log2 of a grid cell's edge in voxels: L + 3 - D
   float ox, oy, oz, voxel, inv_voxel, quant;
+  float atlas_scale;  // 127 quant: voxels per unit of the brick atlas' normalised reads (device)
 };
 
 NAVI_HD Scene load_scene(const int32_t* table, int64_t id) {
@@ -78,6 +79,7 @@ NAVI_HD Scene load_scene(const int32_t* table, int64_t id) {
   s.voxel = bits_float(w[kVoxelSize]);
   s.inv_voxel = bits_float(w[kInvVoxelSize]);
   s.quant = bits_float(w[kQuantStep]);
+  s.atlas_scale = 127.0f * s.quant;
   return s;
 }
 
