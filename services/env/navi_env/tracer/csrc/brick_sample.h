@@ -86,17 +86,21 @@ NAVI_HD BrickFrame brick_frame(const BrickStore& bs, const Scene& s, const Leaf&
 #ifdef __CUDA_ARCH__
   const uint32_t b = s.brick_offset + leaf.payload;  // corpus index
   const int cx = leaf.cx, cy = leaf.cy, cz = leaf.cz;
-  // a = (9 t - c + 2^22) - 2^22 + 0.5, with 0 <= 9 t - c + 2^22 < 2^23 for texels and corners below
-  // 2^22: one exact conversion per axis through the bits of 2^23 + n.
-  constexpr int kBias = 1 << 22;
-  constexpr float kBiasedZero = kTwo23 + static_cast<float>(kBias);
+  // a = 9 t - c + 0.5 as the float 2^22 + (9 t - c + 2^21) + 0.5 minus 2^22 + 2^21, with no
+  // conversion and no separate + 0.5: floats in [2^22, 2^23) step by 0.5, so that float's bits are
+  // those of 2^22 plus 2 (9 t - c + 2^21) + 1, and both it and the subtraction are exact while
+  // |9 t - c| < 2^21 (atlas texels below 2^14, the 3-d texture limit; corners at most 4,096).
+  constexpr int kHalfBits = 0x4A800000 + (1 << 22) + 1;  // bits of 2^22, plus 2 * 2^21 + 1
+  constexpr float kHalfZero = 6291456.0f;               // 2^22 + 2^21
   const uint32_t mask = (1u << bs.shift) - 1u;
-  const int tx = static_cast<int>((b & mask) * 9u), ty = static_cast<int>(((b >> bs.shift) & mask) * 9u);
-  const int tz = static_cast<int>((b >> (2 * bs.shift)) * 9u);
+  const uint32_t tx = (b & mask) * 18u, ty = ((b >> bs.shift) & mask) * 18u;
+  const uint32_t tz = (b >> (2 * bs.shift)) * 18u;  // 2 * 9 t
   BrickFrame f;
-  f.ax = (__int_as_float(kTwo23Bits + kBias + tx - cx) - kBiasedZero) + 0.5f;
-  f.ay = (__int_as_float(kTwo23Bits + kBias + ty - cy) - kBiasedZero) + 0.5f;
-  f.az = (__int_as_float(kTwo23Bits + kBias + tz - cz) - kBiasedZero) + 0.5f;
+  // c = cx - kCellBias (scene_record.h): 2 kCellBias joins the constant, all mod 2^32.
+  constexpr uint32_t kBase = static_cast<uint32_t>(kHalfBits) + 2u * static_cast<uint32_t>(kCellBias);
+  f.ax = __int_as_float(static_cast<int>(kBase + tx - 2u * static_cast<uint32_t>(cx))) - kHalfZero;
+  f.ay = __int_as_float(static_cast<int>(kBase + ty - 2u * static_cast<uint32_t>(cy))) - kHalfZero;
+  f.az = __int_as_float(static_cast<int>(kBase + tz - 2u * static_cast<uint32_t>(cz))) - kHalfZero;
   return f;
 #else
   (void)bs;

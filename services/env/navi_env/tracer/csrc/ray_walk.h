@@ -143,7 +143,7 @@ NAVI_HD void clip_slab(float o, float d, float inv, float res, float& t0, float&
 NAVI_HD float exit_time(float o, float d, float inv, int c, int edge) {
   const int face = d > 0.0f ? c + edge : c;
 #ifdef __CUDA_ARCH__
-  const float bound = __int_as_float(kTwo23Bits + face) - kTwo23;
+  const float bound = __int_as_float(face) - kTwo23;  // face: kCellBias + coordinate
 #else
   const float bound = static_cast<float>(face);
 #endif

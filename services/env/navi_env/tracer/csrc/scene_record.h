@@ -21,6 +21,19 @@ constexpr float kFarUnit = 1.0f / 16.0f;  // far-code payload unit, voxels
 constexpr int kGridShiftBit = 26;
 constexpr uint32_t kGridPayloadMask = 0x03FFFFFFu;
 
+// Cell indices, and the leaf corners made from them, carry a bias on the device: kCellBias plus the
+// index, which is the bits of the float 2^23 + index, the bits the floor's rounding add leaves
+// (cell_axis). The walk's containment test XORs such bits straight from the add, and the far step's
+// face coordinates are floats by the same bits, with no subtraction on either side; the bias has no
+// bits below 2^23, so shifts by up to 23 and the XOR of two biased indices see the plain index. The
+// leaf grid's index is linear in the cells, so the bias comes off with the scene's grid offset
+// (load_scene). The host keeps plain indices (kCellBias 0).
+#ifdef __CUDA_ARCH__
+constexpr int32_t kCellBias = kTwo23Bits;
+#else
+constexpr int32_t kCellBias = 0;
+#endif
+
 // Scene record layout (int32 words; float fields hold float32 bits). Mirrored in navi_env/tracer/scene.py.
 enum SceneWord : int {
   kRoot = 0,          // u32 child word of the root (payload relative to the scene's node offset)
@@ -73,6 +86,10 @@ NAVI_HD Scene load_scene(const int32_t* table, int64_t id) {
   s.resolution = w[kResolution];
   s.grid_shift = w[kLevels] + kBrickShift - w[kGridDepth];
   s.grid_depth = w[kGridDepth];
+  // The grid index ((gz 2^D) + gy) 2^D + gx of biased cells exceeds the plain one by b (4^D + 2^D + 1),
+  // b = kCellBias >> grid_shift (mod 2^32; the host's b is 0).
+  const uint32_t gb = static_cast<uint32_t>(kCellBias) >> s.grid_shift;
+  s.grid_offset -= (((gb << s.grid_depth) + gb) << s.grid_depth) + gb;
   s.ox = bits_float(w[kOriginX]);
   s.oy = bits_float(w[kOriginY]);
   s.oz = bits_float(w[kOriginZ]);
@@ -106,20 +123,21 @@ NAVI_HD uint32_t corner_offset(int i, int j, int k) {
   return static_cast<uint32_t>(i) * 72u + static_cast<uint32_t>(j) * 9u + static_cast<uint32_t>(k);
 }
 
-// The lattice cell of a voxel-space point: indices and the same indices as floats (exact).
+// The lattice cell of a voxel-space point: indices (plus kCellBias) and the indices as floats (exact).
 struct Cell {
   int ix, iy, iz;
   float fx, fy, fz;  // float(ix), float(iy), float(iz)
 };
 
-// floor(x) clamped to [0, R - 1] (NaN lands on 0), as an int and as a float. The clamp is taken
-// before the floor, which gives the same cell; on the device the floor is a round-down add of 2^23,
-// exact for 0 <= x < 2^23, whose bits hold the integer and whose value minus 2^23 is its float.
+// floor(x) clamped to [0, R - 1] (NaN lands on 0), as an int (plus kCellBias) and as a float. The
+// clamp is taken before the floor, which gives the same cell; on the device the floor is a round-down
+// add of 2^23, exact for 0 <= x < 2^23, whose bits are the biased index and whose value minus 2^23 is
+// its float.
 NAVI_HD void cell_axis(float x, float cell_max, int& i, float& f) {
   const float c = fminf(fmaxf(x, 0.0f), cell_max);
 #ifdef __CUDA_ARCH__
   const float r = __fadd_rd(c, kTwo23);
-  i = __float_as_int(r) - kTwo23Bits;
+  i = __float_as_int(r);  // kCellBias + floor
   f = r - kTwo23;
 #else
   f = floorf(c);
@@ -139,13 +157,14 @@ NAVI_HD Cell cell_of(float px, float py, float pz, float cell_max) {
   return c;
 }
 
-// floor(x) without the clamp, for 0 <= x < R the same as cell_axis; below 0 a negative index, at or
-// past R an index >= R (the host clamps to [-1, R] first so that the conversion stays defined).
+// floor(x) without the clamp, for 0 <= x < R the same as cell_axis; below 0 an index below the range,
+// at or past R one above it (cell_in_cube; the host clamps to [-1, R] first so that the conversion
+// stays defined).
 NAVI_HD void cell_axis_unclamped(float x, float res, int& i, float& f) {
 #ifdef __CUDA_ARCH__
   (void)res;
   const float r = __fadd_rd(x, kTwo23);
-  i = __float_as_int(r) - kTwo23Bits;
+  i = __float_as_int(r);  // kCellBias + floor
   f = r - kTwo23;
 #else
   f = floorf(fminf(fmaxf(x, -1.0f), res));
@@ -154,9 +173,11 @@ NAVI_HD void cell_axis_unclamped(float x, float res, int& i, float& f) {
 }
 
 // Whether a cell index lies in [0, R - 1] on every axis (R is a power of two, so the or of three
-// indices in range stays below R, and a negative one sets the sign bit).
+// indices in range stays below R, and a negative one sets the sign bit). On the device the or of three
+// biased indices in range is the bias plus the or of the indices; a point below 0 rounds to bits below
+// the bias' (2^23 - 1 or - 0.5), which leave a difference of at least 2^23 - 2 or a negative one.
 NAVI_HD bool cell_in_cube(const Cell& c, int res) {
-  return static_cast<uint32_t>(c.ix | c.iy | c.iz) < static_cast<uint32_t>(res);
+  return static_cast<uint32_t>(c.ix | c.iy | c.iz) - static_cast<uint32_t>(kCellBias) < static_cast<uint32_t>(res);
 }
 
 // The leaf holding cell (ix, iy, iz): one leaf-grid load (the descent from the root to depth D,
@@ -165,8 +186,10 @@ NAVI_HD bool cell_in_cube(const Cell& c, int res) {
 NAVI_HD Leaf find_leaf(const uint32_t* grid, const uint32_t* nodes, const Scene& s, int ix, int iy, int iz) {
   const int gshift = s.grid_shift;
   const uint32_t gx = static_cast<uint32_t>(ix >> gshift), gy = static_cast<uint32_t>(iy >> gshift);
-  const uint32_t gz = static_cast<uint32_t>(iz >> gshift);
-  const uint32_t entry = load_ro(grid + s.grid_offset + ((((gz << s.grid_depth) | gy) << s.grid_depth) | gx));
+  const uint32_t gz = static_cast<uint32_t>(iz >> gshift);  // plus kCellBias >> gshift on the device
+  // The entry's index in 32 bits (a corpus grid holds fewer than 2^32 entries: scene.py MAX_OFFSET), so
+  // the address is one wide multiply-add rather than two 64-bit additions.
+  const uint32_t entry = load_ro(grid + (s.grid_offset + ((((gz << s.grid_depth) + gy) << s.grid_depth) + gx)));
   Leaf leaf;
   leaf.tag = entry >> 30;
   leaf.payload = entry & kGridPayloadMask;
