@@ -174,8 +174,9 @@ NAVI_HD void cell_axis_unclamped(float x, float res, int& i, float& f) {
 
 // Whether a cell index lies in [0, R - 1] on every axis (R is a power of two, so the or of three
 // indices in range stays below R, and a negative one sets the sign bit). On the device the or of three
-// biased indices in range is the bias plus the or of the indices; a point below 0 rounds to bits below
-// the bias' (2^23 - 1 or - 0.5), which leave a difference of at least 2^23 - 2 or a negative one.
+// biased indices in range is the bias plus the or of the indices; a point below 0 rounds to the bits of
+// a float in [2^22, 2^23), below the bias, whose or with biased indices leaves a difference of at least
+// 2^23, and alone a negative one.
 NAVI_HD bool cell_in_cube(const Cell& c, int res) {
   return static_cast<uint32_t>(c.ix | c.iy | c.iz) - static_cast<uint32_t>(kCellBias) < static_cast<uint32_t>(res);
 }
