@@ -299,16 +299,18 @@ def test_cuda_rays_along_axes_and_coordinate_planes_match_cpu(
 
 
 @gpu
-@pytest.mark.parametrize("obstacles", [0, 2])
-def test_cuda_blocks_that_trace_several_actors_change_no_output(
-    corpus: tuple[list[AnalyticScene], SceneCorpus], obstacles: int
+@pytest.mark.parametrize(("obstacles", "rays"), [(0, 32), (2, 32), (0, 1000), (2, 1000)])
+def test_cuda_blocks_that_trace_several_items_change_no_output(
+    corpus: tuple[list[AnalyticScene], SceneCorpus], obstacles: int, rays: int
 ) -> None:
-    """Above 2,048 actors a CUDA block traces its ray group for several actors in turn: every actor's
-    depth, semantic and steps are those of a launch that holds that actor alone in its blocks."""
+    """A large CUDA launch gives a block several work items: with one ray group per actor (32 rays) a
+    block traces its group for 4 actors in turn; with 8 groups (1,000 rays, the last one partial) it
+    traces 6 consecutive groups of one actor, then the remaining 2. Every actor's depth, semantic and
+    steps are those of a small launch, whose blocks trace one ray group of one actor."""
     scenes, _ = corpus
     cuda = load_corpus([s.gmdag() for s in scenes], "cuda")
-    ids, origins = _batch(scenes, 2600, seed=40)  # (B,), (B, 3): B = 10,400, 4 actors per block
-    dirs = torch.tensor(random_directions(32, seed=41), dtype=torch.float32).cuda()  # (R, 3)
+    ids, origins = _batch(scenes, 2600, seed=40)  # (B,), (B, 3): B = 10,400
+    dirs = torch.tensor(random_directions(rays, seed=41), dtype=torch.float32).cuda()  # (R, 3)
     yaw = torch.linspace(-3.0, 3.0, len(ids)).cuda()  # (B,)
     gen = torch.Generator().manual_seed(42)
     prims = primitives.scatter(origins, obstacles, gen, near=0.5, far=3.0).cuda() if obstacles else None

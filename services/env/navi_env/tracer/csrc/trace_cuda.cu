@@ -11,13 +11,18 @@
 // present far step (far_step), 0.2-1.1% faster than 9 blocks (56 registers, no spill) on 49 of the 50
 // OpenArena maps and 0.5% slower on one (1.6% slower with the far step before it), and 6% faster than
 // 8 blocks (60 registers); outputs bit-identical (docs/PERFORMANCE.md). The grid is 2-d: x walks an
-// actor's rays in blocks of 128, y the actors, so no thread divides to find its actor. A block traces
-// its ray group for several actors, strided by the grid's height (grid_rows): each of its warps goes
-// on to its next actor without waiting for the block's slowest warp, and the GPU schedules a quarter
-// of the blocks. At 8,192 actors, 4 actors per block traced every one of the 50 OpenArena maps 1.9-8.0%
-// faster than one actor per block (H200, docs/PERFORMANCE.md); on 9 of them 8 per block did as well, 2
-// and 16 less, 32 threads per block worse, and persistent warps taking tiles from an atomic counter
-// gained most on the slowest map but lost 13% against one actor per block on the fastest.
+// actor's rays in chunks of ray groups, y the actors, so no thread divides to find its actor. Where
+// the launch is large enough (launch_shape), a block traces kGroupsPerBlock consecutive ray groups of
+// one actor: 768 rays, one strip of 16 azimuths by all 48 elevations of the 256 x 48 pattern in the
+// tiled order (and in the azimuth-major order). Its warps then walk neighbouring directions from one
+// origin in turn and find the bricks and leaf-grid entries of the strip in the SM's L1: on an H100 the
+// 9-map set traced 1.03-1.05x as fast as with a block on one ray group of 4 actors (the schedule before
+// it; docs/PERFORMANCE.md), 2, 3, 4, 8, 12, 24, 48 and 96 groups per block less (96: 0.95x), and 2
+// actors of 6 groups less. Smaller launches keep a block per ray group and, above 2,048 actors, trace it
+// for several actors strided by the grid's height (grid_rows): each warp goes on to its next actor
+// without waiting for the block's slowest warp (1.9-8.0% faster than one actor per block at 8,192
+// actors on the 50 OpenArena maps, H200). 32 threads per block were worse, and persistent warps taking
+// tiles from an atomic counter gained most on the slowest map but lost 13% on the fastest.
 #include <cuda_runtime.h>
 
 #include <cstdint>
@@ -35,8 +40,13 @@ constexpr int kMinBlocksPerSmPrims = 9;
 static_assert(kThreads == navi::kRayGroup, "a CUDA block is one ray group");
 
 constexpr int64_t kMaxGridY = 65535;
-// Grid rows (grid_rows): each block traces kActorsPerBlock actors where that leaves at least
-// kMinGridRows rows; smaller launches keep one actor per block, so their grids stay many waves deep.
+// Ray groups per block where the launch has at least kMinStripBlocks blocks with them (about six
+// waves of resident blocks on an H100), so that its last wave stays short.
+constexpr int64_t kGroupsPerBlock = 6;
+constexpr int64_t kMinStripBlocks = 8192;
+// Grid rows (grid_rows) where a block traces one ray group: each block traces kActorsPerBlock actors
+// where that leaves at least kMinGridRows rows; smaller launches keep one actor per block, so their
+// grids stay many waves deep.
 constexpr int64_t kActorsPerBlock = 4;
 constexpr int64_t kMinGridRows = 2048;
 
@@ -48,12 +58,33 @@ int64_t grid_rows(int64_t actors) {
   return actors < capped ? actors : capped;
 }
 
-// Plain walk (no primitives in the launch).
-__global__ void __launch_bounds__(kThreads, kMinBlocksPerSm) trace_kernel(const navi::TraceArgs a) {
-  const int64_t j = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
-  if (j >= a.num_rays) return;
+// A trace launch's grid and the ray groups each block traces per actor (`groups`): block (x, y)
+// traces groups [x groups, (x + 1) groups) of actors y, y + gridDim.y, ...
+struct LaunchShape {
+  dim3 grid;
+  int groups;
+};
+
+LaunchShape launch_shape(int64_t actors, int64_t rays) {
+  const int64_t groups = navi::ray_groups(rays);
+  const int64_t per_block = groups < kGroupsPerBlock ? groups : kGroupsPerBlock;
+  const int64_t columns = (groups + per_block - 1) / per_block;
+  const int64_t rows = actors < kMaxGridY ? actors : kMaxGridY;
+  if (per_block > 1 && columns * rows >= kMinStripBlocks) {
+    return {dim3(static_cast<unsigned>(columns), static_cast<unsigned>(rows)), static_cast<int>(per_block)};
+  }
+  return {dim3(static_cast<unsigned>(groups), static_cast<unsigned>(grid_rows(actors))), 1};
+}
+
+// Plain walk (no primitives in the launch); launch_shape gives the grid and `groups`.
+__global__ void __launch_bounds__(kThreads, kMinBlocksPerSm) trace_kernel(const navi::TraceArgs a, int groups) {
   const navi::PrimTables none{};
-  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item<false>(a, b, j, none);
+  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) {
+    for (int g = 0; g < groups; ++g) {
+      const int64_t j = (static_cast<int64_t>(blockIdx.x) * groups + g) * kThreads + threadIdx.x;
+      if (j < a.num_rays) navi::trace_item<false>(a, b, j, none);
+    }
+  }
 }
 
 // The launch's primitive tables (primitives.h, "Per-launch primitive tables"), then the rays.
@@ -96,12 +127,16 @@ __global__ void __launch_bounds__(kThreads) mask_kernel(const navi::TraceArgs a,
   if (i < a.num_actors * groups) t.masks[i] = navi::group_mask(a, t, i / groups, i % groups);
 }
 
-// With primitives: block x of actor b is ray group x, so its rays share one mask word.
+// With primitives, the same schedule: a block traces whole ray groups, so the rays of each share one
+// mask word.
 __global__ void __launch_bounds__(kThreads, kMinBlocksPerSmPrims)
-    trace_prims_kernel(const navi::TraceArgs a, const navi::PrimTables t) {
-  const int64_t j = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x;
-  if (j >= a.num_rays) return;
-  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) navi::trace_item<true>(a, b, j, t);
+    trace_prims_kernel(const navi::TraceArgs a, const navi::PrimTables t, int groups) {
+  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) {
+    for (int g = 0; g < groups; ++g) {
+      const int64_t j = (static_cast<int64_t>(blockIdx.x) * groups + g) * kThreads + threadIdx.x;
+      if (j < a.num_rays) navi::trace_item<true>(a, b, j, t);
+    }
+  }
 }
 
 // Each actor's origin sample (ray_walk.h, "The origin sample"), before the rays.
@@ -136,8 +171,7 @@ extern "C" int navi_trace_cuda(const navi::TraceArgs* args) {
   if (count == 0) return 0;
   const int err = select_device(args->device);
   if (err != 0) return err;
-  const dim3 grid(static_cast<unsigned>((args->num_rays + kThreads - 1) / kThreads),
-                  static_cast<unsigned>(grid_rows(args->num_actors)));
+  const LaunchShape shape = launch_shape(args->num_actors, args->num_rays);
   const cudaStream_t stream = static_cast<cudaStream_t>(args->stream);
   if (args->origin_scratch != nullptr) origin_kernel<<<blocks_for(args->num_actors), kThreads, 0, stream>>>(*args);
   if (navi::has_prims(*args)) {
@@ -150,9 +184,9 @@ extern "C" int navi_trace_cuda(const navi::TraceArgs* args) {
     if (t.cones != nullptr) cone_kernel<<<static_cast<unsigned>(groups), kThreads, 0, stream>>>(a, t);
     cull_table_kernel<<<blocks_for(a.num_actors * a.prims_per_world), kThreads, 0, stream>>>(a, t);
     if (t.masks != nullptr) mask_kernel<<<blocks_for(a.num_actors * groups), kThreads, 0, stream>>>(a, t);
-    trace_prims_kernel<<<grid, kThreads, 0, stream>>>(a, t);
+    trace_prims_kernel<<<shape.grid, kThreads, 0, stream>>>(a, t, shape.groups);
   } else {
-    trace_kernel<<<grid, kThreads, 0, stream>>>(*args);
+    trace_kernel<<<shape.grid, kThreads, 0, stream>>>(*args, shape.groups);
   }
   return static_cast<int>(cudaGetLastError());
 }
