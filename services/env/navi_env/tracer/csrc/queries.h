@@ -18,15 +18,15 @@ NAVI_HD bool has_prims(const TraceArgs& a) { return a.prims != nullptr && a.prim
 
 // Traces work item j of actor b to the end: ray ray_order[j] (or j). The order only decides which
 // rays run side by side in a GPU warp (coherent neighbours take similar step counts); results do
-// not depend on it. An out-of-range ray_order entry is skipped (its output is not written). `t`: the
-// launch's primitive tables, built before any ray (unused without primitives).
+// not depend on it. An out-of-range ray_order entry is skipped (its output is not written). `st`: the
+// actor's start (actor_start<kPrims>(a, b)); `t`: the launch's primitive tables, built before any ray
+// (unused without primitives).
 template <bool kPrims>
-NAVI_HD void trace_item(const TraceArgs& a, int64_t b, int64_t j, const PrimTables& t) {
+NAVI_HD void trace_item(const TraceArgs& a, const ActorStart& st, int64_t b, int64_t j, const PrimTables& t) {
   const int64_t r = a.ray_order != nullptr ? static_cast<int64_t>(load_ro(a.ray_order + j)) : j;
   if (r < 0 || r >= a.num_rays) return;
-  const ActorFrame frame = load_frame(a, b);
-  Ray ray = start_ray<kPrims>(a, b, j, r, t, frame);
-  if (!ray.done) first_step(a, ray, b, frame);
+  Ray ray = start_ray<kPrims>(a, b, j, r, t, st);
+  if (!ray.done) first_step(a, ray, b, st.frame);
   if (!ray.done) walk_ray(a, ray);
   if (!ray.done) {
     end_out_of_steps(a, ray);

@@ -120,6 +120,32 @@ NAVI_HD ActorFrame load_frame(const TraceArgs& a, int64_t b) {
   return load_record(&(static_cast<const OriginSample*>(a.origin_scratch) + b)->actor);
 }
 
+// What every ray of actor b starts from, taken once per actor where a launch traces several of its
+// rays in a row (a CUDA block's strip of ray groups): the frame, whether the scene id is in range, the
+// scene record, and the world origin where a ray needs it (no origin sample, or primitives).
+struct ActorStart {
+  ActorFrame frame;  // load_frame
+  bool valid;        // the scene id lies in [0, num_scenes)
+  Scene s;           // its record (valid actors)
+  Vec3 world;        // the origin, meters (without kOriginValid, or with primitives; else 0)
+};
+
+template <bool kPrims>
+NAVI_HD ActorStart actor_start(const TraceArgs& a, int64_t b) {
+  ActorStart st;
+  st.frame = load_frame(a, b);
+  const bool framed = (st.frame.flags & kOriginValid) != 0;
+  const int64_t sid = framed ? static_cast<int64_t>(st.frame.scene) : load_scene_id(a.scene_ids, a.scene_id_bytes, b);
+  st.valid = sid >= 0 && sid < a.num_scenes;
+  st.s = st.valid ? load_scene(a.scenes, sid) : Scene{};  // nothing read past the table
+  // A framed actor's origin is finite (it lies in the cube); the world point is needed for primitives.
+  st.world = v3(0.0f, 0.0f, 0.0f);
+  if (!framed || kPrims) {
+    st.world = v3(load_ro(a.origins + b * 3), load_ro(a.origins + b * 3 + 1), load_ro(a.origins + b * 3 + 2));
+  }
+  return st;
+}
+
 // ---------------------------------------------------------------------------------------------
 // One ray.
 
@@ -221,14 +247,15 @@ NAVI_HD float slab_exit(float o, float d, float inv, float res, float t1) {
 }
 
 // Sets up work item j (ray r) of actor b (writing to element b * R + r); rays that are decided before
-// the first sample (bad scene id, non-finite input, missing the cube) come back done. `f`: the actor's
-// frame (load_frame); with kOriginValid the scene id, the voxel-space origin and the yaw come from it
-// and the origin lies in the cube (the clip starts at t = 0), else the ray derives them itself.
+// the first sample (bad scene id, non-finite input, missing the cube) come back done. `st`: the actor's
+// start (actor_start); with kOriginValid in its frame the voxel-space origin and the yaw come from the
+// frame and the origin lies in the cube (the clip starts at t = 0), else the ray derives them itself.
 // kPrims: the launch has primitives (a separate instantiation, so a launch without them runs the plain
 // walk: measured 6-8% slower on an H100 when one kernel served both); `t`: its tables (prim_tables).
 template <bool kPrims>
 NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const PrimTables& t,
-                      const ActorFrame& f) {
+                      const ActorStart& st) {
+  const ActorFrame& f = st.frame;
   const bool framed = (f.flags & kOriginValid) != 0;
   Ray ray;
   ray.out = b * a.num_rays + r;
@@ -236,8 +263,7 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const
   ray.res.semantic = 0;
   ray.res.steps = 0;
   ray.done = true;
-  const int64_t sid = framed ? static_cast<int64_t>(f.scene) : load_scene_id(a.scene_ids, a.scene_id_bytes, b);
-  if (sid < 0 || sid >= a.num_scenes) {
+  if (!st.valid) {
     ray.res.depth = kNaN();
     return ray;
   }
@@ -251,17 +277,11 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const
       rotate_yaw(load_ro(a.yaw + b), dx, dy);
     }
   }
-  // A framed actor's origin is finite (it lies in the cube); the world point is needed for primitives.
-  Vec3 world = v3(0.0f, 0.0f, 0.0f);
-  if (!framed || kPrims) {
-    world = v3(load_ro(a.origins + b * 3), load_ro(a.origins + b * 3 + 1), load_ro(a.origins + b * 3 + 2));
-  }
+  const Vec3 world = st.world;
   if (!(finite(world.x) && finite(world.y) && finite(world.z) && finite(dx) && finite(dy) && finite(dz))) {
     ray.res.semantic = kOutOfSteps;
     return ray;
   }
-  // The primitives first, before the scene record is loaded: little is live here, so their code does
-  // not crowd the registers the walk keeps (with it after the load, ptxas spilled walk state).
   float reach = a.horizon;  // meters: the horizon, or the first primitive hit before it
   const uint64_t mask = kPrims ? item_mask(a, t, b, j) : 0;
   if (kPrims && (mask != 0 || t.masks == nullptr)) {  // most groups: no primitive near their cone
@@ -273,7 +293,7 @@ NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const
       ray.res.semantic = kPrimStashed;
     }
   }
-  const Scene s = load_scene(a.scenes, sid);
+  const Scene& s = st.s;
   ray.s = s;
   float ox = f.ox, oy = f.oy, oz = f.oz;
   if (!framed) {

@@ -68,14 +68,14 @@ extern "C" int navi_trace_cpu(const navi::TraceArgs* args) {
     }
     err |= parallel_for(items, a.cpu_threads, [&](int64_t i) {
       const int64_t b = i / a.num_rays;
-      navi::trace_item<true>(a, b, i - b * a.num_rays, t);
+      navi::trace_item<true>(a, navi::actor_start<true>(a, b), b, i - b * a.num_rays, t);
     });
     return err;
   }
   const navi::PrimTables none{};
   return parallel_for(items, a.cpu_threads, [&](int64_t i) {
     const int64_t b = i / a.num_rays;
-    navi::trace_item<false>(a, b, i - b * a.num_rays, none);
+    navi::trace_item<false>(a, navi::actor_start<false>(a, b), b, i - b * a.num_rays, none);
   });
 }
 

@@ -7,10 +7,13 @@
 // persistent warps refilling lanes from a work counter). Warps that refill idle lanes from a chunk of
 // 256-3,072 of the actor's rays once 4-16 lanes are idle were 9-38% slower still (docs/PERFORMANCE.md):
 // the refilled lanes no longer take the same branches (brick, far cube, leaf lookup) together. At
-// least 10 blocks per SM (48 registers, a 24-byte spill, none of it in the main loop): with the
-// present far step (far_step), 0.2-1.1% faster than 9 blocks (56 registers, no spill) on 49 of the 50
-// OpenArena maps and 0.5% slower on one (1.6% slower with the far step before it), and 6% faster than
-// 8 blocks (60 registers); outputs bit-identical (docs/PERFORMANCE.md). The grid is 2-d: x walks an
+// least 12 blocks per SM (40 registers, an 8-byte spill, none of it in the main loop): the walk wants
+// warps to hide its texture and leaf-grid latency. That fits because a block takes the actor's start
+// (actor_start: frame, scene record) once before its rays, so the compiler keeps the scene's fields,
+// the hit epsilon and the atlas scale in uniform registers: the 9-map set traced 1.05-1.08x as fast as
+// with the same code at 10 blocks (48 registers), which itself ran 1.02-1.07x the per-ray start. Before
+// that, 12 blocks spilled inside the loop, and 10 blocks were 0.2-1.1% faster than 9 (56 registers) and
+// 6% faster than 8 (60 registers); outputs bit-identical (docs/PERFORMANCE.md). The grid is 2-d: x walks an
 // actor's rays in chunks of ray groups, y the actors, so no thread divides to find its actor. Where
 // the launch is large enough (launch_shape), a block traces kGroupsPerBlock consecutive ray groups of
 // one actor: 768 rays, one strip of 16 azimuths by all 48 elevations of the 256 x 48 pattern in the
@@ -33,10 +36,11 @@
 namespace {
 
 constexpr int kThreads = 128;
-constexpr int kMinBlocksPerSm = 10;
-// The primitive kernel at 9 blocks (56 registers, no spill): on an H100 as fast or faster than at
-// 8 blocks (64 registers) in every measured design (docs/PERFORMANCE.md).
-constexpr int kMinBlocksPerSmPrims = 9;
+constexpr int kMinBlocksPerSm = 12;
+// The primitive kernel at 10 blocks (48 registers, no spill in the walk's loop, the actor's start
+// taken once per block): K = 8 primitives traced 1.02-1.04x as fast as at 9 blocks (56 registers); before
+// the actor's start moved out of the rays, 10 blocks spilled inside the loop (docs/PERFORMANCE.md).
+constexpr int kMinBlocksPerSmPrims = 10;
 static_assert(kThreads == navi::kRayGroup, "a CUDA block is one ray group");
 
 constexpr int64_t kMaxGridY = 65535;
@@ -80,9 +84,10 @@ LaunchShape launch_shape(int64_t actors, int64_t rays) {
 __global__ void __launch_bounds__(kThreads, kMinBlocksPerSm) trace_kernel(const navi::TraceArgs a, int groups) {
   const navi::PrimTables none{};
   for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) {
+    const navi::ActorStart st = navi::actor_start<false>(a, b);
     for (int g = 0; g < groups; ++g) {
       const int64_t j = (static_cast<int64_t>(blockIdx.x) * groups + g) * kThreads + threadIdx.x;
-      if (j < a.num_rays) navi::trace_item<false>(a, b, j, none);
+      if (j < a.num_rays) navi::trace_item<false>(a, st, b, j, none);
     }
   }
 }
@@ -132,9 +137,10 @@ __global__ void __launch_bounds__(kThreads) mask_kernel(const navi::TraceArgs a,
 __global__ void __launch_bounds__(kThreads, kMinBlocksPerSmPrims)
     trace_prims_kernel(const navi::TraceArgs a, const navi::PrimTables t, int groups) {
   for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) {
+    const navi::ActorStart st = navi::actor_start<true>(a, b);
     for (int g = 0; g < groups; ++g) {
       const int64_t j = (static_cast<int64_t>(blockIdx.x) * groups + g) * kThreads + threadIdx.x;
-      if (j < a.num_rays) navi::trace_item<true>(a, b, j, t);
+      if (j < a.num_rays) navi::trace_item<true>(a, st, b, j, t);
     }
   }
 }
