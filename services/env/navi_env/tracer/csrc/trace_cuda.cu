@@ -19,9 +19,9 @@
 // one actor: 768 rays, one strip of 16 azimuths by all 48 elevations of the 256 x 48 pattern in the
 // tiled order (and in the azimuth-major order). Its warps then walk neighbouring directions from one
 // origin in turn and find the bricks and leaf-grid entries of the strip in the SM's L1: on an H100 the
-// 9-map set traced 1.03-1.05x as fast as with a block on one ray group of 4 actors (the schedule before
-// it; docs/PERFORMANCE.md), 2, 3, 4, 8, 12, 24, 48 and 96 groups per block less (96: 0.95x), and 2
-// actors of 6 groups less. Smaller launches keep a block per ray group and, above 2,048 actors, trace it
+// 50 OpenArena maps traced 1.01-1.06x as fast (median 1.03x) as with a block on one ray group of 4
+// actors (the schedule before it; docs/PERFORMANCE.md); on 9 of them 2, 3, 4, 8, 12, 24, 48 and 96
+// groups per block did less (96: 0.95x), and so did 2 actors of 6 groups. Smaller launches keep a block per ray group and, above 2,048 actors, trace it
 // for several actors strided by the grid's height (grid_rows): each warp goes on to its next actor
 // without waiting for the block's slowest warp (1.9-8.0% faster than one actor per block at 8,192
 // actors on the 50 OpenArena maps, H200). 32 threads per block were worse, and persistent warps taking
@@ -80,16 +80,22 @@ LaunchShape launch_shape(int64_t actors, int64_t rays) {
   return {dim3(static_cast<unsigned>(groups), static_cast<unsigned>(grid_rows(actors))), 1};
 }
 
-// Plain walk (no primitives in the launch); launch_shape gives the grid and `groups`.
-__global__ void __launch_bounds__(kThreads, kMinBlocksPerSm) trace_kernel(const navi::TraceArgs a, int groups) {
-  const navi::PrimTables none{};
+// Block (x, y)'s work items (launch_shape): ray groups [x groups, (x + 1) groups) of actors y,
+// y + gridDim.y, ..., each actor's start taken once before its rays.
+template <bool kPrims>
+__device__ void trace_block(const navi::TraceArgs& a, const navi::PrimTables& t, int groups) {
   for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) {
-    const navi::ActorStart st = navi::actor_start<false>(a, b);
+    const navi::ActorStart st = navi::actor_start<kPrims>(a, b);
     for (int g = 0; g < groups; ++g) {
       const int64_t j = (static_cast<int64_t>(blockIdx.x) * groups + g) * kThreads + threadIdx.x;
-      if (j < a.num_rays) navi::trace_item<false>(a, st, b, j, none);
+      if (j < a.num_rays) navi::trace_item<kPrims>(a, st, b, j, t);
     }
   }
+}
+
+// Plain walk (no primitives in the launch); launch_shape gives the grid and `groups`.
+__global__ void __launch_bounds__(kThreads, kMinBlocksPerSm) trace_kernel(const navi::TraceArgs a, int groups) {
+  trace_block<false>(a, navi::PrimTables{}, groups);
 }
 
 // The launch's primitive tables (primitives.h, "Per-launch primitive tables"), then the rays.
@@ -136,13 +142,7 @@ __global__ void __launch_bounds__(kThreads) mask_kernel(const navi::TraceArgs a,
 // mask word.
 __global__ void __launch_bounds__(kThreads, kMinBlocksPerSmPrims)
     trace_prims_kernel(const navi::TraceArgs a, const navi::PrimTables t, int groups) {
-  for (int64_t b = blockIdx.y; b < a.num_actors; b += gridDim.y) {
-    const navi::ActorStart st = navi::actor_start<true>(a, b);
-    for (int g = 0; g < groups; ++g) {
-      const int64_t j = (static_cast<int64_t>(blockIdx.x) * groups + g) * kThreads + threadIdx.x;
-      if (j < a.num_rays) navi::trace_item<true>(a, st, b, j, t);
-    }
-  }
+  trace_block<true>(a, t, groups);
 }
 
 // Each actor's origin sample (ray_walk.h, "The origin sample"), before the rays.
