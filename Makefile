@@ -6,15 +6,15 @@ SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-PIP := $(PY) -m pip --disable-pip-version-check -q
 # Kept as a range so that an installed CPU or CUDA build of torch is reused, never replaced.
 TORCH_SPEC ?= torch>=2.5
-# navi_env's optional extras (Gymnasium, TorchRL, skrl adapters) are installed too: their tests run in `make test`.
-PACKAGES := shared/contracts shared/mesh services/compiler services/env[gym,torchrl,skrl] \
-	services/learner[plots,tensorboard] services/auditor
-# The torch found (or just installed) is written here and passed to pip as a constraint, so that no
-# package of the workspace or its extras can upgrade or replace it: pip fails instead.
+# The workspace packages and their optional extras are listed in deploy/setup_workspace.py, which does
+# the installing: it keeps an installed torch, pins it by its distribution version (the constraint
+# every later pip call takes, so nothing can replace it), and skips, with one line, an optional extra
+# that cannot resolve against it.
 TORCH_PIN := $(VENV)/torch-pin.txt
+# Set VENV_FLAGS= to build a venv that does not see the interpreter's site-packages (CI does).
+VENV_FLAGS ?= --system-site-packages
 PYTEST_ARGS ?=
 STAMP := $(VENV)/.navi-setup
 SOURCES := $(wildcard pyproject.toml requirements-dev.txt */*/pyproject.toml */*/setup.py */*/*/csrc/* */*/*/*/csrc/*)
@@ -30,15 +30,10 @@ help:
 
 setup: $(STAMP)
 
-# The venv sees the interpreter's site-packages, so a torch that is already installed is kept.
-$(STAMP): $(SOURCES)
-	@test -x $(PY) || $(PYTHON) -m venv --system-site-packages $(VENV)
-	@echo "[navi] installing build tools"
-	@$(PIP) install "setuptools>=68" "pybind11>=2.12" wheel
-	@$(PY) -c "import torch" 2>/dev/null || { echo "[navi] installing $(TORCH_SPEC)"; $(PIP) install "$(TORCH_SPEC)"; }
-	@$(PY) -c "import torch; print('torch==' + torch.__version__)" > $(TORCH_PIN)
-	@echo "[navi] installing the workspace packages (builds the C++ extensions), keeping $$(cat $(TORCH_PIN))"
-	@$(PIP) install --no-build-isolation -c $(TORCH_PIN) $(foreach p,$(PACKAGES),-e $(p)) -e . -r requirements-dev.txt
+# By default the venv sees the interpreter's site-packages, so a torch that is already installed is kept.
+$(STAMP): $(SOURCES) deploy/setup_workspace.py
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV_FLAGS) $(VENV)
+	@$(PY) deploy/setup_workspace.py --torch-spec "$(TORCH_SPEC)" --pin $(TORCH_PIN)
 	@touch $(STAMP)
 
 run: setup

@@ -26,7 +26,18 @@ from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy
 from navi_learner.evaluation.bench_learn import LearnConfig, bench_learn, run_devices, split_openarena
 from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol
-from navi_learner.evaluation.evaluate import EvalMetrics, competent, evaluate, goal_competent
+from navi_learner.evaluation.evaluate import (
+    COLLISION_FLOOR_PER_1K,
+    ActorSums,
+    EvalMetrics,
+    beats_supported,
+    competent,
+    competent_supported,
+    evaluate,
+    goal_competent,
+    paired_intervals,
+    summarise,
+)
 from navi_learner.ppo.train import train
 
 ENGINE = EngineConfig.tiny()
@@ -96,7 +107,80 @@ def test_competence_bar() -> None:
     assert not competent(metrics(1.01, 150.0), reactive)
     assert not competent(metrics(0.0, 149.9), reactive)
     assert competent(metrics(0.0, 150.0), metrics(0.0, 100.0))  # 0 against 0 meets "half as many"
-    assert not competent(metrics(0.1, 500.0), metrics(0.0, 100.0))
+    # Where the reactive baseline has none, the bar is the floor of 0.5 collisions per 1k.
+    assert competent(metrics(COLLISION_FLOOR_PER_1K, 150.0), metrics(0.0, 100.0))
+    assert not competent(metrics(0.51, 500.0), metrics(0.0, 100.0))
+
+
+def flown(name: str, cells: np.ndarray, collision: np.ndarray, steps: int = 500) -> EvalMetrics:
+    """EvalMetrics of actors that covered `cells` and collided `collision` times in `steps` steps each."""
+    n = cells.shape[0]
+    zeros = np.zeros(n)
+    sums = ActorSums(
+        steps=np.full(n, float(steps)), reward=zeros, finished_return=zeros, episodes=np.full(n, 2.0),
+        collision=collision.astype(float), obstacle_collision=zeros, clearance=zeros, starved=zeros,
+        distance=zeros, cells=cells.astype(float), success=zeros, spl=zeros, soft_spl=zeros, goal_seconds=zeros,
+    )  # fmt: skip
+    return summarise(name, sums, steps, {"collision": True, "position": True}, 1.0)
+
+
+def paired_ref(a: EvalMetrics, b: EvalMetrics, samples: int, seed: int) -> dict[str, list[float]]:
+    """Slow twin of paired_intervals: one resample at a time, sums in Python."""
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, a.actors, size=(samples, a.actors))
+    ratios, diffs = [], []
+    for row in idx:
+        cover_a = sum(a.per_actor["cells"][i] for i in row) / sum(a.per_actor["steps"][i] for i in row)
+        cover_b = sum(b.per_actor["cells"][i] for i in row) / sum(b.per_actor["steps"][i] for i in row)
+        coll_a = sum(a.per_actor["collision"][i] for i in row) / sum(a.per_actor["steps"][i] for i in row)
+        coll_b = sum(b.per_actor["collision"][i] for i in row) / sum(b.per_actor["steps"][i] for i in row)
+        ratios.append(cover_a / cover_b)
+        diffs.append(1000.0 * (coll_a - coll_b))
+    return {
+        "coverage_ratio": [float(np.percentile(ratios, 2.5)), float(np.percentile(ratios, 97.5))],
+        "collision_difference": [float(np.percentile(diffs, 2.5)), float(np.percentile(diffs, 97.5))],
+    }
+
+
+def test_paired_intervals_match_their_slow_twin() -> None:
+    rng = np.random.default_rng(4)
+    a = flown("a", rng.integers(20, 200, 12), rng.integers(0, 3, 12))
+    b = flown("b", rng.integers(20, 200, 12), rng.integers(0, 3, 12))
+    fast, slow = paired_intervals(a, b, samples=300, seed=7), paired_ref(a, b, samples=300, seed=7)
+    for key in ("coverage_ratio", "collision_difference"):
+        assert fast[key] == pytest.approx(slow[key], rel=1e-12, abs=1e-12), key
+
+
+def test_pairing_sees_a_win_that_the_spread_between_scenes_hides() -> None:
+    """Scenes differ far more than the two pilots do: each one's own coverage interval overlaps the other's
+    1.5x, but flown from the same spawns the ratio is tight, so the verdict holds (and fails at 1.4x)."""
+    rng = np.random.default_rng(0)
+    base = rng.uniform(30.0, 150.0, 48)  # (N,) how much room each actor's scene gives
+    reactive = flown("reactive", np.round(base), np.zeros(48))
+    good = flown("good", np.round(1.65 * base * rng.uniform(0.97, 1.03, 48)), np.zeros(48))
+    short = flown("short", np.round(1.4 * base * rng.uniform(0.97, 1.03, 48)), np.zeros(48))
+    assert good.ci["coverage_per_1k"][0] < 1.5 * reactive.ci["coverage_per_1k"][1]  # marginals overlap
+    assert paired_intervals(good, reactive)["coverage_ratio"][0] >= 1.5
+    assert competent_supported(good, reactive) and beats_supported(good, reactive)
+    assert not competent_supported(short, reactive) and beats_supported(short, reactive)
+    crashes = np.zeros(48)
+    crashes[:12] = 3  # 36 contacts in 24,000 steps: 1.5 per 1k, above the 0.5 floor across the interval
+    crashing = flown("crashing", np.round(1.65 * base), crashes)
+    assert competent(crashing, reactive) is False and not competent_supported(crashing, reactive)
+    assert not beats_supported(crashing, reactive)
+    one = np.zeros(48)
+    one[0] = 1  # a single contact: 0.04 per 1k, its interval within the floor
+    assert competent_supported(
+        flown("once", np.round(1.65 * base * rng.uniform(0.97, 1.03, 48)), one), reactive
+    )
+
+
+def test_paired_intervals_need_the_same_flight() -> None:
+    a = flown("a", np.full(8, 50), np.zeros(8))
+    with pytest.raises(ValueError, match="same actors"):
+        paired_intervals(a, flown("b", np.full(9, 50), np.zeros(9)))
+    with pytest.raises(ValueError, match="per-actor sums"):
+        paired_intervals(a, metrics(0.0, 50.0))
 
 
 def goal_metrics(success: float, spl: float, collisions: float) -> EvalMetrics:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -174,3 +175,26 @@ def test_stage_timers_without_sync_sum_the_host_time_per_stage_and_clear_on_read
     ms = timers.read(steps=3)  # ms per step
     assert 9.0 < ms["ms_env"] < 100.0 and ms["ms_forward"] < 5.0 and ms["ms_learn"] == 0.0
     assert timers.read(steps=1) == {"ms_env": 0.0, "ms_forward": 0.0, "ms_learn": 0.0, "ms_sync": 0.0}
+
+
+def test_a_resumed_run_trains_at_its_own_learning_rate(tmp_path: Path) -> None:
+    """The checkpoint's optimizer state brings its moments, not its constant rate: resumed at lr 0 (the checkpoint
+    trained at 2e-3), no weight moves, while the Adam step count carries on."""
+    per_update = 32 * 32
+    first = train(ToyEnv(32, seed=1), config(per_update), run_dir=tmp_path / "r1", progress=False)
+    frozen = replace(config(3 * per_update), ppo=replace(config(1).ppo, lr=0.0))
+    second = train(
+        ToyEnv(32, seed=2),
+        frozen,
+        run_dir=tmp_path / "r2",
+        resume_from=first.final_checkpoint,
+        progress=False,
+    )
+    before, after = load_checkpoint(first.final_checkpoint), load_checkpoint(second.final_checkpoint)
+    moved = [
+        k for k, v in before.model.items() if v.is_floating_point() and not torch.equal(v, after.model[k])
+    ]
+    learned = [k for k in moved if not k.startswith("rnd.err_")]  # running error statistics, not weights
+    assert learned == []
+    assert after.optimizer is not None and before.optimizer is not None
+    assert {float(v["step"]) for v in after.optimizer["state"].values()} == {4.0 + 2 * 4.0}

@@ -59,6 +59,13 @@ METRICS: tuple[str, ...] = (
 BOOTSTRAP_SAMPLES = 1000
 """Resamples of the actors behind every confidence interval."""
 
+PAIRED_SUMS = ("steps", "cells", "collision")
+"""The per-actor sums an evaluation keeps for paired comparisons of two policies flown on the same seed."""
+
+COLLISION_FLOOR_PER_1K = 0.5
+"""Collisions per 1,000 steps below which two policies count as equally safe: the competence bar where
+the reactive baseline has no collisions at all (half of none would demand none)."""
+
 
 class ModulePolicy:
     """A CognitiveMambaPolicy (live or loaded) driven step by step with its recurrent state."""
@@ -118,6 +125,8 @@ class EvalMetrics:
     time_to_goal_s: float = math.nan
     task: str = "explore"  # pointgoal when the env reported point-goal episodes
     ci: dict[str, list[float]] = field(default_factory=dict)
+    per_actor: dict[str, list[float]] = field(default_factory=dict)
+    """Per-actor sums behind the paired comparisons (PAIRED_SUMS: steps, cells, collision), (N,) each."""
 
 
 @dataclass
@@ -202,6 +211,7 @@ def summarise(name: str, sums: ActorSums, steps: int, has: dict[str, bool], elap
         values[metric] = ratio(num, den, scale)
         ci[metric] = bootstrap_ci(num, den, scale)
     n = sums.steps.shape[0]
+    per_actor = {k: getattr(sums, k).tolist() for k in PAIRED_SUMS}
     return EvalMetrics(
         policy=name,
         steps=steps,
@@ -210,6 +220,7 @@ def summarise(name: str, sums: ActorSums, steps: int, has: dict[str, bool], elap
         task="pointgoal" if has.get("success", False) else "explore",
         sps=n * steps / max(elapsed, 1e-9),
         ci=ci,
+        per_actor=per_actor,
         **values,
     )
 
@@ -307,14 +318,71 @@ def jsonable(value: object) -> object:
     return value
 
 
+def collision_bar(reactive: EvalMetrics, collisions: float = 0.5) -> float:
+    """The most collisions per 1,000 steps the bar allows: `collisions` x the reactive baseline's, or
+    COLLISION_FLOOR_PER_1K where the baseline has none."""
+    if reactive.collisions_per_1k > 0:
+        return collisions * reactive.collisions_per_1k
+    return COLLISION_FLOOR_PER_1K
+
+
 def competent(
     trained: EvalMetrics, reactive: EvalMetrics, collisions: float = 0.5, coverage: float = 1.5
 ) -> bool:
-    """The competence bar of `navi bench learn`: at most `collisions` x the reactive baseline's collisions
-    per 1,000 steps and at least `coverage` x its coverage, on the same unseen scenes and seed."""
+    """The competence bar of `navi bench learn`, on point estimates: collisions per 1,000 steps within
+    collision_bar (half the reactive baseline's, COLLISION_FLOOR_PER_1K where it has none) and at least
+    `coverage` x its coverage, on the same unseen scenes and seed."""
     return (
-        trained.collisions_per_1k <= collisions * reactive.collisions_per_1k
+        trained.collisions_per_1k <= collision_bar(reactive, collisions)
         and trained.coverage_per_1k >= coverage * reactive.coverage_per_1k
+    )
+
+
+def paired_intervals(
+    a: EvalMetrics, b: EvalMetrics, samples: int = BOOTSTRAP_SAMPLES, seed: int = 0
+) -> dict[str, list[float]]:
+    """95% intervals of a against b over the same resamples of the actors (both flown from the same env
+    seed, so actor i starts from the same spawn in both): `coverage_ratio` (a's coverage per 1,000 steps
+    over b's) and `collision_difference` (a's collisions per 1,000 steps minus b's). Pairing removes the
+    spread between scenes that both policies share, which dominates each one's own interval."""
+    for m in (a, b):
+        if not all(k in m.per_actor for k in PAIRED_SUMS):
+            raise ValueError(f"{m.policy}: no per-actor sums (an evaluation saved before they were kept)")
+    if a.actors != b.actors or a.steps != b.steps:
+        raise ValueError(f"{a.policy} and {b.policy} were not flown with the same actors and steps")
+    sa = {k: np.asarray(a.per_actor[k]) for k in PAIRED_SUMS}  # (N,) each
+    sb = {k: np.asarray(b.per_actor[k]) for k in PAIRED_SUMS}  # (N,) each
+    idx = np.random.default_rng(seed).integers(0, a.actors, size=(samples, a.actors))  # (B, N)
+    steps_a, steps_b = sa["steps"][idx].sum(axis=1), sb["steps"][idx].sum(axis=1)  # (B,) each
+    cover_b = sb["cells"][idx].sum(axis=1) / steps_b  # (B,)
+    ok = cover_b > 0
+    ratio = (sa["cells"][idx].sum(axis=1) / steps_a)[ok] / cover_b[ok]  # (B',)
+    diff = 1000.0 * (sa["collision"][idx].sum(axis=1) / steps_a - sb["collision"][idx].sum(axis=1) / steps_b)
+    return {
+        "coverage_ratio": [float(np.percentile(ratio, 2.5)), float(np.percentile(ratio, 97.5))]
+        if ok.any()
+        else [math.nan, math.nan],
+        "collision_difference": [float(np.percentile(diff, 2.5)), float(np.percentile(diff, 97.5))],
+    }
+
+
+def beats_supported(trained: EvalMetrics, other: EvalMetrics) -> bool:
+    """trained beats other with the intervals behind it: its coverage ratio's paired interval lies above
+    1, and its extra collisions per 1,000 steps (paired interval's top) stay within COLLISION_FLOOR_PER_1K."""
+    paired = paired_intervals(trained, other)
+    return paired["coverage_ratio"][0] > 1.0 and paired["collision_difference"][1] <= COLLISION_FLOOR_PER_1K
+
+
+def competent_supported(
+    trained: EvalMetrics, reactive: EvalMetrics, collisions: float = 0.5, coverage: float = 1.5
+) -> bool:
+    """The competence bar held by the intervals, not only the point estimates: trained's collision
+    interval lies within collision_bar, and the paired interval of its coverage ratio to the reactive
+    baseline lies at or above `coverage`."""
+    paired = paired_intervals(trained, reactive)
+    return (
+        trained.ci["collisions_per_1k"][1] <= collision_bar(reactive, collisions)
+        and paired["coverage_ratio"][0] >= coverage
     )
 
 

@@ -28,13 +28,17 @@ from navi_learner.envs.factory import EnvUnavailable, corpus_summary, make_env
 from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, goal_seeker_for_env, reactive_for_env
 from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol, plot_curves
 from navi_learner.evaluation.evaluate import (
+    COLLISION_FLOOR_PER_1K,
     CheckpointPolicy,
     EvalMetrics,
+    beats_supported,
+    collision_bar,
     comparison_table,
-    competent,
+    competent_supported,
     evaluate,
     goal_competent,
     jsonable,
+    paired_intervals,
 )
 from navi_learner.ppo.train import train
 from navi_learner.serving.checkpoint import CheckpointError, atomic_write, read_meta
@@ -80,6 +84,8 @@ class MainJobConfig:
     reference: Path = REFERENCE
     task: str = "explore"
     """explore, or pointgoal (trained from scratch on either path)."""
+    protocol: EvalProtocol | None = None
+    """The unseen evaluation; None: EvalProtocol.for_device (a smaller one only where a test says why)."""
 
 
 def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int = 16) -> None:
@@ -160,7 +166,7 @@ def main_job(job: MainJobConfig) -> Path:
     cuda = dev.type == "cuda"
     ensure_corpus(job.corpus, dev, count=16 if dev.type == "cuda" else CPU_TRAIN_SCENES)
     ensure_corpus(job.unseen, dev, seed=UNSEEN_SEED, count=UNSEEN_SCENES)
-    protocol = EvalProtocol.for_device(dev)
+    protocol = job.protocol or EvalProtocol.for_device(dev)
     registry = ModelRegistry(job.models_dir)
     try:
         unseen_env = make_env(
@@ -259,20 +265,32 @@ def write_evaluation(
             f"Trained {versus} (a higher success rate, no more collisions per episode). Competent (success >= 0.9, "
             f"SPL >= 0.75, fewer collisions per episode than greedy): {'yes' if goal_competent(trained, greedy) else 'no'}."
         )
+        competence = goal_competent(trained, greedy)
     else:
         trained, rand, reactive = rows
-        beats = {
-            "random": trained.collisions_per_1k <= rand.collisions_per_1k
-            and trained.coverage_per_1k > rand.coverage_per_1k,
-            "reactive": trained.collisions_per_1k <= reactive.collisions_per_1k
-            and trained.coverage_per_1k > reactive.coverage_per_1k,
+        paired = {
+            name: paired_intervals(trained, other)
+            for name, other in (("random", rand), ("reactive", reactive))
         }
-        verdict = (
-            f"Trained vs random: {'beats it' if beats['random'] else 'does not beat it'}; vs reactive: "
-            f"{'beats it' if beats['reactive'] else 'does not beat it'} (fewer or equal collisions per 1,000 steps "
-            f"and more coverage). Competent (half the reactive collisions, 1.5x its coverage): "
-            f"{'yes' if competent(trained, reactive) else 'no'}."
+        beats = {"random": beats_supported(trained, rand), "reactive": beats_supported(trained, reactive)}
+        bar = collision_bar(reactive)
+        ratio = paired["reactive"]["coverage_ratio"]
+        holds = competent_supported(trained, reactive)
+        versus = "; ".join(
+            f"vs {name}: {'beats it' if beats[name] else 'does not beat it'} (coverage ratio "
+            f"[{paired[name]['coverage_ratio'][0]:.2f}, {paired[name]['coverage_ratio'][1]:.2f}], extra collisions "
+            f"per 1k [{paired[name]['collision_difference'][0]:.2f}, {paired[name]['collision_difference'][1]:.2f}])"
+            for name in ("random", "reactive")
         )
+        verdict = (
+            f"Trained {versus}. The verdicts use 95% intervals, paired over the same actors and spawns: beating "
+            f"a pilot needs the coverage ratio's interval above 1 and at most {COLLISION_FLOOR_PER_1K} extra "
+            f"collisions per 1k at its top. Competent (collisions within {bar:.3g} per 1k, half the reactive's or "
+            f"{COLLISION_FLOOR_PER_1K} where it has none, and 1.5x its coverage, both across the interval: "
+            f"collisions [{trained.ci['collisions_per_1k'][0]:.3g}, {trained.ci['collisions_per_1k'][1]:.3g}], "
+            f"coverage ratio [{ratio[0]:.2f}, {ratio[1]:.2f}]): {'yes' if holds else 'no'}."
+        )
+        competence = holds
     table = comparison_table(rows)
     text = (
         f"# navi run: evaluation on unseen scenes ({path_taken} path, task {job.task})\n\n"
@@ -285,6 +303,7 @@ def write_evaluation(
         "protocol": asdict(protocol),
         "results": [asdict(r) for r in rows],
         "beats": beats,
+        "competent": competence,
     }
     if monitor is not None:
         payload["learning"] = monitor.to_json()

@@ -491,7 +491,10 @@ def resume(
         )
     policy.load_state_dict(ckpt.model)
     if ckpt.optimizer is not None:
-        optimizer.load_state_dict(ckpt.optimizer)
+        optimizer.load_state_dict(ckpt.optimizer)  # its moments, and its rate where that adapts
+        if cfg.ppo.target_kl <= 0:  # a constant rate is this run's own, never the checkpoint's
+            for group in optimizer.param_groups:
+                group["lr"] = cfg.ppo.lr
     m = ckpt.meta
     return TrainState(m.step_id, m.episode_count, m.reward_ema, m.wall_time_hours, 0, str(path))
 
