@@ -131,15 +131,21 @@ def cuda_config(job: MainJobConfig) -> TrainConfig:
     )
 
 
+CPU_LR = 1e-5
+"""The CPU fine-tune's learning rate. 2,048 steps of 4 actors teach the reference nothing new; the step
+shows the training loop and the registry on a CPU. At 1e-4 its noisy updates cost the reference its
+safety on the unseen scenes (2.29 collisions per 1k [0, 6.88] against 0)."""
+
+
 def cpu_config(job: MainJobConfig, start_step: int) -> TrainConfig:
-    """Fine-tuning on a CPU: 4 actors, 64-step rollouts, a small learning rate, job.cpu_steps steps."""
+    """Fine-tuning on a CPU: 4 actors, 64-step rollouts, CPU_LR, job.cpu_steps steps."""
     return TrainConfig(
         n_actors=4,
         rollout_length=64,
         total_steps=start_step + job.cpu_steps,
         seed=job.seed,
         device=job.device,
-        ppo=PPOConfig(lr=1e-4, ppo_epochs=1),
+        ppo=PPOConfig(lr=CPU_LR, ppo_epochs=1),
     )
 
 
