@@ -66,9 +66,14 @@ def extra_requirements(package: str, extra: str) -> list[str]:
 
 def pip(*args: str, quiet_failure: bool = False) -> subprocess.CompletedProcess[str]:
     command = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q", "install", *args]
-    if not quiet_failure:
-        return subprocess.run(command, cwd=ROOT, check=True, text=True)
-    return subprocess.run(command, cwd=ROOT, text=True, capture_output=True)
+    if quiet_failure:
+        return subprocess.run(command, cwd=ROOT, text=True, capture_output=True)
+    done = subprocess.run(command, cwd=ROOT, text=True)
+    if done.returncode != 0:
+        raise SystemExit(
+            f"[navi] set-up failed: `pip install {' '.join(args)}` exited {done.returncode} (pip's error above)"
+        )
+    return done
 
 
 def first_error(output: str) -> str:
