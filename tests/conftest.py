@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -27,6 +28,23 @@ def fuzz_cases(request: pytest.FixtureRequest) -> int:
     if "NAVI_FUZZ_CASES" in os.environ:
         return int(os.environ["NAVI_FUZZ_CASES"])
     return LONG_FUZZ_CASES if request.config.getoption("--long") else FUZZ_CASES
+
+
+GPU_MARK = "mark.gpu"
+"""The text every module with gpu-marked tests holds (`pytest.mark.gpu`, as a decorator, a param mark or
+pytestmark)."""
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """With NAVI_GPU_ONLY=1 (tests/gpu_suite.sh on a benchmark host) modules without a gpu mark are not
+    imported: they may need packages that host lacks. `-m gpu` then selects by the marker itself."""
+    if os.environ.get("NAVI_GPU_ONLY") != "1":
+        return None
+    if collection_path.is_dir():  # a folder (and its conftest.py) with no gpu-marked module at all
+        return not any(GPU_MARK in f.read_text(encoding="utf-8") for f in collection_path.rglob("test_*.py"))
+    if collection_path.suffix != ".py" or not collection_path.name.startswith("test_"):
+        return None
+    return GPU_MARK not in collection_path.read_text(encoding="utf-8")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -12,9 +12,10 @@ out=${OUT:-artifacts/gpu-suite}; mkdir -p "$out"
 source tests/gpu_env.sh
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 if [ "$what" = tests ] || [ "$what" = all ]; then
-  python -m pytest -q -p no:cacheprovider -m gpu tests/env/test_env_gpu.py tests/env/test_env_trace_parity.py \
-    tests/env/test_env_trace_edges.py tests/learner/test_learner_gpu.py tests/compiler/test_compiler_torch.py \
-    2>&1 | tee "$out/gpu_tests.log"
+  # Every gpu-marked test under tests/, selected by the marker. NAVI_GPU_ONLY=1 leaves out the modules
+  # with no gpu mark, which may import what a benchmark host lacks (tests/test_gpu_suite.py checks that
+  # this selects the same tests as `pytest -m gpu tests` on a fully installed machine).
+  NAVI_GPU_ONLY=1 python -m pytest -q -p no:cacheprovider -rs -m gpu tests 2>&1 | tee "$out/gpu_tests.log"
   [ "${PIPESTATUS[0]}" = 0 ] || exit 1
   [ "$what" = all ] || exit 0
 fi
