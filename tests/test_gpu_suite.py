@@ -20,7 +20,18 @@ def collected(gpu_only: bool) -> set[str]:
     if gpu_only:
         env["NAVI_GPU_ONLY"] = "1"
     done = subprocess.run(
-        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider", "-m", "gpu", "tests"],
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "--collect-only",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            "-m",
+            "gpu",
+            "tests",
+        ],
         cwd=ROOT,
         env=env,
         capture_output=True,
