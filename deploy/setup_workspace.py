@@ -53,9 +53,9 @@ def pin_line(name: str = "torch") -> str:
     return f"{name}=={version}"
 
 
-def extra_requirements(package: str, extra: str) -> list[str]:
+def extra_requirements(package: str, extra: str, root: Path = ROOT) -> list[str]:
     """The requirements an extra of a workspace package adds, read from its pyproject.toml."""
-    with open(ROOT / package / "pyproject.toml", "rb") as f:
+    with open(root / package / "pyproject.toml", "rb") as f:
         project = tomllib.load(f)["project"]
     extras = project.get("optional-dependencies", {})
     if extra not in extras:
@@ -85,6 +85,23 @@ def first_error(output: str) -> str:
     return lines[-1] if lines else "pip failed"
 
 
+def install_optional(pin: Path, optional: list[tuple[str, str]], root: Path = ROOT) -> list[str]:
+    """Each extra in its own pip call under the pin; one that cannot be installed is named in one line
+    and skipped. Returns the names of the skipped extras."""
+    skipped = []
+    for package, extra in optional:
+        requirements = extra_requirements(package, extra, root)
+        done = pip("-c", str(pin), *requirements, quiet_failure=True)
+        name = f"{Path(package).name}[{extra}]"
+        if done.returncode == 0:
+            log(f"installed the optional extra {name}: {' '.join(requirements)}")
+        else:
+            log(f"skipped the optional extra {name} (cannot resolve against {pin.read_text().strip()}): "
+                f"{first_error(done.stdout + done.stderr)}")  # fmt: skip
+            skipped.append(name)
+    return skipped
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--torch-spec", default="torch>=2.5", help="installed only when no torch is")
@@ -103,17 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     log(f"installing the workspace packages (builds the C++ extensions), keeping {pin}")
     editable = [a for p in CORE for a in ("-e", p)]
     pip("--no-build-isolation", "-c", str(args.pin), *editable, "-r", "requirements-dev.txt")
-    if args.no_optional:
-        return 0
-    for package, extra in OPTIONAL:
-        requirements = extra_requirements(package, extra)
-        done = pip("-c", str(args.pin), *requirements, quiet_failure=True)
-        name = f"{Path(package).name}[{extra}]"
-        if done.returncode == 0:
-            log(f"installed the optional extra {name}: {' '.join(requirements)}")
-        else:
-            reason = first_error(done.stdout + done.stderr)
-            log(f"skipped the optional extra {name} (cannot resolve against {pin}): {reason}")
+    if not args.no_optional:
+        install_optional(args.pin, OPTIONAL)
     return 0
 
 

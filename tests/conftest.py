@@ -4,8 +4,10 @@ selects the long fuzz run."""
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -69,3 +71,48 @@ def single_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+SKIPS: dict[str, list[str]] = {}
+"""Skip reason -> the tests skipped for it, in this session."""
+
+
+def skip_reason(report: pytest.TestReport) -> str:
+    """The reason of a skipped report (pytest stores (file, line, 'Skipped: reason') for skips)."""
+    longrepr = report.longrepr
+    if isinstance(longrepr, tuple) and len(longrepr) == 3:
+        return str(longrepr[2]).removeprefix("Skipped: ")
+    return str(longrepr)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if report.skipped and not hasattr(report, "wasxfail"):
+        SKIPS.setdefault(skip_reason(report), []).append(report.nodeid)
+
+
+def unexpected_skips(allowed: str) -> dict[str, list[str]]:
+    """The skips whose reason matches none of the `|`-separated regular expressions in `allowed`."""
+    patterns = [re.compile(p) for p in allowed.split("|") if p]
+    return {reason: ids for reason, ids in SKIPS.items() if not any(p.search(reason) for p in patterns)}
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    """A table of skip reasons with their counts; with NAVI_ALLOWED_SKIPS set (CI), the skips it does not
+    allow are listed and fail the run (pytest_sessionfinish sets the exit status)."""
+    if not SKIPS:
+        return
+    terminalreporter.section("skips by reason")
+    for reason, ids in sorted(SKIPS.items(), key=lambda kv: -len(kv[1])):
+        terminalreporter.write_line(f"{len(ids):5d}  {reason}")
+    allowed = os.environ.get("NAVI_ALLOWED_SKIPS")
+    if allowed is not None:
+        for reason, ids in unexpected_skips(allowed).items():
+            terminalreporter.write_line(
+                f"UNEXPECTED SKIP ({len(ids)}): {reason}: {', '.join(ids[:5])}", red=True
+            )
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    allowed = os.environ.get("NAVI_ALLOWED_SKIPS")
+    if allowed is not None and unexpected_skips(allowed) and exitstatus == pytest.ExitCode.OK:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED

@@ -138,3 +138,30 @@ def test_a_failing_extra_is_reported_in_one_line() -> None:
         "dependencies.\n    torchrl 0.14.1 depends on torch>=2.1.0\n"
     )
     assert setup_workspace.first_error(output).startswith("ERROR: Cannot install torchrl")
+
+
+def test_an_extra_that_cannot_resolve_is_skipped_in_one_line_and_set_up_goes_on(tmp_path: Path) -> None:
+    """Real pip, no index: an extra naming a package nobody has is skipped with one line; the next extra,
+    whose requirement is already installed, still goes in."""
+    package = tmp_path / "pkg"
+    package.mkdir()
+    (package / "pyproject.toml").write_text(
+        '[project]\nname = "x"\nversion = "0"\n[project.optional-dependencies]\n'
+        'broken = ["nosuchpackage-anywhere-navi>=99"]\nfine = ["pytest>=1"]\n'
+    )
+    pin = tmp_path / "pin.txt"
+    pin.write_text("torch==2.9.0\n")
+    code = (
+        f"import sys; sys.path.insert(0, {str(SCRIPT.parent)!r}); import setup_workspace as s; from pathlib import Path;"
+        f"print(s.install_optional(Path({str(pin)!r}), [('pkg', 'broken'), ('pkg', 'fine')], Path({str(tmp_path)!r})))"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PIP_")}
+    env.update(PIP_CONFIG_FILE=os.devnull, PIP_NO_INDEX="1")
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.strip().splitlines()
+    skipped = [line for line in lines if "skipped the optional extra" in line]
+    assert len(skipped) == 1 and skipped[0].startswith("[navi] skipped the optional extra pkg[broken]")
+    assert "cannot resolve against torch==2.9.0" in skipped[0] and "nosuchpackage-anywhere-navi" in skipped[0]
+    assert any(line.startswith("[navi] installed the optional extra pkg[fine]") for line in lines)
+    assert lines[-1] == "['pkg[broken]']"

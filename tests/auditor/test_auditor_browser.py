@@ -7,6 +7,7 @@ step, the newest point of each training chart, actor 0's pose, its trail over th
 
 from __future__ import annotations
 
+import shutil
 import socket
 import time
 from collections.abc import Callable
@@ -27,7 +28,8 @@ from navi_contracts.models import DistanceMatrix, FloorPlan, RobotPose, Telemetr
 from navi_contracts.settings import NaviSettings
 from navi_contracts.topics import FLOOR_PLAN, OBSERVATIONS, POSES, TELEMETRY
 
-CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM = Path(shutil.which("chromium") or "/usr/bin/chromium")
+"""Debian's chromium, found on PATH as `.ci/run` finds it."""
 CHROMIUM_ARGS = [
     "--headless",
     "--no-sandbox",
@@ -79,7 +81,9 @@ def telemetry(key: str, value: float, step: int) -> bytes:
 def browser_api() -> Any:
     """Playwright's sync API, or a skip naming what is missing (never downloads a browser)."""
     if not CHROMIUM.exists():
-        pytest.skip("Debian's chromium is not installed at /usr/bin/chromium (apt-get install -y chromium)")
+        pytest.skip(
+            f"Debian's chromium is not installed (no chromium on PATH, none at {CHROMIUM}; apt-get install -y chromium)"
+        )
     return pytest.importorskip("playwright.sync_api", reason="the playwright Python package is not installed")
 
 
