@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 from typer.testing import CliRunner
 
@@ -13,22 +15,52 @@ from navi.cli import build_app
 runner = CliRunner()
 
 
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def head_commit() -> str:
+    """This checkout's commit as git names it (12 hex digits), or "unknown" outside a git checkout."""
+    done = subprocess.run(
+        ["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    )
+    return done.stdout.strip() if done.returncode == 0 else "unknown"
+
+
 def test_version_prints_version_and_commit() -> None:
     result = runner.invoke(build_app(), ["--version"])
     assert result.exit_code == 0
-    assert result.stdout.startswith(f"navi {__version__} (commit ")
-    commit = result.stdout.split("commit ")[1].rstrip(")\n")
-    assert commit == "unknown" or all(c in "0123456789abcdef" for c in commit)
+    assert result.stdout == f"navi {__version__} (commit {head_commit()})\n"
 
 
-def test_help_lists_the_bench_group() -> None:
+def readme_commands() -> dict[str, list[str]]:
+    """The README's command table: group -> the commands its row names (`navi X Y` -> X, Y)."""
+    table = (ROOT / "README.md").read_text().split("## The `navi` command", 1)[1].split("\n## ", 1)[0]
+    groups: dict[str, list[str]] = {}
+    for row in table.splitlines():
+        cells = row.replace("\\|", "/").split("|")  # `a\|b` inside a cell: alternatives
+        if len(cells) < 4 or not cells[2].strip().startswith("`navi "):
+            continue
+        for cmd in re.findall(r"`navi ([a-z]+)(?: ([a-z/]+))?", cells[2]):
+            groups.setdefault(cmd[0], []).extend(c for c in cmd[1].split("/") if c)
+    return groups
+
+
+def test_help_lists_every_command_the_readme_names() -> None:
+    groups = readme_commands()
+    assert {"compile", "train", "bench", "serve", "stack", "run"} <= set(groups)
     result = runner.invoke(build_app(), ["--help"])
     assert result.exit_code == 0
-    assert "bench" in result.stdout
+    for name, subs in groups.items():
+        assert re.search(rf"│ {name} ", result.stdout), name
+        if subs:
+            sub_help = runner.invoke(build_app(), [name, "--help"])
+            assert sub_help.exit_code == 0, (name, sub_help.output)
+            for sub in subs:
+                assert re.search(rf"│ {sub} ", sub_help.stdout), (name, sub)
 
 
 def test_console_script_runs_as_module() -> None:
     out = subprocess.run(
-        [sys.executable, "-m", "navi", "--version"], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "navi", "--version"], capture_output=True, text=True, timeout=120, cwd=ROOT
     )
-    assert out.returncode == 0 and out.stdout.startswith("navi ")
+    assert out.returncode == 0 and out.stdout == f"navi {__version__} (commit {head_commit()})\n"
