@@ -74,7 +74,7 @@ def single_thread() -> Iterator[None]:
 
 
 SKIPS: dict[str, list[str]] = {}
-"""Skip reason -> the tests skipped for it, in this session."""
+"""Skip reason -> the tests skipped for it, in this pytest run."""
 
 
 def skip_reason(report: pytest.TestReport) -> str:

@@ -259,6 +259,7 @@ def write_evaluation(
     trained policy, then random and reactive (explore) or random, greedy and oracle (point-goal)."""
     if job.task == "pointgoal":
         trained, rand, greedy, oracle = rows
+        competence = goal_competent(trained, greedy)
         beats = {
             name: trained.success_rate > other.success_rate
             and trained.collisions_per_episode <= other.collisions_per_episode
@@ -269,9 +270,8 @@ def write_evaluation(
         )
         verdict = (
             f"Trained {versus} (a higher success rate, no more collisions per episode). Competent (success >= 0.9, "
-            f"SPL >= 0.75, fewer collisions per episode than greedy): {'yes' if goal_competent(trained, greedy) else 'no'}."
+            f"SPL >= 0.75, fewer collisions per episode than greedy): {'yes' if competence else 'no'}."
         )
-        competence = goal_competent(trained, greedy)
     else:
         trained, rand, reactive = rows
         paired = {
@@ -281,7 +281,7 @@ def write_evaluation(
         beats = {"random": beats_supported(trained, rand), "reactive": beats_supported(trained, reactive)}
         bar = collision_bar(reactive)
         ratio = paired["reactive"]["coverage_ratio"]
-        holds = competent_supported(trained, reactive)
+        competence = competent_supported(trained, reactive)
         versus = "; ".join(
             f"vs {name}: {'beats it' if beats[name] else 'does not beat it'} (coverage ratio "
             f"[{paired[name]['coverage_ratio'][0]:.2f}, {paired[name]['coverage_ratio'][1]:.2f}], extra collisions "
@@ -294,9 +294,8 @@ def write_evaluation(
             f"collisions per 1k at its top. Competent (collisions within {bar:.3g} per 1k, half the reactive's or "
             f"{COLLISION_FLOOR_PER_1K} where it has none, and 1.5x its coverage, both across the interval: "
             f"collisions [{trained.ci['collisions_per_1k'][0]:.3g}, {trained.ci['collisions_per_1k'][1]:.3g}], "
-            f"coverage ratio [{ratio[0]:.2f}, {ratio[1]:.2f}]): {'yes' if holds else 'no'}."
+            f"coverage ratio [{ratio[0]:.2f}, {ratio[1]:.2f}]): {'yes' if competence else 'no'}."
         )
-        competence = holds
     table = comparison_table(rows)
     text = (
         f"# navi run: evaluation on unseen scenes ({path_taken} path, task {job.task})\n\n"
