@@ -157,3 +157,51 @@ def test_metrics_health_and_docs(plane: tuple[TestClient, list[ModelPromoted], P
         "/healthz",
         "/metrics",
     } <= set(paths)
+
+
+def test_a_real_server_refuses_a_streamed_body_over_the_limit(tmp_path: Path) -> None:
+    """Through uvicorn on a port the OS picked (read back from the bound socket): a chunked body with no
+    Content-Length, which TestClient never sends, is counted as it streams and refused with 413 past
+    MAX_BODY_BYTES; a streamed body under the limit reaches the endpoint, which promotes its checkpoint."""
+    import threading
+
+    import httpx
+    import uvicorn
+
+    from navi_learner.serving.control_plane import MAX_BODY_BYTES
+
+    app = create_app(ControlPlaneConfig(tmp_path / "models", TOKEN), lambda _: None)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        for _ in range(600):  # bounds a hang only: the server starts in well under a second
+            if server.started:
+                break
+            thread.join(0.05)
+        assert server.started, "uvicorn did not start"
+        port = server.servers[0].sockets[0].getsockname()[1]
+
+        def chunks(payload: bytes, size: int = 8192):  # a generator body: chunked, no Content-Length
+            for i in range(0, len(payload), size):
+                yield payload[i : i + size]
+
+        url = f"http://127.0.0.1:{port}/models/promote"
+        big = b'{"checkpoint": "' + b"x" * (MAX_BODY_BYTES + 1) + b'"}'
+        with httpx.Client(timeout=30.0) as client:
+            refused = client.post(
+                url, content=chunks(big), headers=AUTH | {"content-type": "application/json"}
+            )
+            assert refused.status_code == 413, refused.text
+            assert refused.json()["detail"] == f"request body over {MAX_BODY_BYTES} bytes"
+            ckpt = checkpoint(tmp_path, 100, 0.5)
+            small = json.dumps({"checkpoint": str(ckpt)}).encode()
+            taken = client.post(
+                url, content=chunks(small, 16), headers=AUTH | {"content-type": "application/json"}
+            )
+            assert taken.status_code == 200, taken.text
+            assert taken.json()["version"] == "v001"
+    finally:
+        server.should_exit = True
+        thread.join(30.0)
+    assert not thread.is_alive()

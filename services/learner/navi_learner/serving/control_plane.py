@@ -25,6 +25,7 @@ registry, one router per resource, `create_app` wires them.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import secrets
@@ -396,20 +397,30 @@ class BodyLimit:
         if declared is not None and (not declared.isdigit() or int(declared) > self.limit):
             await self._refuse(send)
             return
-        seen = 0
+        seen, too_large, started = 0, False, False
 
         async def counted() -> Message:
-            nonlocal seen
+            nonlocal seen, too_large
             message = await receive()
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
                 if seen > self.limit:
+                    too_large = True
                     raise _TooLarge
             return message
 
-        try:
-            await self.app(scope, counted, send)
-        except _TooLarge:
+        async def guarded(message: Message) -> None:
+            # The app may catch _TooLarge while parsing the body (FastAPI answers 400 then): once the
+            # limit is passed, its response is dropped and the 413 goes out instead.
+            nonlocal started
+            if too_large:
+                return
+            started = True
+            await send(message)
+
+        with contextlib.suppress(_TooLarge):  # raised through an app that does not catch it
+            await self.app(scope, counted, guarded)
+        if too_large and not started:
             await self._refuse(send)
 
     async def _refuse(self, send: Send) -> None:
