@@ -31,8 +31,6 @@ from navi_learner.evaluation.main_job import (
 )
 from navi_learner.serving.checkpoint import load_checkpoint
 
-CPU = torch.device("cpu")
-
 
 @pytest.fixture(scope="module")
 def unseen(tmp_path_factory: pytest.TempPathFactory) -> Path:
