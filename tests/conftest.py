@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +71,32 @@ def single_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+GPU_GATE_CYCLES = 2_000_000_000
+"""torch.cuda._sleep's length for the host-sync gate: about a second of GPU clock cycles, hundreds of times
+what the host spends queueing an env step or a trace."""
+
+
+@pytest.fixture
+def returns_before_the_gpu() -> Callable[[Callable[[], object]], None]:
+    """A check that `fn()` never waits for the device, wherever the wait would be (a torch op, or a
+    synchronising call inside a compiled extension, which torch's sync debug mode cannot see): `fn` is
+    queued behind a GPU sleep and must return while the sleep still runs."""
+
+    def check(fn: Callable[[], object]) -> None:
+        import torch
+
+        torch.cuda.synchronize()
+        gate = torch.cuda.Event()
+        torch.cuda._sleep(GPU_GATE_CYCLES)
+        gate.record()
+        fn()
+        waited = gate.query()  # True only if the host waited for the sleep (query itself never waits)
+        torch.cuda.synchronize()
+        assert not waited, "the call waited for the GPU: a host synchronisation on the hot path"
+
+    return check
 
 
 SKIPS: dict[str, list[str]] = {}

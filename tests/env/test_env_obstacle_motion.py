@@ -377,18 +377,30 @@ def test_bench_env_with_moving_obstacles(tmp_path: Path) -> None:
     path = tmp_path / "room.gmdag"
     write_gmdag(_room_gmdag(), path)
 
+    actors, steps = 32, 40
+
     def run(k: int) -> dict[str, typing.Any]:
-        args = (
-            f"bench env --gmdag {path} --actors 4 --steps 3 --azimuth 32 --elevation 8 --obstacles {k} --json"
-        )
-        res = CliRunner().invoke(build_app(), args.split())
+        args = f"bench env --gmdag {path} --actors {actors} --steps {steps} --azimuth 32 --elevation 8"
+        res = CliRunner().invoke(build_app(), [*args.split(), "--obstacles", str(k), "--json"])
         assert res.exit_code == 0, res.output
         return dict(json.loads(res.stdout.strip().splitlines()[-1]))
 
     plain, crowded = run(0), run(16)
     assert plain["obstacles_per_actor"] == 0 and "obstacle_hit_fraction" not in plain
     assert crowded["obstacles_per_actor"] == 16 and crowded["obstacle_hit_fraction"] > 0.0
-    assert crowded["obstacle_collisions_per_1k"] >= 0.0
+    # the same seeded flight replayed here (5 warm-up steps, a timed pass, the counted pass), counted here
+    env = SdfDagEnv(
+        _room(), actors, "cpu", EnvConfig(azimuth_bins=32, elevation_bins=8, obstacles=ObstacleConfig(count=16)),
+        seed=0,
+    )  # fmt: skip
+    g = torch.Generator().manual_seed(0)
+    env.reset(seed=0)
+    struck = 0
+    for i in range(5 + 2 * steps):
+        out = env.step(torch.empty(actors, 4).uniform_(-1.0, 1.0, generator=g))
+        struck += int(out.info["obstacle_collision"].sum()) if i >= 5 + steps else 0
+    assert struck > 0, "no drone met an obstacle: the test exercised nothing"
+    assert crowded["obstacle_collisions_per_1k"] == pytest.approx(1000.0 * struck / (steps * actors), abs=1e-3)
     assert crowded["bytes_per_actor"] > plain["bytes_per_actor"]  # the obstacle state is counted
 
 

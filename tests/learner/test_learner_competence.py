@@ -22,6 +22,7 @@ import torch
 from navi_env.corpus.folder import build_default_corpus
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.envs.factory import make_env, parse_reward_overrides
+from navi_learner.envs.protocol import StepLike
 from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy
 from navi_learner.evaluation.bench_learn import LearnConfig, bench_learn, run_devices, split_openarena
@@ -359,10 +360,23 @@ def test_obstacle_collisions_are_measured_and_counted_among_collisions(tmp_path:
 
     corpus = tmp_path / "c"
     build_default_corpus(corpus, resolution=64, count=1, seed=0)
-    crowded = make_env(corpus, 4, "cpu", 3, episode_steps=20, obstacles=12)
-    assert crowded.obstacles is not None and crowded.obstacles.count == 12  # type: ignore[attr-defined]
-    m = evaluate(crowded, RandomPolicy(seed=0), 40, seed=3)
-    assert 0.0 <= m.obstacle_collisions_per_1k <= m.collisions_per_1k
+    crowded = make_env(corpus, 8, "cpu", 3, episode_steps=20, obstacles=48)
+    assert crowded.obstacles is not None and crowded.obstacles.count == 48  # type: ignore[attr-defined]
+    counted = {"collision": 0, "obstacle_collision": 0}  # an independent count of what the env reported
+    step = crowded.step
+
+    def counting_step(action: torch.Tensor) -> StepLike:
+        out = step(action)
+        for key in counted:
+            counted[key] += int(out.info[key].sum())
+        return out
+
+    crowded.step = counting_step  # type: ignore[method-assign,assignment]
+    m = evaluate(crowded, RandomPolicy(seed=0), 120, seed=3)
+    assert counted["obstacle_collision"] > 0, "no drone met an obstacle: the test exercised nothing"
+    assert counted["obstacle_collision"] <= counted["collision"]  # an obstacle contact is a collision
+    assert m.obstacle_collisions_per_1k == pytest.approx(1000.0 * counted["obstacle_collision"] / (120 * 8))
+    assert m.collisions_per_1k == pytest.approx(1000.0 * counted["collision"] / (120 * 8))
     lo, hi = m.ci["obstacle_collisions_per_1k"]
     assert lo <= m.obstacle_collisions_per_1k <= hi
     plain = evaluate(make_env(corpus, 4, "cpu", 3, episode_steps=20), RandomPolicy(seed=0), 10, seed=3)

@@ -279,14 +279,16 @@ def test_the_update_objective_is_compiled_by_default_on_cuda_only() -> None:
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_the_inductor_compiled_objective_matches_the_eager_one_on_cuda() -> None:
     """On CUDA, with bf16 autocast and the default engine, the compiled objective's loss, metrics and
-    gradients match the eager objective's on one minibatch."""
+    gradients are as close to the float32 eager objective's as the eager bf16 objective's are: compiling
+    adds no error beyond bf16's own (measured here on the same minibatch, per tensor)."""
     from navi_learner.config import EngineConfig as Engine
 
     torch.manual_seed(0)
+    torch.backends.cuda.matmul.allow_tf32 = False
+    torch.backends.cudnn.allow_tf32 = False
     dev = torch.device("cuda")
     cfg = TrainConfig(n_actors=64, compile=True, compile_update=True)
     policy = CognitiveMambaPolicy((3, 256, 48), Engine()).to(dev).train()
-    policy.amp = True
     policy.encoder.compile(dynamic=False)
     l_len, m = 32, 64
     obs = torch.rand(l_len, m, 3, 256, 48, device=dev)  # (L, M, 3, Az, El)
@@ -294,18 +296,23 @@ def test_the_inductor_compiled_objective_matches_the_eager_one_on_cuda() -> None
     state = tuple(s.normal_() * 0.1 for s in policy.initial_state(m, dev))
     actions = torch.randn(l_len, m, 4, device=dev)  # (L, M, 4)
     logp, adv, values, returns = (torch.randn(l_len, m, device=dev) for _ in range(4))  # (L, M) each
-    grads = []
-    outs = []
-    for objective in (make_objective(policy, cfg, dev, False), ppo_objective(policy, cfg, True)):
+    runs = {}
+    for name, objective, amp in (
+        ("compiled", make_objective(policy, cfg, dev, False), True),
+        ("eager", ppo_objective(policy, cfg, True), True),
+        ("float32", ppo_objective(policy, cfg, True), False),
+    ):
+        policy.amp = amp
         policy.zero_grad(set_to_none=True)
         total, metrics = objective(obs, resets, state, actions, logp, adv, values, returns)
         total.backward()
-        outs.append((total.detach(), metrics))
-        grads.append([q.grad.clone() for q in policy.parameters() if q.grad is not None])
-    (got, got_m), (want, want_m) = outs
-    torch.testing.assert_close(got, want, atol=2e-2, rtol=2e-2)
-    for k in want_m:
-        torch.testing.assert_close(got_m[k], want_m[k], atol=2e-2, rtol=2e-2, msg=k)
-    assert len(grads[0]) == len(grads[1])
-    for g, w in zip(*grads, strict=True):
-        torch.testing.assert_close(g, w, atol=5e-2, rtol=5e-2)
+        grads = [q.grad.clone() for q in policy.parameters() if q.grad is not None]
+        runs[name] = ([total.detach(), *(metrics[k] for k in sorted(metrics))], grads)
+    assert len(runs["compiled"][1]) == len(runs["eager"][1]) == len(runs["float32"][1]) > 0
+    for part in (0, 1):  # the loss and metrics, then the gradients
+        for got, eager, exact in zip(*(runs[k][part] for k in ("compiled", "eager", "float32")), strict=True):
+            bf16_error = float((eager.float() - exact).norm())
+            floor = (
+                1e-5 * float(exact.norm()) + 1e-7
+            )  # float32 reassociation where bf16 leaves a tensor alone
+            assert float((got.float() - exact).norm()) <= 2.0 * bf16_error + floor, (part, exact.shape)

@@ -325,12 +325,13 @@ def rays_for_warp(corpus: SceneCorpus, cfg: TraceBenchConfig) -> tuple[np.ndarra
     return origins.reshape(-1, 3).numpy().copy(), world.reshape(-1, 3).numpy().copy()
 
 
-def tracer_depth(corpus: SceneCorpus, cfg: TraceBenchConfig) -> np.ndarray:
+def tracer_depth(corpus: SceneCorpus, cfg: TraceBenchConfig, prims: torch.Tensor | None = None) -> np.ndarray:
     """(B, R) tracer depth for the benchmark's agents, on the host, traced as `bench_trace` traces them
-    (its hit threshold slope; the ray order changes no result): what the anchors are compared with."""
+    (its hit threshold slope; the ray order changes no result): what the anchors are compared with.
+    `prims` (B, K, 16): each agent's own dynamic primitives, traced with the scene."""
     agents = place_agents(corpus, cfg.agents, cfg.clearance_voxels, cfg.seed)
     pattern = spherical_directions(cfg.azimuth_bins, cfg.elevation_bins, corpus.device)  # (R, 3)
     depth = torch.empty(cfg.agents, len(pattern), device=corpus.device)  # (B, R) float32
     trace(corpus, agents.scene_ids, agents.origins, pattern, yaw=agents.yaw, out_depth=depth,
-          max_steps=cfg.max_steps, horizon=cfg.horizon, hit_slope=cfg.hit_slope)  # fmt: skip
+          max_steps=cfg.max_steps, horizon=cfg.horizon, hit_slope=cfg.hit_slope, prims=prims)  # fmt: skip
     return depth.cpu().numpy()
