@@ -458,6 +458,8 @@ def infer(
     ] = False,
 ) -> None:
     """Run a checkpoint (no PPO) in-process, or against a remote env service, and report its metrics."""
+    import torch
+
     from navi_learner.evaluation.evaluate import evaluate
 
     dev = pick_device(device)
@@ -466,13 +468,16 @@ def infer(
 
         policy = eval_policy(str(checkpoint), dev, seed, deterministic)
         try:
-            metrics = evaluate(RemoteEnv(actors, dev), policy, total_steps, seed, progress=True)
+            remote_env = RemoteEnv(actors, dev)
+            torch.manual_seed(seed)  # the sampled actions (without --deterministic) follow --seed
+            metrics = evaluate(remote_env, policy, total_steps, seed, progress=True)
         except RemoteEnvError as err:
             raise fail(str(err)) from err
         print_metrics([metrics], as_json)
         return
     environment = build_env(env, corpus, actors, dev, seed, task=checkpoint_task(str(checkpoint)))
     policy = eval_policy(str(checkpoint), dev, seed, deterministic, environment)
+    torch.manual_seed(seed)  # the sampled actions (without --deterministic) follow --seed
     print_metrics([evaluate(environment, policy, total_steps, seed, progress=True)], as_json)
 
 

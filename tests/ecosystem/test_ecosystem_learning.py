@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import importlib
 import sys
-import time
 from pathlib import Path
 from types import ModuleType
 
@@ -17,7 +16,7 @@ from .conftest import SMALL_VIEW
 pytestmark = [pytest.mark.usefixtures("single_thread"), pytest.mark.slow]
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 ACTORS, STEPS = 64, 3072
-"""64 drones for 3,072 steps (96 rollouts of 32): 197k env-steps, about 20 s of training on one core."""
+"""64 drones for 3,072 steps (96 rollouts of 32): 197k env-steps."""
 
 
 def example(name: str, monkeypatch: pytest.MonkeyPatch) -> ModuleType:
@@ -30,10 +29,9 @@ def example(name: str, monkeypatch: pytest.MonkeyPatch) -> ModuleType:
 def test_stock_ppo_beats_random_flight(
     name: str, label: str, corpus: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    t0 = time.perf_counter()
+    """The stock trainer's policy collides far less and covers more than random flight."""
     act = example(name, monkeypatch).train(str(corpus), ACTORS, STEPS, SMALL_VIEW)
     trained, rand = example("common", monkeypatch).against_random(corpus, label, act, SMALL_VIEW)
     assert rand.collisions_per_1k > 5.0, rand  # random flight does hit walls here: the test can fail
     assert trained.collisions_per_1k < 0.25 * rand.collisions_per_1k, (trained, rand)
     assert trained.coverage_per_1k > 1.25 * rand.coverage_per_1k, (trained, rand)
-    assert time.perf_counter() - t0 < 90.0

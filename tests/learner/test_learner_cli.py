@@ -48,7 +48,8 @@ def test_train_promote_list_evaluate_compare(tmp_path: Path) -> None:
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["steps"] == 256 and summary["promoted"] == "v001"
     assert Path(summary["checkpoint"]).is_file() and Path(summary["report"]).is_file()
-    code, out, _ = invoke("models", "list", "--json")
+    code, out, err = invoke("models", "list", "--json")
+    assert code == 0, err
     listing = json.loads(out)
     assert [v["version"] for v in listing["versions"]] == ["v001"] and listing["aliases"]["latest"] == "v001"
     # a second run resumes from artifacts/models/latest.pt
@@ -73,7 +74,8 @@ def test_train_promote_list_evaluate_compare(tmp_path: Path) -> None:
     code, out, err = invoke("evaluate", "v001", "--env", "toy", "--steps", "50", "--device", "cpu", "--json")
     assert code == 0, err
     (row,) = json.loads(out)["results"]
-    assert row["steps"] == 50 and row["actors"] == 4
+    assert row["steps"] == 50 and row["actors"] == 4 and row["per_actor"]["steps"] == [50.0] * 4
+    assert row["policy"].endswith("v001.pt") and -1.0 <= row["reward_per_step"] <= 1.0
     code, out, err = invoke(
         "compare", "random", "reactive", "--env", "toy", "--steps", "50", "--device", "cpu", "--json"
     )
@@ -91,7 +93,10 @@ def test_train_promote_list_evaluate_compare(tmp_path: Path) -> None:
         "--tags",
         "rl,gru",
     )
-    assert code == 0 and json.loads(out)["tags"] == ["rl", "gru"]
+    promoted = json.loads(out)
+    assert code == 0 and promoted["tags"] == ["rl", "gru"] and promoted["notes"] == "hand-picked"
+    code, out, _ = invoke("models", "list", "--json")
+    assert code == 0 and json.loads(out)["aliases"]["champion"] == promoted["version"]
 
 
 def test_engine_option_shapes_a_fresh_engine_and_is_ignored_on_resume() -> None:
@@ -112,7 +117,9 @@ def test_engine_option_shapes_a_fresh_engine_and_is_ignored_on_resume() -> None:
 
 def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     code, _, err = invoke("evaluate", "--env", "toy")
-    assert code == 2
+    assert code == 2 and "give exactly one of CHECKPOINT or --policy" in " ".join(
+        err.replace("│", " ").split()
+    )
     code, _, err = invoke("evaluate", "nope.pt", "--env", "toy", "--device", "cpu")
     assert code == 2 and "neither" in err
     code, _, err = invoke(
@@ -200,8 +207,8 @@ def test_onnx_export_matches_pytorch_step(tmp_path: Path) -> None:
     )
     assert code == 0, err
     ckpt = json.loads(out.strip().splitlines()[-1])["checkpoint"]
-    code, _, err = invoke("export", ckpt, "--onnx", "policy.onnx")
-    assert code == 0, err
+    code, out, err = invoke("export", ckpt, "--onnx", "policy.onnx")
+    assert code == 0 and out.splitlines()[-1] == "policy.onnx", err  # torch.onnx logs its stages before
     loaded = load_checkpoint(Path(ckpt))
     policy = CognitiveMambaPolicy((3, 16, 8), EngineConfig.from_dict(loaded.meta.config["engine"]))
     policy.load_state_dict(loaded.model)

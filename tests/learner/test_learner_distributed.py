@@ -6,6 +6,7 @@ an error naming the timeout, a SIGTERMed rank stops both with one final checkpoi
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import json
@@ -198,12 +199,19 @@ def test_sigterm_to_one_rank_stops_both_with_one_checkpoint_and_resumes_on_two(
 
 
 def test_a_killed_rank_ends_the_run_with_an_error_naming_the_timeout(tmp_path: Path) -> None:
+    """SIGKILL to rank 1: rank 0's next collective times out (NAVI_DIST_TIMEOUT_S) and the run ends with an
+    error naming that timeout instead of hanging."""
     proc = start_long_run(tmp_path, "--fresh", timeout_s="20")
     pids = rank_pids(proc.pid)
-    t0 = time.monotonic()
     os.kill(pids[1], signal.SIGKILL)
-    _, err = proc.communicate(timeout=90)
-    assert time.monotonic() - t0 < 20 + 15  # no hang: within the collective timeout (+ teardown)
+    try:
+        _, err = proc.communicate(timeout=180)  # the 20 s collective timeout and teardown, on a loaded host
+    except subprocess.TimeoutExpired:
+        for pid in (proc.pid, *pids.values()):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail("the run outlived its 20 s collective timeout by minutes: rank 0 hangs on the dead rank")
     assert proc.returncode != 0
     assert "error: rank 0 of 2:" in err and "NAVI_DIST_TIMEOUT_S=20 s" in err, err[-3000:]
 

@@ -1,12 +1,12 @@
-"""The training loop on the toy env: PPO beats random within 60 s on CPU; resume continues counters and
+"""The training loop on the toy env: PPO beats random after 24,576 CPU steps; resume continues counters and
 optimizer state; the run folder holds logs, metrics, manifest, checkpoints and a report."""
 
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -16,6 +16,7 @@ from navi_learner.envs.protocol import StepOut
 from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
 from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
+from navi_learner.ppo import train as train_module
 from navi_learner.ppo.train import StageTimers, train
 from navi_learner.serving.checkpoint import load_checkpoint
 from navi_learner.serving.registry import ModelRegistry
@@ -25,7 +26,7 @@ ENGINE = EngineConfig.tiny()
 pytestmark = pytest.mark.usefixtures("single_thread")
 
 
-def config(total: int, **kw: object) -> TrainConfig:
+def config(total: int, **kw: Any) -> TrainConfig:
     ppo = PPOConfig(lr=2e-3, num_minibatches=2, bptt_chunk=16, ppo_epochs=2, ent_coef=0.0)
     return TrainConfig(
         n_actors=32,
@@ -36,18 +37,16 @@ def config(total: int, **kw: object) -> TrainConfig:
         checkpoint_every=10**9,
         log_every=4,
         **kw,
-    )  # type: ignore[arg-type]
+    )
 
 
-def test_ppo_beats_random_on_the_toy_env_within_60_s(tmp_path: Path) -> None:
-    t0 = time.perf_counter()
+def test_ppo_beats_random_on_the_toy_env(tmp_path: Path) -> None:
+    """24,576 steps of PPO on the toy env earn clearly more reward per step than random actions."""
     result = train(ToyEnv(32, seed=1), config(24_576), run_dir=tmp_path / "run", progress=False)
     trained = evaluate(
         ToyEnv(16, seed=5), CheckpointPolicy(result.final_checkpoint, torch.device("cpu")), 200, seed=5
     )
     rand = evaluate(ToyEnv(16, seed=5), RandomPolicy(5), 200, seed=5)
-    elapsed = time.perf_counter() - t0
-    assert elapsed < 60.0
     assert abs(rand.reward_per_step) < 0.1
     assert trained.reward_per_step > rand.reward_per_step + 0.25, (trained, rand)
     assert result.skipped_updates == 0
@@ -165,15 +164,32 @@ def test_adaptive_rate_is_a_device_tensor_that_moves_and_resumes(tmp_path: Path)
     assert float(c2.optimizer["param_groups"][0]["lr"]) == pytest.approx(float(rate))
 
 
-def test_stage_timers_without_sync_sum_the_host_time_per_stage_and_clear_on_read() -> None:
+class Clock:
+    """A host clock that moves only when told: `perf_counter` for the training module."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+def test_stage_timers_without_sync_sum_the_host_time_per_stage_and_clear_on_read(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Without sync each stage adds the host time between its boundaries; a read gives ms per env step
+    and starts again from zero."""
+    clock = Clock()
+    monkeypatch.setattr(train_module, "time", clock)
     timers = StageTimers(sync=False)
-    for _ in range(3):
+    for seconds in (0.010, 0.020, 0.030):
         with timers("env"):
-            time.sleep(0.01)
+            clock.now += seconds
+        clock.now += 1.0  # between stages: counted nowhere
     with timers("forward"):
-        pass
+        clock.now += 0.006
     ms = timers.read(steps=3)  # ms per step
-    assert 9.0 < ms["ms_env"] < 100.0 and ms["ms_forward"] < 5.0 and ms["ms_learn"] == 0.0
+    assert ms == pytest.approx({"ms_env": 20.0, "ms_forward": 2.0, "ms_learn": 0.0, "ms_sync": 0.0})
     assert timers.read(steps=1) == {"ms_env": 0.0, "ms_forward": 0.0, "ms_learn": 0.0, "ms_sync": 0.0}
 
 
