@@ -14,9 +14,9 @@ from typing import Annotated
 import typer
 
 from navi import __version__, git_commit
-from navi.commands import auditor, bench, compiler, env, learner, models, scenes, serve, stack, tracer
+from navi.commands import auditor, bench, compiler, env, learner, models, scenes, serve, soak, stack, tracer
 
-MERGED = (compiler.app, tracer.app, env.app, learner.app, auditor.app)
+MERGED = (compiler.app, tracer.app, env.app, learner.app, auditor.app, soak.app)
 """Groups whose commands are added at the root, each under its own help panel."""
 NAMED = (
     ("scenes", scenes.app, "Compiler"),

@@ -78,6 +78,12 @@ class StackConfig:
     """Start the auditor dashboard when navi_auditor is installed."""
     navi: tuple[str, ...] = field(default_factory=navi_argv)
     """The `navi` command line prefix the services run with (default: this interpreter's `-m navi`)."""
+    learner_args: tuple[str, ...] = ()
+    """More options of the learner's command (e.g. `--checkpoint-every N --resume-latest`)."""
+    compiler_args: tuple[str, ...] = ()
+    """More options of the compiler's command (e.g. `--max-source-mb N`)."""
+    cwd: Path | None = None
+    """Working folder of the services (their artifacts/ folder lies under it); None: this process's."""
 
 
 class StackError(RuntimeError):
@@ -121,6 +127,7 @@ def service_specs(cfg: StackConfig, with_auditor: bool) -> list[ServiceSpec]:
                 str(cfg.compiler_metrics_port),
                 "--metrics-host",
                 cfg.host,
+                *cfg.compiler_args,
             ),
         ),
         ServiceSpec(
@@ -164,6 +171,7 @@ def service_specs(cfg: StackConfig, with_auditor: bool) -> list[ServiceSpec]:
                 "--port",
                 str(cfg.api_port),
                 *(("--nproc", str(cfg.nproc)) if cfg.nproc > 1 else ()),
+                *cfg.learner_args,
             ),
         ),
     ]
@@ -243,8 +251,8 @@ def api_token(root: Path) -> tuple[str, bool]:
     return token, True
 
 
-def start(spec: ServiceSpec, root: Path, env: dict[str, str]) -> ProcessState:
-    """Start one service detached (own session), logging to root/<name>.log; write its pid file."""
+def start(spec: ServiceSpec, root: Path, env: dict[str, str], cwd: Path | None = None) -> ProcessState:
+    """Start one service detached (own session) in `cwd`, logging to root/<name>.log; write its pid file."""
     log_path = root / f"{spec.name}.log"
     with log_path.open("ab") as log_file:
         proc = subprocess.Popen(
@@ -253,6 +261,7 @@ def start(spec: ServiceSpec, root: Path, env: dict[str, str]) -> ProcessState:
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             env=env,
+            cwd=cwd,
             start_new_session=True,
         )
     started = time.time()
@@ -406,7 +415,7 @@ def up(
     )
     states = []
     for spec in specs:
-        state = start(spec, cfg.root, env)
+        state = start(spec, cfg.root, env, cfg.cwd)
         states.append(state)
         progress(f"started {state.name:<9} pid {state.pid}  log {state.log}")
     healthy = wait_for_health(cfg, [s.name for s in specs], t0, wait_s)

@@ -48,7 +48,11 @@ ZenohConfigOpt = Annotated[
     typer.Option("--zenoh-config", help="A Zenoh JSON5 config file (default: NAVI_ZENOH_CONFIG)."),
 ]
 MetricsPortOpt = Annotated[
-    int | None, typer.Option("--metrics-port", help="Port of GET /metrics (default: NAVI_METRICS_PORT).")
+    int | None,
+    typer.Option(
+        "--metrics-port",
+        help="Port of GET /metrics (default: NAVI_METRICS_PORT; 0: one the OS picks, logged).",
+    ),
 ]
 CorpusOpt = Annotated[
     Path, typer.Option("--corpus", help="Corpus folder (the default corpus is built when empty).")
@@ -175,7 +179,7 @@ def serve_compiler(
         workers=workers,
         threads=threads,
         device=pick_device(device),
-        metrics_port=metrics_port or settings.metrics_port,
+        metrics_port=settings.metrics_port if metrics_port is None else metrics_port,
         metrics_host=metrics_host,
         max_source_bytes=(
             settings.max_source_bytes if max_source_mb is None else max(1, int(max_source_mb * 2**20))
@@ -221,7 +225,7 @@ def serve_env(
         device=pick_device(device),
         seed=seed,
         observation_hz=observation_hz,
-        metrics_port=metrics_port or settings.metrics_port,
+        metrics_port=settings.metrics_port if metrics_port is None else metrics_port,
         metrics_host=metrics_host,
         env=env,
         session=_session_config(settings, connect, zenoh_config),
@@ -266,6 +270,14 @@ def serve_learner(
     total_steps: TotalStepsOpt = 1_000_000,
     checkpoint_every: CheckpointEveryOpt = 25_000,
     checkpoint: ResumeOpt = None,
+    resume_latest: Annotated[
+        bool,
+        typer.Option(
+            "--resume-latest",
+            help="train: without --checkpoint, resume from the newest checkpoint of the runs folder that "
+            "loads (a restarted service goes on where it stopped, losing at most the steps since then).",
+        ),
+    ] = False,
     model: Annotated[
         str, typer.Option("--model", help="infer: checkpoint path, registry version or alias.")
     ] = "latest",
@@ -365,6 +377,7 @@ def serve_learner(
         env_kind="toy" if env_kind == "toy" else "sdfdag",
         train=train,
         resume_from=checkpoint,
+        resume_latest=resume_latest,
         model=model,
         follow_alias=follow_alias,
         infer_steps=infer_steps,
@@ -400,7 +413,10 @@ def serve_auditor(
         str, typer.Option("--host", help="Dashboard interface (127.0.0.1: this machine only; 0.0.0.0: all).")
     ] = "127.0.0.1",
     port: Annotated[
-        int | None, typer.Option("--port", help="Dashboard port (default NAVI_AUDITOR_PORT).")
+        int | None,
+        typer.Option(
+            "--port", help="Dashboard port (default NAVI_AUDITOR_PORT; 0: one the OS picks, logged)."
+        ),
     ] = None,
 ) -> None:
     """The auditor's live web dashboard (passive: it only subscribes)."""

@@ -71,6 +71,41 @@ def test_mutations_need_the_bearer_token(plane: tuple[TestClient, list[ModelProm
     assert Path(msg.checkpoint).is_file() and Path(msg.checkpoint).name == "v001.pt"
 
 
+def test_every_refused_request_is_counted_under_its_status(
+    plane: tuple[TestClient, list[ModelPromoted], Path],
+) -> None:
+    """navi_refused_requests_total{status}: each 4xx answer once, the body limit's 413 among them; an
+    accepted request counts nothing."""
+    from navi_learner.serving.control_plane import MAX_BODY_BYTES
+    from navi_mesh import metrics
+
+    client, _, tmp = plane
+
+    def counts() -> dict[str, float]:
+        return {
+            s.labels["status"]: s.value
+            for f in metrics.REFUSED_REQUESTS.collect()
+            for s in f.samples
+            if s.name.endswith("_total")
+        }
+
+    before = counts()
+    body = {"checkpoint": str(checkpoint(tmp, 100, 0.5))}
+    answers = [
+        client.post("/models/promote", json=body).status_code,  # no token
+        client.post("/models/promote", json=body, headers={"Authorization": "Bearer nope"}).status_code,
+        client.post("/models/promote", content=b"{not json", headers=AUTH).status_code,
+        client.post("/models/promote", json={"checkpoint": "/nowhere/x.pt"}, headers=AUTH).status_code,
+        client.get("/models/v999").status_code,
+        client.post("/models/promote", content=b"x" * (MAX_BODY_BYTES + 1), headers=AUTH).status_code,
+        client.post("/models/promote", json=body, headers=AUTH).status_code,  # accepted
+    ]
+    assert answers == [401, 403, 422, 422, 404, 413, 200]
+    after = counts()
+    added = {k: after.get(k, 0.0) - before.get(k, 0.0) for k in after}
+    assert {k: v for k, v in added.items() if v} == {"401": 1.0, "403": 1.0, "422": 2.0, "404": 1.0, "413": 1.0}
+
+
 def test_promote_rollback_and_audit_log(plane: tuple[TestClient, list[ModelPromoted], Path]) -> None:
     client, announced, tmp = plane
     for step, ema in ((1000, 0.1), (2000, 0.3)):

@@ -60,6 +60,7 @@ from navi_learner.config import TrainConfig, default_actors
 from navi_learner.envs.factory import EnvKind, corpus_summary, make_env
 from navi_learner.envs.protocol import BatchedEnv, StepLike
 from navi_learner.ppo.dist import Dist
+from navi_learner.serving.checkpoint import CheckpointError, load_checkpoint, read_meta
 from navi_learner.serving.control_plane import ControlPlaneConfig, create_app
 from navi_learner.serving.registry import ModelRegistry, RegistryError
 from navi_mesh import metrics
@@ -94,6 +95,9 @@ class LearnerServiceConfig:
     """The training run (actors, budget, device, seed, engine, PPO)."""
     resume_from: Path | None = None
     """train: checkpoint to resume from."""
+    resume_latest: bool = False
+    """train: without resume_from, resume from the newest checkpoint under runs_dir that loads (a
+    restarted service goes on where it stopped, losing at most the steps since that checkpoint)."""
     model: str = "latest"
     """infer: a checkpoint path, or a registry version or alias."""
     follow_alias: str = "champion"
@@ -404,6 +408,7 @@ class ServiceStatus:
         self._lock = threading.Lock()
         self.phase = "starting"
         self.step = 0  # step id of the newest training log row
+        self.start_step = 0  # step id the run resumed from (0: from scratch)
         self.run_id = ""
         self.actors = 0
         self.corpus_path = str(corpus) if corpus is not None else ""
@@ -427,7 +432,14 @@ class ServiceStatus:
                     "rejected": c.rejected,
                     "error": c.error,
                 }
-            return {"phase": self.phase, "run_id": self.run_id, "actors": self.actors, "corpus": corpus}
+            return {
+                "phase": self.phase,
+                "run_id": self.run_id,
+                "actors": self.actors,
+                "step": self.step,
+                "start_step": self.start_step,
+                "corpus": corpus,
+            }
 
 
 class CorpusReporter:
@@ -547,14 +559,20 @@ def run_training(
     d = dist or Dist()
     run_id = new_run_id()
     env.run_id = run_id
-    status.update(phase="training", run_id=run_id, actors=env.n_actors * d.world)
+    resume_from = cfg.resume_from
+    if resume_from is None and cfg.resume_latest:
+        resume_from = newest_checkpoint(cfg.runs_dir)
+    start_step = read_meta(resume_from).step_id if resume_from is not None else 0
+    status.update(
+        phase="training", run_id=run_id, actors=env.n_actors * d.world, step=start_step, start_step=start_step
+    )
     on_log = TrainingMetrics(pubs, env, env.device, status, d.world)
     result = train(
         env,
         cfg.train,
         run_dir=cfg.runs_dir / run_id,
         run_id=run_id,
-        resume_from=cfg.resume_from,
+        resume_from=resume_from,
         on_log=on_log,
         registry=ModelRegistry(cfg.models_dir),
         corpus_summary=corpus_summary(cfg.corpus if cfg.env_kind == "sdfdag" else None, cfg.env_kind),
@@ -573,6 +591,23 @@ def run_training(
     }
     pubs.telemetry.publish(telemetry("actor.training.done", 1.0, result.step_id, result.run_id))
     return summary
+
+
+def newest_checkpoint(runs_dir: Path) -> Path | None:
+    """The newest checkpoint (by step) under runs_dir/*/checkpoints that loads; one warning line for each
+    newer one that does not. None when there is none."""
+    found = sorted(
+        runs_dir.glob("*/checkpoints/ckpt_step_*.pt"), key=lambda p: (p.name, str(p)), reverse=True
+    )
+    for path in found:
+        try:
+            load_checkpoint(path)
+        except CheckpointError as err:
+            log.warning("skipping checkpoint %s: %s", path, err)
+            continue
+        log.info("resuming from the newest checkpoint that loads: %s", path)
+        return path
+    return None
 
 
 def resolve_model(model: str, registry: ModelRegistry) -> Path:

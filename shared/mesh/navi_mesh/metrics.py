@@ -12,6 +12,7 @@ Counters end in `_total`, durations in `_seconds`, sizes in `_bytes`. Labels are
 
 from __future__ import annotations
 
+import logging
 import threading
 from typing import TYPE_CHECKING
 
@@ -34,7 +35,8 @@ if TYPE_CHECKING:
 disable_created_metrics()
 REGISTRY = CollectorRegistry()
 """Every family below (the union of the services' registries), for in-process readers."""
-_served: set[int] = set()
+_served: dict[tuple[int, str], int] = {}
+"""(requested /metrics port, service when the port is 0) -> the port bound for it (0: one the OS picks)."""
 _served_lock = threading.Lock()
 
 STEPS_PER_SECOND = Gauge(
@@ -93,6 +95,12 @@ PROMOTIONS = Counter(
     ["action"],
     registry=REGISTRY,
 )
+REFUSED_REQUESTS = Counter(
+    "navi_refused_requests",
+    "REST requests the control plane refused, by HTTP status (401, 403, 404, 409, 413, 422, ...).",
+    ["status"],
+    registry=REGISTRY,
+)
 STEP_REQUESTS = Counter(
     "navi_step_requests",
     "StepRequests answered by the env service by outcome.",
@@ -123,6 +131,13 @@ CORPUS_SCENES_REJECTED = Gauge(
 CORPUS_READY = Gauge(
     "navi_corpus_ready", "1 once the service's corpus is built and loaded, else 0.", registry=REGISTRY
 )
+WRITE_ERRORS = Counter(
+    "navi_write_errors",
+    "Writes that failed (a full disk, an I/O error) and left the last good file in place, by what was "
+    "written (checkpoint, registry, recording).",
+    ["what"],
+    registry=REGISTRY,
+)
 
 
 MESH: tuple[Counter, ...] = (
@@ -145,12 +160,14 @@ OWNERS: dict[str, tuple[Counter | Gauge | Histogram, ...]] = {
         GPU_MEMORY,
         PUBLISH_SECONDS,
         PROMOTIONS,
+        REFUSED_REQUESTS,
         CORPUS_SCENES_READY,
         CORPUS_SCENES_PLANNED,
         CORPUS_SCENES_REJECTED,
         CORPUS_READY,
+        WRITE_ERRORS,
     ),
-    "auditor": (),
+    "auditor": (WRITE_ERRORS,),
 }
 """The families each service owns, besides MESH."""
 _registries: dict[str, CollectorRegistry] = {}
@@ -186,11 +203,17 @@ def exposition(service: str) -> tuple[bytes, str]:
     return generate_latest(registry(service)), CONTENT_TYPE_LATEST
 
 
-def serve_metrics(port: int, service: str, host: str = "127.0.0.1") -> None:
-    """Expose a service's GET /metrics on `port` from a daemon thread (services without an HTTP API)."""
+def serve_metrics(port: int, service: str, host: str = "127.0.0.1") -> int:
+    """Expose a service's GET /metrics on `port` (0: one the OS picks) from a daemon thread (services
+    without an HTTP API); logs the address and returns the bound port. A second call for the same
+    requested port (and service, for port 0) serves nothing more and returns the same bound port."""
     served = registry(service)
+    key = (port, service if port == 0 else "")
     with _served_lock:
-        if port in _served:
-            return
-        start_http_server(port, addr=host, registry=served)
-        _served.add(port)
+        if key not in _served:
+            server, _ = start_http_server(port, addr=host, registry=served)
+            _served[key] = int(server.server_address[1])
+            logging.getLogger("navi_mesh.metrics").info(
+                "GET /metrics of %s on http://%s:%d/metrics", service, host, _served[key]
+            )
+        return _served[key]

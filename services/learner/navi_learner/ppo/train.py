@@ -28,14 +28,19 @@ from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.runs import Progress, RunFiles, new_run_id, write_report
 from navi_learner.ppo.stats import EpisodeStats
 from navi_learner.serving.checkpoint import (
+    CheckpointError,
     CheckpointMeta,
     checkpoint_name,
+    count_write_error,
     load_checkpoint,
+    newest_good_checkpoint,
+    os_reason,
     prune_checkpoints,
     save_checkpoint,
 )
 from navi_learner.serving.registry import ModelRegistry
 
+log = logging.getLogger(__name__)
 STAGES = ("env", "forward", "learn")
 """The stages a step's time is split into (they do not overlap)."""
 TIMED = (*STAGES, "sync")
@@ -439,6 +444,7 @@ class Learner:
     corpus_summary: dict[str, Any]
     base_episodes: int = 0  # the resumed run's counters
     base_hours: float = 0.0
+    last_checkpoint: Path | None = None  # the newest checkpoint this run wrote
 
     def track_reward(self, ext_mean: torch.Tensor) -> None:
         """Fold one rollout's mean extrinsic reward into the moving average (its first value on a fresh run)."""
@@ -456,7 +462,11 @@ class Learner:
         st.wall_time_hours = self.base_hours + (time.perf_counter() - clock.t_start) / 3600.0
 
     def checkpoint(self, clock: Clock) -> Path:
-        """Save weights, optimizer and counters (rank 0 writes); returns the checkpoint's path."""
+        """Save weights, optimizer and counters (rank 0 writes); returns the checkpoint's path.
+
+        A write that fails (a full disk) leaves no file, logs one error line, counts in
+        navi_write_errors_total{what="checkpoint"} and returns the last good checkpoint instead (the
+        path not written when there is none): training goes on."""
         self.sync_counters(clock)
         st, cfg = self.state, self.cfg
         path = self.run.checkpoints / checkpoint_name(st.step_id)
@@ -474,7 +484,18 @@ class Learner:
             parent_checkpoint=st.parent_checkpoint,
             corpus_summary=self.corpus_summary,
         )
-        save_checkpoint(path, self.policy.state_dict(), self.optimizer.state_dict(), meta)
+        try:
+            save_checkpoint(path, self.policy.state_dict(), self.optimizer.state_dict(), meta)
+        except OSError as err:
+            count_write_error("checkpoint")
+            line = (
+                f"checkpoint {path.name} not written: {os_reason(err)}; training goes on, the last "
+                f"good checkpoint is {self.last_checkpoint or 'none yet'}"
+            )
+            self.run.logger.error(line)
+            log.error(line)
+            return self.last_checkpoint or path
+        self.last_checkpoint = path
         prune_checkpoints(self.run.checkpoints, cfg.keep_checkpoints)
         self.run.logger.info(f"checkpoint {path}")
         return path
@@ -483,7 +504,14 @@ class Learner:
 def resume(
     policy: CognitiveMambaPolicy, optimizer: torch.optim.Optimizer, path: Path, cfg: TrainConfig
 ) -> TrainState:
-    """Load weights and optimizer from a checkpoint of the same temporal core; returns its counters."""
+    """Load weights and optimizer from a checkpoint of the same temporal core; returns its counters.
+
+    A run folder (or its checkpoints/ folder) resumes from its newest checkpoint that verifies."""
+    if path.is_dir():
+        found = newest_good_checkpoint(path)
+        if found is None:
+            raise CheckpointError(f"no checkpoint in {path} loads and verifies")
+        path = found
     ckpt = load_checkpoint(path, next(policy.parameters()).device)
     if ckpt.meta.temporal_core != cfg.engine.temporal_core:
         raise ValueError(
@@ -651,11 +679,17 @@ def finish(
     elapsed = time.perf_counter() - clock.t_start
     sps_total = (st.step_id - start_step) / max(elapsed, 1e-9)
     promoted = None
-    if registry is not None and not interrupted and d.main:
-        entry = registry.maybe_promote(
-            latest, notes=f"auto-promote of run {run.run_id}", tags=("rl", cfg.engine.temporal_core)
-        )
-        promoted = entry.version if entry is not None else None
+    if registry is not None and not interrupted and d.main and latest.is_file():
+        try:
+            entry = registry.maybe_promote(
+                latest, notes=f"auto-promote of run {run.run_id}", tags=("rl", cfg.engine.temporal_core)
+            )
+            promoted = entry.version if entry is not None else None
+        except OSError as err:  # the registry keeps its last good state (ModelRegistry.promote)
+            count_write_error("registry")
+            line = f"model registry {registry.root}: {latest.name} not promoted: {os_reason(err)}"
+            run.logger.error(line)
+            log.error(line)
     summary = {
         "run_id": run.run_id,
         "steps": st.step_id,

@@ -165,6 +165,8 @@ class Health(BaseModel):
     )
     run_id: str = ""
     actors: int = 0
+    step: int = Field(0, description="Env steps of the run so far (at its newest log row), across resumes.")
+    start_step: int = Field(0, description="Env steps the run resumed from (0: it started from scratch).")
     corpus: CorpusProgress | None = None
 
 
@@ -442,6 +444,26 @@ class _TooLarge(Exception):
     pass
 
 
+class CountRefusals:
+    """ASGI middleware (outermost): every 4xx answer counted in navi_refused_requests_total{status}, the
+    body limit's 413 included."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def counting(message: Message) -> None:
+            if message["type"] == "http.response.start" and 400 <= int(message["status"]) < 500:
+                metrics.REFUSED_REQUESTS.labels(str(message["status"])).inc()
+            await send(message)
+
+        await self.app(scope, receive, counting)
+
+
 def _plain(value: Any) -> Any:
     """Echoed request input made JSON-safe: bytes (a body that is not UTF-8) become escaped text."""
     if isinstance(value, bytes | bytearray):
@@ -492,6 +514,7 @@ def create_app(
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_middleware(BodyLimit, limit=MAX_BODY_BYTES)
+    app.add_middleware(CountRefusals)  # added last: outermost, it sees the body limit's answers too
     return app
 
 
