@@ -100,6 +100,15 @@ def stack_up(
     api_port: Annotated[
         int | None, typer.Option("--api-port", help="Control plane port (NAVI_API_PORT).")
     ] = None,
+    auditor_port: Annotated[
+        int | None, typer.Option("--auditor-port", help="Auditor dashboard port (NAVI_AUDITOR_PORT).")
+    ] = None,
+    compiler_metrics_port: Annotated[
+        int, typer.Option("--compiler-metrics-port", help="Compiler GET /metrics port.")
+    ] = 9101,
+    env_metrics_port: Annotated[
+        int, typer.Option("--env-metrics-port", help="Env GET /metrics port.")
+    ] = 9102,
     auditor: Annotated[
         bool, typer.Option("--auditor/--no-auditor", help="Start the auditor dashboard.")
     ] = True,
@@ -128,7 +137,9 @@ def stack_up(
         host=host,
         router_port=router_port,
         api_port=api_port or settings.api_port,
-        auditor_port=settings.auditor_port,
+        auditor_port=auditor_port or settings.auditor_port,
+        compiler_metrics_port=compiler_metrics_port,
+        env_metrics_port=env_metrics_port,
         corpus=corpus,
         corpus_scenes=corpus_scenes,
         corpus_resolution=corpus_resolution or settings.gmdag_resolution,

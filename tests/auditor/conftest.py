@@ -1,37 +1,29 @@
-"""Fixtures of the auditor tests: a Zenoh router on loopback and client sessions to it."""
+"""Fixtures of the auditor tests: a Zenoh router on loopback and client sessions to it. The helpers of the
+service tests (tests/services/services_testlib.py: a router on an OS-picked port, reserved ports,
+waiting on a condition) are importable here too."""
 
 from __future__ import annotations
 
-import json
-import socket
+import sys
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from navi_contracts.settings import NaviSettings
 
+sys.path.insert(0, str(Path(__file__).parents[1] / "services"))
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from services_testlib import loopback_router
 
 
 @pytest.fixture
 def zenoh_router() -> Iterator[NaviSettings]:
-    """A Zenoh router listening on a free loopback port; yields settings that connect to it."""
-    zenoh = pytest.importorskip("zenoh", reason="eclipse-zenoh is not installed")
-    port = free_port()
-    config = zenoh.Config()
-    config.insert_json5("mode", json.dumps("router"))
-    config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    router = zenoh.open(config)
-    try:
-        yield NaviSettings(zenoh_connect=f"tcp/127.0.0.1:{port}")
-    finally:
-        router.close()
+    """A Zenoh router on a loopback port the OS picks; yields settings that connect to it."""
+    pytest.importorskip("zenoh", reason="eclipse-zenoh is not installed")
+    with loopback_router() as endpoint:
+        yield NaviSettings(zenoh_connect=endpoint)
 
 
 @pytest.fixture
@@ -39,7 +31,7 @@ def zenoh_client(zenoh_router: NaviSettings) -> Iterator[Any]:
     """A client session to the test router (for publishing test traffic)."""
     from navi_mesh.session import config_from_settings, open_new_session
 
-    session = open_new_session(config_from_settings(zenoh_router, connect_timeout_s=10.0))
+    session = open_new_session(config_from_settings(zenoh_router, connect_timeout_s=60.0))
     try:
         yield session
     finally:

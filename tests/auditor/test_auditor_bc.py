@@ -8,7 +8,6 @@ reward than a random policy, and be fine-tunable by `navi train --checkpoint` wi
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +51,6 @@ def reactive_flights(folder: Path, actors: int, steps: int, seed: int) -> None:
 
 
 def test_bc_clones_the_reactive_controller_and_rl_fine_tunes_it(tmp_path: Path) -> None:
-    t0 = time.perf_counter()
     reactive_flights(tmp_path / "train", actors=8, steps=200, seed=1)
     reactive_flights(tmp_path / "held", actors=2, steps=200, seed=2)
     train_demos, held = load_demos(tmp_path / "train"), load_demos(tmp_path / "held")
@@ -88,4 +86,3 @@ def test_bc_clones_the_reactive_controller_and_rl_fine_tunes_it(tmp_path: Path) 
     lineage = load_checkpoint(tuned.final_checkpoint).meta
     assert lineage.parent_checkpoint == str(ckpt) and lineage.training_source == "rl"
     assert lineage.step_id == 128
-    assert time.perf_counter() - t0 < 40.0

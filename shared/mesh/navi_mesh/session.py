@@ -66,6 +66,12 @@ def config_from_settings(
 def config_json(cfg: SessionConfig) -> dict[str, object]:
     """The Zenoh configuration (as a JSON-able dict) for `cfg` without a config file."""
     timeout_ms = -1 if cfg.connect_timeout_s is None else max(1, round(cfg.connect_timeout_s * 1000))
+    admin: dict[str, object] = (
+        # read-only, as zenohd's default: a router can read back the port a `:0` endpoint got
+        {"adminspace": {"enabled": True, "permissions": {"read": True, "write": False}}}
+        if cfg.mode == "router"
+        else {}
+    )
     return {
         "mode": cfg.mode,
         "connect": {
@@ -80,6 +86,7 @@ def config_json(cfg: SessionConfig) -> dict[str, object]:
         },
         "listen": {"endpoints": list(cfg.listen)},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        **admin,
     }
 
 
@@ -144,3 +151,16 @@ def close_session() -> None:
 def connected_routers(sess: zenoh.Session) -> int:
     """How many routers the session is connected to right now."""
     return len(list(sess.info.routers_zid()))
+
+
+def router_locators(sess: zenoh.Session, timeout_s: float = 5.0) -> list[str]:
+    """The endpoints a router session listens on, as bound (a `tcp/127.0.0.1:0` endpoint shows the port
+    the OS picked), read from its own admin space; [] where the admin space is not readable."""
+    for reply in sess.get(f"@/{sess.zid()}/router", timeout=timeout_s):
+        if reply.ok is not None:
+            try:
+                locators = json.loads(reply.ok.payload.to_bytes())["locators"]
+            except (ValueError, KeyError, TypeError):
+                return []
+            return [str(x) for x in locators]
+    return []
