@@ -37,6 +37,7 @@ from typing import Any
 
 from navi_learner.serving.checkpoint import (
     CheckpointError,
+    CheckpointMeta,
     atomic_write,
     moved_aside,
     read_meta,
@@ -100,6 +101,27 @@ def parse_index(raw: bytes) -> dict[str, Any]:
     ):
         raise ValueError("not a registry index: versions, aliases and history are required")
     return data
+
+
+def entry_of(
+    meta: CheckpointMeta, path: Path, promoted_at: str, source: str, notes: str, tags: tuple[str, ...] = ()
+) -> ModelEntry:
+    """The registry entry of the version file `path` (vNNN.pt) holding a checkpoint with `meta`."""
+    return ModelEntry(
+        version=path.stem,
+        file=path.name,
+        step_id=meta.step_id,
+        reward_ema=meta.reward_ema,
+        temporal_core=meta.temporal_core,
+        training_source=meta.training_source,
+        run_id=meta.run_id,
+        created_at=meta.created_at,
+        promoted_at=promoted_at,
+        source=source,
+        sha256=sha256_of(path),
+        notes=notes,
+        tags=tags,
+    )
 
 
 def sha256_of(path: Path) -> str:
@@ -333,22 +355,8 @@ class ModelRegistry:
                 continue
             version = path.stem
             promoted = datetime.fromtimestamp(path.stat().st_mtime, UTC).isoformat(timespec="seconds")
-            entry = ModelEntry(
-                version=version,
-                file=path.name,
-                step_id=meta.step_id,
-                reward_ema=meta.reward_ema,
-                temporal_core=meta.temporal_core,
-                training_source=meta.training_source,
-                run_id=meta.run_id,
-                created_at=meta.created_at,
-                promoted_at=promoted,
-                source="",
-                sha256=sha256_of(path),
-                notes=next(
-                    (r.notes for r in records if r.to_version == version and r.action == "promote"), ""
-                ),
-            )
+            notes = next((r.notes for r in records if r.to_version == version and r.action == "promote"), "")
+            entry = entry_of(meta, path, promoted, "", notes)
             versions.append({**asdict(entry), "tags": []})
         known = {v["version"] for v in versions}
         aliases: dict[str, str] = {}
@@ -393,21 +401,7 @@ class ModelRegistry:
                 shutil.copyfileobj(s, f)
 
         atomic_write(dest, copy)
-        entry = ModelEntry(
-            version=version,
-            file=dest.name,
-            step_id=meta.step_id,
-            reward_ema=meta.reward_ema,
-            temporal_core=meta.temporal_core,
-            training_source=meta.training_source,
-            run_id=meta.run_id,
-            created_at=meta.created_at,
-            promoted_at=utc_now(),
-            source=str(checkpoint),
-            sha256=sha256_of(dest),
-            notes=notes,
-            tags=tuple(tags),
-        )
+        entry = entry_of(meta, dest, utc_now(), str(checkpoint), notes, tuple(tags))
         data["versions"].append({**asdict(entry), "tags": list(entry.tags)})
         return version
 
