@@ -454,3 +454,16 @@ def test_training_on_a_really_full_file_system(tmp_path: Path, small_disk: Small
     assert temp_files(run_dir / "checkpoints") == []
     assert result.promoted == "v001"
     assert_registry_consistent(ModelRegistry(models))
+
+
+def test_the_newest_good_checkpoint_of_a_runs_folder_is_found_across_runs(tmp_path: Path) -> None:
+    """What a learner started with --resume-latest resumes from: the highest step over every run's
+    checkpoints that verifies; a newer one with a flipped byte is skipped, and none at all gives None."""
+    runs = tmp_path / "runs"
+    assert ck.newest_good_checkpoint(runs, ck.RUN_CHECKPOINTS) is None
+    older = make_ckpt(runs / "a" / "checkpoints", ck.checkpoint_name(300)[:-3], 0.1, 300)
+    good = make_ckpt(runs / "b" / "checkpoints", ck.checkpoint_name(500)[:-3], 0.2, 500)
+    bad = make_ckpt(runs / "a" / "checkpoints", ck.checkpoint_name(700)[:-3], 0.3, 700)
+    assert ck.newest_good_checkpoint(runs, ck.RUN_CHECKPOINTS) == bad
+    flip_a_weight_byte(bad, torch.full((64,), 0.3))
+    assert ck.newest_good_checkpoint(runs, ck.RUN_CHECKPOINTS) == good != older

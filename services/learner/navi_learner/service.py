@@ -60,7 +60,7 @@ from navi_learner.config import TrainConfig, default_actors
 from navi_learner.envs.factory import EnvKind, corpus_summary, make_env
 from navi_learner.envs.protocol import BatchedEnv, StepLike
 from navi_learner.ppo.dist import Dist
-from navi_learner.serving.checkpoint import CheckpointError, load_checkpoint, read_meta
+from navi_learner.serving.checkpoint import RUN_CHECKPOINTS, newest_good_checkpoint, read_meta
 from navi_learner.serving.control_plane import ControlPlaneConfig, create_app
 from navi_learner.serving.registry import ModelRegistry, RegistryError
 from navi_mesh import metrics
@@ -561,7 +561,8 @@ def run_training(
     env.run_id = run_id
     resume_from = cfg.resume_from
     if resume_from is None and cfg.resume_latest:
-        resume_from = newest_checkpoint(cfg.runs_dir)
+        resume_from = newest_good_checkpoint(cfg.runs_dir, RUN_CHECKPOINTS)
+        log.info("resuming from %s", resume_from or "scratch: no checkpoint under the runs folder loads")
     start_step = read_meta(resume_from).step_id if resume_from is not None else 0
     status.update(
         phase="training", run_id=run_id, actors=env.n_actors * d.world, step=start_step, start_step=start_step
@@ -591,23 +592,6 @@ def run_training(
     }
     pubs.telemetry.publish(telemetry("actor.training.done", 1.0, result.step_id, result.run_id))
     return summary
-
-
-def newest_checkpoint(runs_dir: Path) -> Path | None:
-    """The newest checkpoint (by step) under runs_dir/*/checkpoints that loads; one warning line for each
-    newer one that does not. None when there is none."""
-    found = sorted(
-        runs_dir.glob("*/checkpoints/ckpt_step_*.pt"), key=lambda p: (p.name, str(p)), reverse=True
-    )
-    for path in found:
-        try:
-            load_checkpoint(path)
-        except CheckpointError as err:
-            log.warning("skipping checkpoint %s: %s", path, err)
-            continue
-        log.info("resuming from the newest checkpoint that loads: %s", path)
-        return path
-    return None
 
 
 def resolve_model(model: str, registry: ModelRegistry) -> Path:

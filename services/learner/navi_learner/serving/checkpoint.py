@@ -268,13 +268,18 @@ def checkpoint_name(step_id: int) -> str:
     return f"ckpt_step_{step_id:010d}.pt"
 
 
-def newest_good_checkpoint(folder: Path) -> Path | None:
-    """The newest ckpt_step_*.pt in a run folder (or its checkpoints/ folder) that loads and verifies;
-    logs one line for each newer one it skips. None when none does."""
+RUN_CHECKPOINTS = "*/checkpoints/ckpt_step_*.pt"
+"""Every run's checkpoints, relative to a runs folder."""
+
+
+def newest_good_checkpoint(folder: Path, pattern: str = "ckpt_step_*.pt") -> Path | None:
+    """The newest checkpoint (by step) matching `pattern` in a run folder (or its checkpoints/ folder)
+    that loads and verifies; logs one line for each newer one it skips. None when none does. A runs
+    folder takes RUN_CHECKPOINTS."""
     folder = Path(folder)
     if (folder / "checkpoints").is_dir():
         folder = folder / "checkpoints"
-    for path in sorted(folder.glob("ckpt_step_*.pt"), reverse=True):
+    for path in sorted(folder.glob(pattern), key=lambda p: (p.name, str(p)), reverse=True):
         try:
             load_checkpoint(path)
         except CheckpointError as err:
