@@ -139,7 +139,9 @@ def test_cuda_step_does_not_synchronise(
     )
     env.reset(seed=0)
     actions = torch.zeros(64, 4, device="cuda")
-    env.step(actions)
+    for _ in range(3):  # two eager steps, then the step's CUDA graph is recorded (a one-time sync)
+        env.step(actions)
+    assert env._graphs[0] is not None  # what follows replays the recorded step
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:
