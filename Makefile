@@ -55,7 +55,7 @@ format: setup
 
 typecheck: setup
 	$(PY) -m mypy navi shared/contracts/navi_contracts shared/mesh/navi_mesh services/compiler/navi_compiler \
-		services/env/navi_env services/learner/navi_learner services/auditor/navi_auditor
+		services/env/navi_env services/learner/navi_learner services/auditor/navi_auditor benchmarks/navi_bench
 
 check: lint typecheck test
 

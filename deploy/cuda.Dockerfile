@@ -24,8 +24,9 @@ COPY pyproject.toml ./
 COPY navi ./navi
 COPY shared ./shared
 COPY services ./services
+COPY benchmarks ./benchmarks
 RUN pip install --no-cache-dir --no-build-isolation \
-      ./shared/contracts ./shared/mesh ./services/compiler ./services/env ./services/learner ./services/auditor . \
+      ./shared/contracts ./shared/mesh ./services/compiler ./services/env ./services/learner ./services/auditor ./benchmarks . \
     && navi --version
 
 EXPOSE 8000 9100

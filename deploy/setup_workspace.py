@@ -26,7 +26,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 CORE = ["shared/contracts", "shared/mesh", "services/compiler", "services/env", "services/learner",
-        "services/auditor", "."]  # fmt: skip
+        "services/auditor", "benchmarks", "."]  # fmt: skip
 # (package folder, extra) pairs installed after the core, each in its own pip call.
 OPTIONAL = [("services/env", "gym"), ("services/env", "torchrl"), ("services/env", "skrl"),
             ("services/learner", "plots"), ("services/learner", "tensorboard")]  # fmt: skip

@@ -2,7 +2,7 @@
 # extensions in place, puts the packages on PYTHONPATH and defines a `navi` shell function.
 # Needs torch (CUDA), numpy, nvcc, pybind11, setuptools, typer; pytest may come from artifacts/pytest-vendor.
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-export PYTHONPATH=$root:$root/services/compiler:$root/services/env:$root/services/learner:$root/shared/contracts:$root/artifacts/pytest-vendor:${PYTHONPATH:-}
+export PYTHONPATH=$root:$root/services/compiler:$root/services/env:$root/services/learner:$root/shared/contracts:$root/benchmarks:$root/artifacts/pytest-vendor:${PYTHONPATH:-}
 export PYTHONUNBUFFERED=1
 # Pure-Python wheels carried in .whl/ (trimesh for procedural scenes) import straight from the zip.
 for whl in "$root"/.whl/*.whl; do [ -f "$whl" ] && export PYTHONPATH=$PYTHONPATH:$whl; done

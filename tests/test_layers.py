@@ -13,7 +13,16 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-LAYERS = ("navi_contracts", "navi_mesh", "navi_compiler", "navi_env", "navi_learner", "navi_auditor", "navi")
+LAYERS = (
+    "navi_contracts",
+    "navi_mesh",
+    "navi_compiler",
+    "navi_env",
+    "navi_learner",
+    "navi_auditor",
+    "navi_bench",
+    "navi",
+)
 """Bottom to top: a module may import its own package and the ones before it, never one after it."""
 PACKAGES = {
     "navi_contracts": ROOT / "shared/contracts/navi_contracts",
@@ -22,6 +31,7 @@ PACKAGES = {
     "navi_env": ROOT / "services/env/navi_env",
     "navi_learner": ROOT / "services/learner/navi_learner",
     "navi_auditor": ROOT / "services/auditor/navi_auditor",
+    "navi_bench": ROOT / "benchmarks/navi_bench",
     "navi": ROOT / "navi",
 }
 
@@ -75,6 +85,19 @@ def test_imports_point_down_the_layers(package: str) -> None:
         if (up := upward_imports(package, path.read_text(encoding="utf-8")))
     }
     assert not bad, f"imports that point up a layer (order {' <- '.join(LAYERS)}): {bad}"
+
+
+def test_only_the_bench_command_imports_the_benchmarks() -> None:
+    """Benchmark and anchor code lives in navi_bench; of the command layer only `navi bench` reaches it."""
+    importers = sorted(
+        str(path.relative_to(ROOT))
+        for path in (ROOT / "navi").rglob("*.py")
+        if any(
+            name.split(".")[0] == "navi_bench"
+            for _, name in imported_packages(path.read_text(encoding="utf-8"))
+        )
+    )
+    assert importers == ["navi/commands/bench.py"]
 
 
 @pytest.mark.parametrize("package", LAYERS)

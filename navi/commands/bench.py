@@ -173,8 +173,8 @@ def bench_trace_cmd(
     record: RecordOpt = None,
 ) -> None:
     """G rays/s and observations/s of the tracer with the 256x48 spherical pattern."""
+    from navi_bench.trace import TraceBenchConfig, bench_trace, bench_trace_maps
     from navi_compiler.gmdag import GmdagError
-    from navi_env.tracer.bench import TraceBenchConfig, bench_trace, bench_trace_maps
     from navi_env.tracer.scene import load_scene
 
     if agents < 1 or steps < 1:
@@ -222,7 +222,7 @@ def bench_trace_cmd(
         measured = bench_trace(corpus, cfg)
         result: dict[str, object] = dataclasses.asdict(measured)
         if vs_warp and mesh is not None:
-            from navi_env.tracer.bench_warp import WarpUnavailable, bench_warp
+            from navi_bench.warp import WarpUnavailable, bench_warp
 
             try:
                 result["warp"] = bench_warp(corpus, cfg, mesh, measured.ms_per_launch)
@@ -247,7 +247,7 @@ def nanovdb_anchor(cfg: Any, bands: tuple[float, ...]) -> Callable[[Any, Any], d
     {"nanovdb": {"error": why}} where warp-lang is missing (also said on stderr)."""
 
     def measure(corpus: Any, measured: Any) -> dict[str, object]:
-        from navi_env.tracer.bench_nanovdb import NanoVDBUnavailable, bench_nanovdb
+        from navi_bench.nanovdb import NanoVDBUnavailable, bench_nanovdb
 
         try:
             return {"nanovdb": bench_nanovdb(corpus, cfg, measured.ms_per_launch, bands)}
@@ -285,7 +285,7 @@ def bench_env_cmd(
     record: RecordOpt = None,
 ) -> None:
     """Env-steps per second of SdfDagEnv with random actions, and milliseconds per stage."""
-    from navi_env.sim.bench import bench_env
+    from navi_bench.env import bench_env
 
     use_scene_options(gmdag, corpus, threads)
     try:
@@ -317,7 +317,7 @@ def bench_wrappers_cmd(
     record: RecordOpt = None,
 ) -> None:
     """Env-steps per second of the raw env, the Gymnasium, skrl and TorchRL adapters, in one job."""
-    from navi_env.ecosystem.bench import bench_wrappers
+    from navi_bench.ecosystem import bench_wrappers
 
     use_scene_options(gmdag, corpus, threads)
     try:
@@ -388,7 +388,7 @@ def bench_freespace_cmd(
     """Each scene as free space at the drone's radius: voxels, connected parts, a geodesic field from a
     spawn (times and bytes), and the coverage per 1,000 steps its spawns can reach at most (speed limit
     and the spawn's free part)."""
-    from navi_env.corpus.survey import survey_corpus
+    from navi_bench.survey import survey_corpus
     from navi_learner.envs.factory import parse_reward_overrides
 
     try:
@@ -551,10 +551,10 @@ def bench_learn_cmd(
 
     import torch
 
+    from navi_bench.learn import LearnConfig, RankRunError, bench_learn
     from navi_env.sim.config import TASKS
     from navi_learner.config import engine_overrides
     from navi_learner.envs.factory import parse_reward_overrides
-    from navi_learner.evaluation.bench_learn import LearnConfig, RankRunError, bench_learn
     from navi_learner.evaluation.competence import EvalProtocol
     from navi_learner.evaluation.evaluate import jsonable
 
@@ -657,8 +657,8 @@ def bench_train_cmd(
 
     import torch
 
+    from navi_bench.train import bench_train, bench_train_scaling
     from navi_learner.config import StorageError, default_actors
-    from navi_learner.evaluation.bench_train import bench_train, bench_train_scaling
     from navi_learner.ppo import dist
 
     if nproc > 1 and not dist.launched():

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import torch
 
+from navi_bench.nanovdb import TILE, TILE_REACH, band_tiles
+from navi_bench.trace import TraceBenchConfig, place_agents
 from navi_compiler.compile import compile_scene
 from navi_compiler.gmdag import write_gmdag
 from navi_compiler.ingest.procedural import generate_scene
 from navi_env.sim.rays import spherical_directions
-from navi_env.tracer.bench import TraceBenchConfig, place_agents
-from navi_env.tracer.bench_nanovdb import TILE, TILE_REACH, band_tiles
 from navi_env.tracer.scene import SceneCorpus, load_scene
 from navi_env.tracer.trace import sample_distance
 from navi_env.tracer.trace_ref import trace_ref
@@ -64,7 +64,7 @@ def test_band_tiles_hold_every_sample_near_the_surface(rooms: Path) -> None:
 
 @needs_warp
 def test_nanovdb_march_agrees_with_the_reference_tracer(rooms: Path) -> None:
-    from navi_env.tracer.bench_nanovdb import nanovdb_depth
+    from navi_bench.nanovdb import nanovdb_depth
 
     corpus = load_scene(rooms, "cpu")
     voxel = corpus.infos[0].voxel_size

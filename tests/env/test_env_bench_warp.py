@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
+from navi_bench.trace import TraceBenchConfig, bench_trace
+from navi_bench.warp import obstacle_boxes
 from navi_env.tracer import primitives as ob
-from navi_env.tracer.bench import TraceBenchConfig, bench_trace
-from navi_env.tracer.bench_warp import obstacle_boxes
 
 
 def test_obstacle_boxes_wrap_every_primitive_with_outward_triangles() -> None:
@@ -41,10 +41,10 @@ def test_obstacle_boxes_wrap_every_primitive_with_outward_triangles() -> None:
     importlib.util.find_spec("warp") is None, reason="warp-lang is not installed (the anchor's only need)"
 )
 def test_warp_refit_anchor_casts_through_moving_boxes(tmp_path: Path) -> None:
+    from navi_bench.warp import bench_warp
     from navi_compiler.compile import compile_scene
     from navi_compiler.gmdag import write_gmdag
     from navi_compiler.ingest.procedural import generate_scene
-    from navi_env.tracer.bench_warp import bench_warp
     from navi_env.tracer.scene import load_scene
 
     scene = generate_scene("hall", 0)
@@ -86,9 +86,9 @@ def test_compile_mesh_out_holds_the_surfaces_the_tracer_sees(tmp_path: Path) -> 
     from typer.testing import CliRunner
 
     from navi.cli import build_app
+    from navi_bench.warp import load_mesh_npz
     from navi_compiler.ingest.procedural import generate_scene, write_scene_mesh
     from navi_env.tracer.accuracy import mesh_hits
-    from navi_env.tracer.bench_warp import load_mesh_npz
     from navi_env.tracer.scene import load_scene
     from navi_env.tracer.trace import trace
 

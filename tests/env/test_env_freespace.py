@@ -13,6 +13,7 @@ import torch
 from typer.testing import CliRunner
 
 from navi.cli import build_app
+from navi_bench.survey import flight_reward
 from navi_env.corpus.freespace import (
     Flight,
     FreeSpace,
@@ -26,7 +27,6 @@ from navi_env.corpus.freespace import (
     surface_distance,
     surface_distance_ref,
 )
-from navi_env.corpus.survey import flight_reward
 from navi_env.sim.config import EnvConfig, RewardConfig
 from navi_env.tracer.scene import load_corpus
 

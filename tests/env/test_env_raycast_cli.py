@@ -116,7 +116,7 @@ def test_bench_trace_prints_one_json_object(scene_file: Path) -> None:
 @pytest.mark.parametrize("rays", [64, 70])
 @pytest.mark.parametrize("ordered", [False, True])
 def test_warp_steps_charge_each_ray_its_warps_longest(rays: int, ordered: bool) -> None:
-    from navi_env.tracer.bench import warp_steps, warp_steps_ref
+    from navi_bench.trace import warp_steps, warp_steps_ref
 
     gen = torch.Generator().manual_seed(rays)
     steps = torch.randint(1, 40, (3, rays), generator=gen, dtype=torch.int32)  # (B, R) int32

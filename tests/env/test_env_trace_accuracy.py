@@ -2,7 +2,7 @@
 
 Thresholds (docs/SDFDAG_RUNTIME.md): median |error| <= 0.25 voxel and 95th percentile <= 1 voxel over rays whose
 exact first hit is a surface, hit/miss disagreement <= 0.5%. The OpenArena check at 256^3 is
-`data`-marked; 512^3 runs on the GPU host (python -m navi_env.tracer.device_check).
+`data`-marked; 512^3 runs on the GPU host (python -m navi_bench.device_check).
 """
 
 from __future__ import annotations

@@ -19,13 +19,13 @@ import numpy as np
 import pytest
 import torch
 
+from navi_bench.learn import LearnConfig, bench_learn, run_devices, split_openarena
 from navi_env.corpus.folder import build_default_corpus
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.envs.factory import make_env, parse_reward_overrides
 from navi_learner.envs.protocol import StepLike
 from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy
-from navi_learner.evaluation.bench_learn import LearnConfig, bench_learn, run_devices, split_openarena
 from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol
 from navi_learner.evaluation.evaluate import (
     COLLISION_FLOOR_PER_1K,
@@ -408,8 +408,8 @@ def test_training_stats_count_obstacle_collisions_among_collisions() -> None:
 
 
 def test_procedural_share_repeats_the_procedural_train_scenes(tmp_path: Path) -> None:
+    from navi_bench.learn import prepare_splits
     from navi_env.corpus.folder import read_manifest
-    from navi_learner.evaluation.bench_learn import prepare_splits
 
     root = tmp_path / "corpora"
     build_default_corpus(root / "procedural-train-64", resolution=64, count=2, seed=0)

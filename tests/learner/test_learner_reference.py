@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from navi_bench.learn import LearnConfig
+from navi_bench.learn import train_config as bench_train_config
 from navi_env.corpus.folder import build_default_corpus
-from navi_learner.evaluation.bench_learn import LearnConfig
-from navi_learner.evaluation.bench_learn import train_config as bench_train_config
 from navi_learner.evaluation.competence import EvalProtocol
 from navi_learner.evaluation.evaluate import EvalMetrics, beats_supported, competent_supported
 from navi_learner.evaluation.main_job import (

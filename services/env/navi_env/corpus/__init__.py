@@ -5,5 +5,4 @@ qualify.py   spawn qualification: probe candidate positions, keep those with a u
 jobs.py      the procedural default corpus built over compile jobs on the compiler workers
 freespace.py a scene's free space at the drone's radius as voxels, its connected parts, geodesic fields
 goals.py     point-goal tables: goals the spawns reach within a range of true path length, their fields
-survey.py    `navi bench freespace`: those per scene, timed, and the coverage its spawns can reach
 """

@@ -9,7 +9,6 @@ render.py    pictures: a drone's spherical depth as a panorama, a top-down slice
 torchrl.py   NaviTorchRLEnv, a torchrl EnvBase (TensorDict in and out, batch size N)
 rows.py      copy_rows: the selected rows of a batch, one Triton kernel on CUDA (ended actors' final views)
 skrl.py      SkrlEnv, skrl's torch Wrapper over NaviVectorEnv
-bench.py     `navi bench wrappers`: env-steps/s of the raw env and of each adapter in one job
 
 Importing this package registers Navi/Explore-v0 when Gymnasium is installed. The libraries are
 optional extras (navi-env[gym], navi-env[torchrl], navi-env[skrl]); navi_env.sim and navi_env.tracer

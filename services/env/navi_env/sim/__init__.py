@@ -10,5 +10,4 @@ episodes.py      truncation, starvation, scene rotation and spawn selection as t
 obstacles.py     scripted moving obstacles and squads of drones that see each other
 sensor.py, rays.py, rng.py, adapters.py   the ray pattern and its noise, counter-based random numbers,
                  other observation sources mapped to DistanceMatrix v2
-bench.py         `navi bench env`
 """

@@ -8,6 +8,7 @@ them in one launch.
   abi.py           ctypes mirrors of the launch argument structs (csrc/launch_args.h)
   cuda_build.py    nvcc build of csrc/trace_cuda.cu on first use, cached
   csrc/            the traversal in headers shared by host and device, the thin .cpp and .cu launchers
-  analytic_scenes.py, accuracy.py, device_check.py   exact scenes and accuracy checks
-  bench.py, bench_warp.py, warp_kernel.py           `navi bench trace` and its Warp BVH anchor
+  analytic_scenes.py, accuracy.py                  exact scenes and accuracy checks
+
+`navi bench trace` and its anchors live in the navi_bench package (benchmarks/navi_bench).
 """

@@ -1,6 +1,6 @@
 """Scenes with an exact signed distance and exact ray hits: spheres, boxes, a room, thin slabs.
 
-Used to check the tracer (tests, `python -m navi_env.tracer.device_check`, `navi bench trace` without a file)
+Used to check the tracer (tests, `python -m navi_bench.device_check`, `navi bench trace` without a file)
 and as tiny toy scenes. A scene is a union of solids; `lattice` samples its signed distance on the
 (R+1)^3 lattice the way the compiler does, and `build_gmdag` compresses it.
 

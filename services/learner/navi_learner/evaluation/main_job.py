@@ -118,7 +118,7 @@ def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int 
 
 
 def cuda_config(job: MainJobConfig) -> TrainConfig:
-    """Training on a GPU: the learning benchmark's settings (bench_learn.train_config), time-limited."""
+    """Training on a GPU: the learning benchmark's settings (navi_bench.learn.train_config), time-limited."""
     return TrainConfig(
         n_actors=2048,
         rollout_length=64,

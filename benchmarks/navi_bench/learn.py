@@ -366,8 +366,8 @@ def _child(job: RunJob) -> dict[str, Any]:
     return run_one(*job)
 
 
-RANK_ENTRY = ["-m", "navi_learner.evaluation.bench_learn_rank"]
-"""How torchrun starts a rank of a data-parallel run (bench_learn_rank.py calls rank_main)."""
+RANK_ENTRY = ["-m", "navi_bench.learn_rank"]
+"""How torchrun starts a rank of a data-parallel run (learn_rank.py calls rank_main)."""
 
 
 class RankRunError(RuntimeError):

@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from navi_env.tracer.bench import TraceBenchConfig, rays_for_warp, tracer_depth
-from navi_env.tracer.nanovdb_kernel import REFINE_ITERATIONS, SECANT_REACH, fill_kernel, march_kernel
+from navi_bench.nanovdb_kernel import REFINE_ITERATIONS, SECANT_REACH, fill_kernel, march_kernel
+from navi_bench.trace import TraceBenchConfig, rays_for_warp, tracer_depth
 from navi_env.tracer.scene import SceneCorpus
 from navi_env.tracer.trace import DEFAULT_HIT_EPSILON_VOXELS, sample_distance
 

@@ -93,7 +93,7 @@ def bench_wrappers(
     """Time every variant over one env (see the module docstring); returns the bench JSON object:
     steps_per_s and ms_per_step per variant, and overhead_pct (the wrapper's extra time per step over
     the raw env's, in percent)."""
-    from navi_env.sim.bench import bench_scenes
+    from navi_bench.env import bench_scenes
 
     scenes, spawns = bench_scenes(gmdag, corpus, device)
     env = SdfDagEnv(

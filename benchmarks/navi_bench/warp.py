@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from navi_bench.trace import TraceBenchConfig, place_agents, rays_for_warp, tracer_depth
+from navi_bench.warp_kernel import ray_kernel, shift_kernel
 from navi_env.tracer import primitives as obstacles
-from navi_env.tracer.bench import TraceBenchConfig, place_agents, rays_for_warp, tracer_depth
 from navi_env.tracer.scene import SceneCorpus
-from navi_env.tracer.warp_kernel import ray_kernel, shift_kernel
 
 
 class WarpUnavailable(RuntimeError):

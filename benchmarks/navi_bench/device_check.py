@@ -1,4 +1,4 @@
-"""One check of the tracer on a CUDA host: `python -m navi_env.tracer.device_check [--gmdag FILE ...]`.
+"""One check of the tracer on a CUDA host: `python -m navi_bench.device_check [--gmdag FILE ...]`.
 
 1. Builds the CUDA launchers (nvcc) and prints ptxas' register / stack / spill report.
 2. CUDA vs CPU parity (trace with yaw, sample_distance) on analytic scenes, including thin walls.
@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from navi_bench.trace import TraceBenchConfig, TraceBenchResult, bench_trace
 from navi_env.tracer import analytic_scenes as analytic
-from navi_env.tracer.bench import TraceBenchConfig, TraceBenchResult, bench_trace
 from navi_env.tracer.cuda_build import CSRC, NVCC_FLAGS, build_library, cuda_library, find_nvcc
 from navi_env.tracer.scene import SceneCorpus, load_corpus, load_scene
 from navi_env.tracer.trace import sample_distance, trace
