@@ -11,8 +11,8 @@ from pathlib import Path
 
 import torch
 
+from navi_env.config import EnvConfig
 from navi_env.ecosystem.batch import make_batched_env
-from navi_env.sim.config import EnvConfig
 from navi_learner.evaluation.baselines import RandomPolicy
 from navi_learner.evaluation.evaluate import EvalMetrics, comparison_table, evaluate
 

@@ -21,9 +21,9 @@ from skrl.trainers.torch import SequentialTrainer
 from skrl.utils import set_seed
 from torch import nn
 
+from navi_env.config import EnvConfig
 from navi_env.ecosystem.gym import make_vector_env
 from navi_env.ecosystem.skrl import SkrlEnv
-from navi_env.sim.config import EnvConfig
 
 
 def mlp(inputs: int, outputs: int) -> nn.Sequential:

@@ -21,8 +21,8 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from navi_env.config import EnvConfig
 from navi_env.ecosystem.torchrl import make_torchrl_env
-from navi_env.sim.config import EnvConfig
 
 
 def mlp(inputs: int, outputs: int) -> nn.Sequential:

@@ -1,5 +1,6 @@
-"""The layout keeps its promises: imports point down the layers, the architecture page names real paths,
-every sub-package says what it owns, and the command layer stays light and flat."""
+"""The layout keeps its promises: imports point down the layers and the sub-layers inside a package, the
+architecture page names real paths, every sub-package says what it owns, and the command layer stays
+light and flat."""
 
 from __future__ import annotations
 
@@ -46,6 +47,8 @@ def imported_packages(source: str) -> list[tuple[int, str]]:
             names = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             names = [node.module]
+        else:
+            continue
         found += [(node.lineno, name) for name in names if name.split(".")[0] in LAYERS]
     return found
 
@@ -85,6 +88,72 @@ def test_imports_point_down_the_layers(package: str) -> None:
         if (up := upward_imports(package, path.read_text(encoding="utf-8")))
     }
     assert not bad, f"imports that point up a layer (order {' <- '.join(LAYERS)}): {bad}"
+
+
+SUB_LAYERS = {
+    "navi_env": ("config", "rays", "tracer", "space", "sim", "corpus", "ecosystem", "service"),
+    "navi_learner": ("config", "engine", "envs", "serving", "ppo", "evaluation", "service"),
+}
+"""Bottom to top inside a package: the sub-packages and top-level modules (by stem). A module may import
+its own sub-package's modules and those before it, never one after it. The package's __init__.py sits
+above them all."""
+
+
+def sub_layer(package: str, parts: tuple[str, ...]) -> str | None:
+    """The sub-layer of `package` that a module path (its parts below the package) belongs to; None for
+    the package itself."""
+    if not parts or parts[0] == "__init__":
+        return None
+    return parts[0]
+
+
+def upward_sub_imports(package: str, module: tuple[str, ...], source: str) -> list[str]:
+    """The imports of `module` (its path parts below `package`, no suffix) that point up a sub-layer."""
+    order = SUB_LAYERS[package]
+    own = sub_layer(package, module)
+    rank = len(order) if own is None else order.index(own)
+    bad = []
+    for line, name in imported_packages(source):
+        parts = tuple(name.split("."))
+        if parts[0] != package or (target := sub_layer(package, parts[1:])) is None:
+            continue
+        if target not in order:
+            bad.append(f"line {line}: {name} (no sub-layer {target!r})")
+        elif order.index(target) > rank:
+            bad.append(f"line {line}: {name}")
+    return bad
+
+
+def test_the_sub_layer_checker_sees_upward_imports() -> None:
+    source = (
+        "from navi_env.config import EnvConfig\nfrom navi_env.sim.env import SdfDagEnv\nimport navi_env\n"
+    )
+    assert upward_sub_imports("navi_env", ("tracer", "trace"), source) == ["line 2: navi_env.sim.env"]
+    assert upward_sub_imports("navi_env", ("sim", "goals"), source) == []
+    assert upward_sub_imports("navi_env", ("__init__",), source) == []
+
+
+@pytest.mark.parametrize("package", sorted(SUB_LAYERS))
+def test_imports_point_down_the_sub_layers(package: str) -> None:
+    root = PACKAGES[package]
+    order = SUB_LAYERS[package]
+    unplaced = sorted(
+        str(path.relative_to(ROOT))
+        for path in root.rglob("*.py")
+        if (layer := sub_layer(package, path.relative_to(root).with_suffix("").parts)) is not None
+        and layer not in order
+    )
+    assert not unplaced, f"modules outside the sub-layers {order}: {unplaced}"
+    bad = {
+        str(path.relative_to(ROOT)): up
+        for path in sorted(root.rglob("*.py"))
+        if (
+            up := upward_sub_imports(
+                package, path.relative_to(root).with_suffix("").parts, path.read_text(encoding="utf-8")
+            )
+        )
+    }
+    assert not bad, f"imports that point up a sub-layer (order {' <- '.join(order)}): {bad}"
 
 
 def test_only_the_bench_command_imports_the_benchmarks() -> None:

@@ -143,9 +143,6 @@ def main() -> None:
             r = bench_trace(corpus, TraceBenchConfig(agents=agents, device="cuda", launches=args.launches))
             rows.append((name, r))
             say(f"{name} agents={agents}: {r.grays_per_s:.2f} G rays/s")
-        plain = bench_trace(corpus, TraceBenchConfig(agents=4096, device="cuda", launches=args.launches,
-                                                     tiled_order=False))  # fmt: skip
-        rows.append((name + " (untiled)", plain))
     report["timings"] = [{"source": name, **dataclasses.asdict(r)} for name, r in rows]
     out_dir = os.environ.get("OUT")
     if out_dir:

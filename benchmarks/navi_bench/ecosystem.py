@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from navi_env.sim.config import EnvConfig
+from navi_env.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 
 WARMUP_STEPS = 5

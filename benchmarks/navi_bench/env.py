@@ -16,11 +16,11 @@ def bench_scenes(
 ) -> tuple[SceneCorpus, list[torch.Tensor] | None]:
     """The scenes a benchmark flies, on `device`: one .gmdag file, or a corpus folder and its qualified
     spawns (per scene, (S, 3) world meters)."""
-    from navi_env.corpus.folder import load_corpus
+    from navi_env.corpus.folder import load_corpus_folder
     from navi_env.tracer.scene import load_scene
 
     if corpus is not None:
-        scenes, manifest = load_corpus(corpus, device)
+        scenes, manifest = load_corpus_folder(corpus, device)
         return scenes, manifest.spawn_tensors()
     if gmdag is not None:
         return load_scene(gmdag, device), None
@@ -46,7 +46,7 @@ def bench_env(
 
     import torch
 
-    from navi_env.sim.config import EnvConfig, ObstacleConfig
+    from navi_env.config import EnvConfig, ObstacleConfig
     from navi_env.sim.env import SdfDagEnv, StageTimer
 
     scenes, spawns = bench_scenes(gmdag, corpus, device)

@@ -34,7 +34,13 @@ from typing import Any, NamedTuple
 
 import torch
 
-from navi_learner.config import TEMPORAL_CORES, EngineConfig, PPOConfig, TrainConfig
+from navi_learner.config import (
+    TEMPORAL_CORES,
+    TemporalCoreName,
+    TrainConfig,
+    learning_recipe,
+    learning_size,
+)
 from navi_learner.envs.factory import corpus_summary, make_env, reward_config
 from navi_learner.evaluation.competence import (
     CompetenceMonitor,
@@ -80,25 +86,9 @@ class LearnConfig:
     eval_every_s: float = 30.0
     """Training seconds between two evaluations on the unseen split."""
     stop_at_competence: bool = True
-    actors: int = 0
-    """0: 2,048 on CUDA, 8 on CPU."""
-    rollout_length: int = 0
-    """0: 64 on CUDA, 32 on CPU."""
-    ppo_epochs: int = 2
-    lr: float = 3e-4
-    target_kl: float = 0.0
-    """> 0: the adaptive learning rate of PPOConfig.target_kl, starting from `lr`."""
-    compile_rollout: bool = True
-    """TrainConfig.compile_rollout for every run."""
-    compile_update: bool = True
-    """TrainConfig.compile_update for every run."""
-    tf32: bool = False
-    """TrainConfig.tf32 for every run."""
-    max_minibatch: int = 16_384
-    """Most samples per PPO minibatch (about 25 GB of activations at 16,384 with the default engine)."""
-    total_steps: int = 10**12
-    """Step cap per run (the time budget normally ends a run first)."""
-    compile: bool = True
+    train: TrainConfig = field(default_factory=learning_recipe)
+    """The runs' training settings (navi_learner.config.learning_recipe by default). Each run gets its own
+    seed, device, temporal core and the time budget; 0 actors or rollout length: learning_size's."""
     parallel: int = 1
     """Runs at once (processes sharing the device); their wall times then overlap."""
     gpus: int = 0
@@ -110,17 +100,12 @@ class LearnConfig:
     protocol: EvalProtocol = field(default_factory=EvalProtocol)
     reward: tuple[tuple[str, float], ...] = ()
     """RewardConfig fields replaced in every env of the job (training, evaluation, baselines)."""
-    engine: tuple[tuple[str, Any], ...] = ()
-    """EngineConfig fields replaced in every run's fresh engine (navi_learner.config.engine_overrides)."""
     procedural_share: float = 0.0
     """Share of the train corpus's scenes that are procedural (0: as built, 16 of 56); see prepare_splits."""
     obstacles: int = 0
     """Scripted moving obstacles per actor in every env of the job (EnvConfig.obstacles)."""
     squad: int = 0
     """Squads of this many actors that see and collide with each other, in every env (0: off)."""
-    task: str = "explore"
-    """What every env of the job asks (EnvConfig.task): explore, or pointgoal with its own bar
-    (navi_learner.evaluation.evaluate.goal_competent)."""
 
 
 def openarena_maps(pk3: Path) -> list[str]:
@@ -213,29 +198,17 @@ def prepare_splits(
 
 
 def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -> TrainConfig:
-    """The TrainConfig of one run of the benchmark (the default engine with `core`)."""
-    cuda = device.type == "cuda"
-    engine = EngineConfig(
-        temporal_core="gru" if core == "gru" else "mambapy" if core == "mambapy" else "mamba2",
-        **dict(cfg.engine),
-    )
-    return TrainConfig(
-        n_actors=cfg.actors or (2048 if cuda else 8),
-        rollout_length=cfg.rollout_length or (64 if cuda else 32),
-        total_steps=cfg.total_steps,
+    """The TrainConfig of one run of the benchmark: the job's settings (its engine with `core`), sized by
+    learning_size, with the run's seed, device and time budget and no periodic checkpoints."""
+    name: TemporalCoreName = "gru" if core == "gru" else "mambapy" if core == "mambapy" else "mamba2"
+    engine = replace(cfg.train.engine, temporal_core=name)
+    return replace(
+        learning_size(cfg.train, device.type == "cuda"),
         time_limit_s=cfg.time_budget_s,
         checkpoint_every=10**12,
         seed=seed,
         device=str(device),
-        compile=cfg.compile,
-        compile_rollout=cfg.compile_rollout,
-        compile_update=cfg.compile_update,
-        tf32=cfg.tf32,
-        task=cfg.task,
         engine=engine,
-        ppo=PPOConfig(
-            lr=cfg.lr, target_kl=cfg.target_kl, ppo_epochs=cfg.ppo_epochs, max_minibatch=cfg.max_minibatch
-        ),
     )
 
 
@@ -262,7 +235,7 @@ def run_one(
     reward = dict(cfg.reward)
     env = make_env(
         splits.train, tcfg.n_actors, device, seed + d.rank, reward=reward, obstacles=cfg.obstacles,
-        squad=cfg.squad, task=cfg.task, rank=d.rank, world=d.world,
+        squad=cfg.squad, task=cfg.train.task, rank=d.rank, world=d.world,
     )  # fmt: skip
     monitor = None
     if d.main:
@@ -326,7 +299,7 @@ def eval_env(corpus: Path, cfg: LearnConfig, device: str) -> Any:
         reward=dict(cfg.reward),
         obstacles=cfg.obstacles,
         squad=cfg.squad,
-        task=cfg.task,
+        task=cfg.train.task,
     )
 
 
@@ -449,7 +422,7 @@ def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
 def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalMetrics]]) -> str:
     """report.md: the summary per core, each run, and the per-split tables of the last run of each core."""
     lines = ["# navi bench learn", "", f"device {result['device']}, {result['date']}", ""]
-    goal = result["config"].get("task") == "pointgoal"
+    goal = result["config"]["train"].get("task") == "pointgoal"
     finals = ("success", "SPL") if goal else ("coll/1k", "cov/1k")
     keys = ("median_final_success_rate", "median_final_spl") if goal else (
         "median_final_collisions_per_1k", "median_final_coverage_per_1k"
@@ -547,7 +520,7 @@ def bench_learn(
         },
         "competence_bar": (
             "success >= 0.9, SPL >= 0.75 and fewer collisions per episode than greedy, unseen split, same seed"
-            if cfg.task == "pointgoal"
+            if cfg.train.task == "pointgoal"
             else "collisions/1k <= 0.5 x reactive and coverage/1k >= 1.5 x reactive, unseen split, same seed"
         ),
         "baselines": {part: {k: asdict(v) for k, v in b.items()} for part, b in baselines.items()},

@@ -2,9 +2,9 @@
 connected parts, a geodesic field from a spawn), timed and sized, and the coverage its spawns can reach
 in the evaluation's episodes, per 1,000 steps: an upper bound from the drone's speed limit and the free
 space of the spawn's part, and what a planner with the map flies under the env's speed limits and
-proximity limiter (navi_env.corpus.freespace.greedy_coverage), with the reward per step the env would pay
+proximity limiter (navi_env.space.freespace.greedy_coverage), with the reward per step the env would pay
 that flight (flight_reward). With goals G > 0 it also builds the
-scene's point-goal table (navi_env.corpus.goals: G goals 5-30 m from the spawns, their geodesic fields),
+scene's point-goal table (navi_env.space.goal_tables: G goals 5-30 m from the spawns, their geodesic fields),
 timed and sized."""
 
 from __future__ import annotations
@@ -18,8 +18,10 @@ from typing import Any
 
 import torch
 
-from navi_env.corpus.folder import load_corpus
-from navi_env.corpus.freespace import (
+from navi_env.config import EnvConfig
+from navi_env.corpus.folder import load_corpus_folder
+from navi_env.sim.rewards import escape_potential, exploration_term, proximity_term
+from navi_env.space.freespace import (
     Flight,
     components,
     coverage_bound,
@@ -29,9 +31,7 @@ from navi_env.corpus.freespace import (
     lattice_cell,
     reachable_cells,
 )
-from navi_env.corpus.goals import goal_table
-from navi_env.sim.config import EnvConfig
-from navi_env.sim.rewards import escape_potential, exploration_term, proximity_term
+from navi_env.space.goal_tables import goal_table
 from navi_env.tracer.scene import SceneCorpus
 
 PLANNER_SPAWNS = 3
@@ -165,7 +165,7 @@ def survey_corpus(
     weights: dict[str, Any] = dict(reward or {})  # float fields, checked by the caller
     cfg = replace(cfg, reward=replace(cfg.reward, **weights))
     radius = cfg.drone_radius if radius is None else radius
-    scenes, manifest = load_corpus(corpus_dir, torch.device(device))
+    scenes, manifest = load_corpus_folder(corpus_dir, torch.device(device))
     spawns = manifest.spawn_tensors()
     rows = [
         survey_scene(scenes, s, spawns[s], cell, radius, episode_steps, goals, cfg)

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from navi_env.sim.config import EnvConfig
-from navi_env.sim.rays import spherical_directions, tiled_ray_order
+from navi_env.config import EnvConfig
+from navi_env.rays import spherical_directions, tiled_ray_order
 from navi_env.tracer import primitives as obstacles
 from navi_env.tracer.scene import SceneCorpus, load_scene
 from navi_env.tracer.trace import DEFAULT_HORIZON, DEFAULT_MAX_STEPS, sample_distance, trace
@@ -43,7 +43,6 @@ class TraceBenchConfig:
     horizon: float = DEFAULT_HORIZON  # meters
     clearance_voxels: float = 2.0  # minimum clearance of random agent positions
     seed: int = 0
-    tiled_order: bool = True  # trace in 16x2 direction tiles (rays.tiled_ray_order), the fast schedule
     obstacles: int = (
         0  # K dynamic primitives per agent (navi_env.tracer.primitives.scatter), moved every launch
     )
@@ -69,7 +68,7 @@ class TraceBenchResult:
     warp_steps: float  # per ray, the steps of the longest ray of its warp (32 rays in the launch's order)
     warp_efficiency: float  # mean_steps / warp_steps: the share of a warp's step slots that do work
     hit_fraction: float
-    ray_order: str  # "tiled 16x2" or "pattern"
+    ray_order: str  # "tiled 16x2": the schedule the rays ran in
     bytes_per_scene: int
     max_steps: int
     horizon_m: float
@@ -174,7 +173,7 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
     dev = corpus.device
     agents = place_agents(corpus, cfg.agents, cfg.clearance_voxels, cfg.seed)
     dirs = spherical_directions(cfg.azimuth_bins, cfg.elevation_bins, dev)  # (R, 3)
-    order = tiled_ray_order(cfg.azimuth_bins, cfg.elevation_bins).to(dev) if cfg.tiled_order else None  # (R,)
+    order = tiled_ray_order(cfg.azimuth_bins, cfg.elevation_bins).to(dev)  # (R,) 16x2 tiles per warp
     b, r = cfg.agents, len(dirs)
     depth = torch.empty(b, r, device=dev)  # (B, R) float32
     semantic = torch.empty(b, r, dtype=torch.uint8, device=dev)  # (B, R) uint8
@@ -223,7 +222,7 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
         warp_steps=per_warp,
         warp_efficiency=float(step_counts.mean()) / per_warp if per_warp > 0 else 1.0,
         hit_fraction=float((semantic > 0).float().mean()),
-        ray_order="tiled 16x2" if cfg.tiled_order else "pattern",
+        ray_order="tiled 16x2",
         bytes_per_scene=info.nbytes,
         max_steps=cfg.max_steps,
         horizon_m=cfg.horizon,
@@ -233,17 +232,11 @@ def bench_trace(corpus: SceneCorpus, cfg: TraceBenchConfig) -> TraceBenchResult:
     )
 
 
-def bench_trace_file(path: Path, cfg: TraceBenchConfig) -> TraceBenchResult:
-    """Load one .gmdag onto cfg.device and benchmark it."""
-    corpus = load_scene(path, cfg.device)
-    return bench_trace(corpus, cfg)
-
-
 TARGET_GRAYS = 10.0
 """G rays/s every map should reach on one H100 (docs/PERFORMANCE.md, targets)."""
 TARGET_DENSE_RATIO = 100.0
 """How many times smaller than a dense float32 grid a map is asked to be on the device (a reported
-figure; docs/PERFORMANCE.md says why dense float32 is no longer the yardstick)."""
+figure; docs/PERFORMANCE.md says why dense float32 is not the yardstick)."""
 
 
 def dense_bytes(resolution: int) -> int:

@@ -24,8 +24,9 @@ from navi_learner.engine.heads import ACTION_DIM
 from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.protocol import BatchedEnv
+from navi_learner.ppo.compile import make_forward
 from navi_learner.ppo.dist import Dist, Sync, entry_argv, relaunch
-from navi_learner.ppo.train import make_forward, train
+from navi_learner.ppo.train import train
 
 
 def _sync(device: torch.device) -> None:

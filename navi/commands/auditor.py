@@ -16,6 +16,8 @@ from typing import Annotated
 import typer
 
 from navi.commands.common import fail
+from navi.commands.options import Settings, config_options
+from navi_learner.config import EngineConfig
 
 PANEL = "Auditor"
 app = typer.Typer()
@@ -164,21 +166,22 @@ def explore_command(
 
 
 @app.command("bc", rich_help_panel=PANEL)
+@config_options(EngineConfig(), ("temporal_core",))
 def bc_command(
+    *,
     demos: Annotated[Path, typer.Option("--demos", help="Folder of demonstration .npz files.")],
     out: Annotated[Path, typer.Option("--out", help="Checkpoint to write (v3, training_source=bc).")],
     epochs: Annotated[int, typer.Option("--epochs", help="Passes over the demonstrations.")] = 20,
     bptt: Annotated[int, typer.Option("--bptt", help="Truncated-BPTT chunk length (steps).")] = 32,
     streams: Annotated[int, typer.Option("--streams", help="Parallel sequences per batch.")] = 8,
     lr: Annotated[float, typer.Option("--lr", help="Adam learning rate.")] = 5e-4,
-    temporal_core: Annotated[
-        str, typer.Option("--temporal-core", help="Temporal core: mamba2, gru or mambapy (as `navi train`).")
-    ] = "mamba2",
+    settings: Settings,
     device: Annotated[str, typer.Option("--device", help="Torch device: cpu, cuda, cuda:N.")] = "cpu",
     seed: Annotated[int, typer.Option("--seed", help="Seed for the weights.")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON summary object on stdout.")] = False,
 ) -> None:
     """Behavioural cloning: train CognitiveMambaPolicy on demonstrations; `navi train --checkpoint OUT` fine-tunes it."""
+    temporal_core = settings["temporal_core"]
     if temporal_core not in ("mamba2", "gru", "mambapy"):
         raise fail(f"unknown temporal core {temporal_core!r}; choose mamba2, gru or mambapy")
     if min(epochs, bptt, streams) < 1 or lr <= 0:
@@ -190,7 +193,6 @@ def bc_command(
 
     from navi_auditor.bc import BCConfig, run_bc
     from navi_auditor.demos import DemoFormatError, load_demos
-    from navi_learner.config import EngineConfig
 
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise fail(f"device {device} requested but CUDA is not available")
@@ -198,7 +200,7 @@ def bc_command(
         loaded = load_demos(demos)
     except DemoFormatError as exc:
         raise fail(str(exc)) from exc
-    engine = EngineConfig(temporal_core=temporal_core)  # type: ignore[arg-type]
+    engine: EngineConfig = settings.config()
     _, az, el = loaded[0].obs_shape
     try:
         engine.patch_for(az, el)

@@ -16,13 +16,9 @@ from typing import Annotated, Any
 import typer
 
 from navi.commands.common import (
-    CoreOpt,
     CorpusOpt,
-    DeviceOpt,
     EnvOpt,
     RecordOpt,
-    TaskOpt,
-    check_choice,
     fail,
     pick_device,
     record_result,
@@ -35,20 +31,10 @@ from navi.commands.compiler import (
     load_source,
     max_source_bytes,
 )
-from navi.commands.learner import (
-    CompileRolloutOpt,
-    CompileUpdateOpt,
-    EngineOpt,
-    MaxMinibatchOpt,
-    ObsStorageOpt,
-    ObstaclesOpt,
-    SquadOpt,
-    TargetKlOpt,
-    Tf32Opt,
-    build_env,
-    train_config,
-)
-from navi_env.sim.config import EnvConfig
+from navi.commands.learner import COMMAND_DEVICE, EngineOpt, ObstaclesOpt, SquadOpt, build_env, train_config
+from navi.commands.options import Settings, config_options
+from navi_env.config import EnvConfig
+from navi_learner.config import TrainConfig, learning_recipe
 
 GmdagOpt = Annotated[Path | None, typer.Option(help="One .gmdag scene.")]
 SceneCorpusOpt = Annotated[Path | None, typer.Option(help="A corpus folder.")]
@@ -135,10 +121,6 @@ def bench_trace_cmd(
             "the env's (EnvConfig.hit_slope), 0 a fixed threshold.",
         ),
     ] = EnvConfig.hit_slope,
-    tiled: Annotated[
-        bool,
-        typer.Option("--tiled/--no-tiled", help="Schedule rays in 16x2 direction tiles (coherent warps)."),
-    ] = True,
     vs_warp: Annotated[
         bool, typer.Option("--vs-warp", help="Also cast the same rays with a Warp mesh BVH.")
     ] = False,
@@ -195,7 +177,7 @@ def bench_trace_cmd(
         raise fail("--vs-nanovdb traces the static scene: leave out --obstacles")
     cfg = TraceBenchConfig(
         agents=agents, device=device, launches=steps, azimuth_bins=azimuth, elevation_bins=elevation,
-        max_steps=max_steps, tiled_order=tiled, obstacles=obstacles, hit_slope=hit_slope,
+        max_steps=max_steps, obstacles=obstacles, hit_slope=hit_slope,
     )  # fmt: skip
     nanovdb = nanovdb_anchor(cfg, bands) if vs_nanovdb else None
     if corpus_dir is not None:
@@ -424,8 +406,35 @@ def bench_freespace_cmd(
         )
 
 
+LEARN_OPTIONS = (
+    "n_actors",
+    "rollout_length",
+    "ppo_epochs",
+    "lr",
+    "target_kl",
+    "compile_rollout",
+    "compile_update",
+    "tf32",
+    "max_minibatch",
+    "compile",
+    "device",
+    "task",
+)
+"""The TrainConfig settings `navi bench learn` takes as options, on the learning recipe's defaults."""
+
+
 @app.command(name="learn")
+@config_options(
+    learning_recipe(),
+    LEARN_OPTIONS,
+    defaults=COMMAND_DEVICE,
+    helps={
+        "n_actors": "Actors per run (0: 2,048 on CUDA, 8 on CPU).",
+        "rollout_length": "Steps per rollout (0: 64 on CUDA, 32 on CPU).",
+    },
+)
 def bench_learn_cmd(
+    *,
     seeds: Annotated[
         int, typer.Option("--seeds", min=1, help="Training seeds per core (FIRST, FIRST+1, ...).")
     ] = 3,
@@ -433,7 +442,7 @@ def bench_learn_cmd(
         int,
         typer.Option("--first-seed", min=0, help="First training seed (spread one study over several jobs)."),
     ] = 0,
-    temporal_core: Annotated[
+    temporal_cores: Annotated[
         str, typer.Option("--temporal-core", help="Comma-separated cores to compare: mamba2,gru,mambapy.")
     ] = "mamba2",
     budget: Annotated[
@@ -448,26 +457,7 @@ def bench_learn_cmd(
         bool,
         typer.Option("--full-budget", help="Keep training after competence (whole learning curves)."),
     ] = False,
-    actors: Annotated[int, typer.Option("--actors", help="Actors per run (0: 2,048 on CUDA, 8 on CPU).")] = 0,
-    rollout_length: Annotated[
-        int, typer.Option("--rollout-length", help="Steps per rollout (0: 64 on CUDA, 32 on CPU).")
-    ] = 0,
-    ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", min=1, help="PPO epochs per rollout.")] = 2,
-    lr: Annotated[
-        float, typer.Option("--lr", help="Learning rate (the starting one with --target-kl).")
-    ] = 3e-4,
-    target_kl: TargetKlOpt = 0.0,
-    compile_rollout: CompileRolloutOpt = True,
-    compile_update: CompileUpdateOpt = True,
-    tf32: Tf32Opt = False,
-    max_minibatch: Annotated[
-        int,
-        typer.Option(
-            "--max-minibatch",
-            min=256,
-            help="Most samples per PPO minibatch (GPU memory; lower it for --parallel).",
-        ),
-    ] = 16_384,
+    settings: Settings,
     eval_actors: Annotated[
         int, typer.Option("--eval-actors", help="Actors per evaluation (0: protocol default).")
     ] = 0,
@@ -514,9 +504,6 @@ def bench_learn_cmd(
     out: Annotated[
         Path | None, typer.Option("--out", help="Result folder (default artifacts/bench/learn/<time>).")
     ] = None,
-    compile_encoder: Annotated[
-        bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
-    ] = True,
     reward: Annotated[
         list[str] | None,
         typer.Option(
@@ -537,10 +524,8 @@ def bench_learn_cmd(
             "procedural (0: as built, 16 procedural + 40 OpenArena).",
         ),
     ] = 0.0,
-    device: DeviceOpt = "auto",
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False,
     record: RecordOpt = None,
-    task: TaskOpt = "explore",
     engine: EngineOpt = None,
 ) -> None:
     """Train from scratch on a train split, evaluate on unseen scenes during training; time to competence
@@ -552,20 +537,18 @@ def bench_learn_cmd(
     import torch
 
     from navi_bench.learn import LearnConfig, RankRunError, bench_learn
-    from navi_env.sim.config import TASKS
-    from navi_learner.config import engine_overrides
     from navi_learner.envs.factory import parse_reward_overrides
     from navi_learner.evaluation.competence import EvalProtocol
     from navi_learner.evaluation.evaluate import jsonable
 
     try:
         overrides = parse_reward_overrides(reward or [])
-        engine_fields = engine_overrides(engine or [])
     except ValueError as err:
         raise fail(str(err)) from err
 
-    dev = pick_device(device)
-    cores = tuple(c.strip() for c in temporal_core.split(",") if c.strip())
+    dev = pick_device(settings["device"])
+    train = train_config(settings, dev, engine)
+    cores = tuple(c.strip() for c in temporal_cores.split(",") if c.strip())
     protocol = EvalProtocol.for_device(torch.device(dev))
     protocol = replace(
         protocol,
@@ -579,26 +562,15 @@ def bench_learn_cmd(
         time_budget_s=budget,
         eval_every_s=eval_every,
         stop_at_competence=not full_budget,
-        actors=actors,
-        rollout_length=rollout_length,
-        ppo_epochs=ppo_epochs,
-        lr=lr,
-        target_kl=target_kl,
-        compile_rollout=compile_rollout,
-        compile_update=compile_update,
-        tf32=tf32,
-        max_minibatch=max_minibatch,
-        compile=compile_encoder,
+        train=train,
         parallel=parallel,
         gpus=gpus,
         nproc=nproc,
         protocol=protocol,
         reward=tuple(overrides.items()),
-        engine=tuple(engine_fields.items()),
         obstacles=obstacles,
         squad=squad,
         procedural_share=procedural_share,
-        task=check_choice(task, TASKS, "--task"),
     )
     folder = out or Path("artifacts/bench/learn") / time.strftime("%Y%m%d-%H%M%S")
     try:
@@ -617,25 +589,29 @@ def bench_learn_cmd(
         typer.echo(f"results: {folder}")
 
 
+BENCH_TRAIN_OPTIONS = (
+    "n_actors",
+    "temporal_core",
+    "device",
+    "rollout_length",
+    "compile",
+    "compile_rollout",
+    "compile_update",
+    "tf32",
+    "obs_dtype",
+    "max_minibatch",
+)
+"""The TrainConfig settings `navi bench train` takes as options."""
+
+
 @app.command(name="train")
+@config_options(TrainConfig(), BENCH_TRAIN_OPTIONS, defaults=COMMAND_DEVICE)
 def bench_train_cmd(
-    actors: Annotated[int, typer.Option("--actors", help="Parallel actors (0: device default).")] = 0,
-    temporal_core: CoreOpt = "mamba2",
-    device: DeviceOpt = "auto",
+    *,
+    settings: Settings,
     corpus: CorpusOpt = None,
     env: EnvOpt = "sdfdag",
     updates: Annotated[int, typer.Option("--updates", help="Measured PPO updates (after 2 warm-up).")] = 5,
-    rollout_length: Annotated[
-        int, typer.Option("--rollout-length", help="Steps per rollout (0: default).")
-    ] = 0,
-    compile_encoder: Annotated[
-        bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
-    ] = True,
-    compile_rollout: CompileRolloutOpt = True,
-    compile_update: CompileUpdateOpt = True,
-    tf32: Tf32Opt = False,
-    obs_storage: ObsStorageOpt = "auto",
-    max_minibatch: MaxMinibatchOpt = 8_192,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
     record: RecordOpt = None,
     nproc: Annotated[
@@ -669,19 +645,14 @@ def bench_train_cmd(
             raise fail(str(err)) from err
     else:
         try:
-            d, dev = dist.setup(pick_device(device))
+            d, dev = dist.setup(pick_device(settings["device"]))
         except ValueError as err:
             raise fail(str(err)) from err
         try:
-            cfg = train_config(
-                actors, temporal_core, rollout_length, 1, 5e-4, 0, 10**12, dev, 0, obs_storage,
-                max_minibatch, compile_encoder, engine,
-            )  # fmt: skip
-            n = actors or default_actors(torch.device(dev))
+            cfg = train_config(settings, dev, engine)
+            n = cfg.n_actors or default_actors(torch.device(dev))
             environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)
-            cfg = replace(
-                cfg, n_actors=n, compile_rollout=compile_rollout, compile_update=compile_update, tf32=tf32
-            )
+            cfg = replace(cfg, n_actors=n)
             result = bench_train(environment, cfg, updates=updates, dist=d)
         except (dist.DistError, StorageError) as err:
             raise fail(str(err)) from err
@@ -694,5 +665,5 @@ def bench_train_cmd(
             return
     typer.echo(json.dumps(result) if as_json else "\n".join(f"{k}: {v}" for k, v in result.items()))
     if record is not None:
-        record_result(result, "train", pick_device(device), record)
+        record_result(result, "train", pick_device(settings["device"]), record)
     sys.stdout.flush()

@@ -29,21 +29,7 @@ TaskOpt = Annotated[
 CorpusOpt = Annotated[Path | None, typer.Option("--corpus", help="Corpus folder of .gmdag scenes.")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="Torch device: auto, cpu, cuda, cuda:N.")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Seed for torch and the environment.")]
-CoreOpt = Annotated[str, typer.Option("--temporal-core", help="Temporal core: mamba2, gru or mambapy.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object.")]
-ActorsOpt = Annotated[
-    int, typer.Option("--actors", min=0, help="Parallel actors (0: 4 on CPU, 4096 on CUDA).")
-]
-RolloutOpt = Annotated[
-    int,
-    typer.Option(
-        "--rollout-length", min=0, help="Steps per rollout (0: 512 on a GPU, 64 on a CPU, capped by memory)."
-    ),
-]
-TotalStepsOpt = Annotated[int, typer.Option("--total-steps", min=1, help="Training: env-step budget.")]
-CheckpointEveryOpt = Annotated[
-    int, typer.Option("--checkpoint-every", min=1, help="Training: env steps between checkpoints.")
-]
 ResumeOpt = Annotated[
     Path | None, typer.Option("--checkpoint", help="Training: resume from this checkpoint.")
 ]

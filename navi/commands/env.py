@@ -32,7 +32,7 @@ def qualify(
 ) -> None:
     """Probe a 5x7x5 grid of spawn candidates with 48x12 rays; exit 1 when the scene fails."""
     from navi_compiler.gmdag import GmdagError
-    from navi_env.corpus.qualify import qualify_scene
+    from navi_env.space.qualify import qualify_scene
     from navi_env.tracer.scene import load_scene
 
     if not file.is_file():

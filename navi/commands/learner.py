@@ -16,74 +16,24 @@ from navi.commands.common import (
     DEFAULT_CORPUS,
     MODELS_DIR,
     UNSEEN_CORPUS,
-    ActorsOpt,
-    CheckpointEveryOpt,
-    CoreOpt,
     CorpusOpt,
     DeviceOpt,
     EnvOpt,
     JsonOpt,
     ResumeOpt,
-    RolloutOpt,
     SeedOpt,
     TaskOpt,
-    TotalStepsOpt,
     check_choice,
     fail,
     pick_device,
 )
+from navi.commands.options import Settings, config_options
+from navi_learner.config import TrainConfig
 
 if TYPE_CHECKING:
-    from navi_learner.config import TrainConfig
     from navi_learner.evaluation.baselines import EvalPolicy
     from navi_learner.evaluation.evaluate import EvalMetrics
 
-ObsStorageOpt = Annotated[
-    str,
-    typer.Option(
-        "--obs-storage",
-        help="Rollout observations: compact (3 bytes per ray, the drone env's DistanceMatrix v2), float32 "
-        "(12 bytes, any env) or auto (compact where the env allows).",
-    ),
-]
-MaxMinibatchOpt = Annotated[
-    int, typer.Option("--max-minibatch", min=1, help="Most samples per PPO minibatch (GPU memory).")
-]
-TargetKlOpt = Annotated[
-    float,
-    typer.Option(
-        "--target-kl",
-        min=0.0,
-        help="> 0: adaptive learning rate, starting at --lr: ÷1.5 when a minibatch's approximate KL from the "
-        "rollout policy exceeds twice this, ×1.5 below half of it, within 1e-5..1e-3 (0: constant).",
-    ),
-]
-CompileRolloutOpt = Annotated[
-    bool,
-    typer.Option(
-        "--compile-rollout/--no-compile-rollout",
-        help="With --compile on CUDA, also compile the rollout's whole policy step (encoder, core step, "
-        "heads, RND, memory) as one graph: fewer kernel launches where the forward is launch-bound (small "
-        "actor counts). --no-compile-rollout compiles the encoder alone.",
-    ),
-]
-CompileUpdateOpt = Annotated[
-    bool,
-    typer.Option(
-        "--compile-update/--no-compile-update",
-        help="With --compile on CUDA, compile each PPO minibatch's objective (the policy's sequence pass, "
-        "the PPO and RND losses) and its backward as one graph (the default); --no-compile-update "
-        "compiles the encoder alone there.",
-    ),
-]
-Tf32Opt = Annotated[
-    bool,
-    typer.Option(
-        "--tf32/--no-tf32",
-        help="On CUDA, let float32 matrix products (temporal core, heads, RND; the encoder runs in bf16) "
-        "use TF32 tensor cores.",
-    ),
-]
 EngineOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -142,7 +92,7 @@ def build_env(
     task: str = "explore",
 ) -> Any:
     """The environment for a command (a data-parallel rank: its share of the scenes), or exit 2."""
-    from navi_env.sim.config import TASKS
+    from navi_env.config import TASKS
     from navi_learner.envs.factory import EnvUnavailable, make_env
 
     kind: Literal["sdfdag", "toy"] = (
@@ -165,53 +115,50 @@ def build_env(
         raise fail(str(err)) from err
 
 
-def train_config(
-    actors: int,
-    core: str,
-    rollout: int,
-    epochs: int,
-    lr: float,
-    total: int,
-    every: int,
-    device: str,
-    seed: int,
-    obs_storage: str = "auto",
-    max_minibatch: int = 8_192,
-    compile_encoder: bool = True,
-    engine_items: list[str] | None = None,
-    target_kl: float = 0.0,
-) -> TrainConfig:
-    """TrainConfig from CLI options (0 keeps a default; `engine_items` are --engine KEY=VALUE)."""
-    from navi_learner.config import (
-        OBS_STORAGE,
-        TEMPORAL_CORES,
-        EngineConfig,
-        PPOConfig,
-        TrainConfig,
-        engine_overrides,
-    )
+def train_config(settings: Settings, device: str, engine_items: list[str] | None = None) -> TrainConfig:
+    """The TrainConfig of a command's generated options on `device` (its --device, resolved), with the
+    temporal core, observation storage and task checked; `engine_items` (--engine KEY=VALUE) replace
+    fields of the engine."""
+    from dataclasses import replace
 
-    name = check_choice(core, TEMPORAL_CORES, "--temporal-core")
-    check_choice(obs_storage, OBS_STORAGE, "--obs-storage")
+    from navi_env.config import TASKS
+    from navi_learner.config import OBS_STORAGE, TEMPORAL_CORES, engine_overrides
+
+    cfg: TrainConfig = settings.config()
+    check_choice(cfg.engine.temporal_core, TEMPORAL_CORES, "--temporal-core")
+    check_choice(cfg.obs_dtype, OBS_STORAGE, "--obs-storage")
+    check_choice(cfg.task, TASKS, "--task")
     try:
         overrides = engine_overrides(engine_items or [])
     except ValueError as err:
         raise fail(str(err)) from err
-    engine = EngineConfig(
-        temporal_core="gru" if name == "gru" else "mambapy" if name == "mambapy" else "mamba2", **overrides
-    )
-    return TrainConfig(
-        n_actors=actors,
-        rollout_length=rollout,
-        total_steps=total,
-        checkpoint_every=every,
-        device=device,
-        seed=seed,
-        compile=compile_encoder,
-        obs_dtype=obs_storage,
-        engine=engine,
-        ppo=PPOConfig(lr=lr, target_kl=target_kl, ppo_epochs=epochs, max_minibatch=max_minibatch),
-    )
+    return replace(cfg, device=device, engine=replace(cfg.engine, **overrides))
+
+
+TRAIN_OPTIONS = (
+    "n_actors",
+    "temporal_core",
+    "rollout_length",
+    "ppo_epochs",
+    "lr",
+    "target_kl",
+    "compile_rollout",
+    "compile_update",
+    "tf32",
+    "total_steps",
+    "time_limit_s",
+    "checkpoint_every",
+    "device",
+    "seed",
+    "compile",
+    "obs_dtype",
+    "max_minibatch",
+    "task",
+)
+"""The TrainConfig settings `navi train` takes as options."""
+
+COMMAND_DEVICE = {"device": "auto"}
+"""A command's --device defaults to auto (cuda where available), resolved before the config is built."""
 
 
 def resume_choice(checkpoint: Path | None, fresh: bool, cfg: TrainConfig) -> tuple[Path | None, TrainConfig]:
@@ -315,47 +262,24 @@ app = typer.Typer()
 
 
 @app.command(rich_help_panel=PANEL)
+@config_options(TrainConfig(), TRAIN_OPTIONS, defaults=COMMAND_DEVICE)
 def train(
+    *,
     corpus: CorpusOpt = None,
-    actors: ActorsOpt = 0,
-    temporal_core: CoreOpt = "mamba2",
-    rollout_length: RolloutOpt = 0,
-    ppo_epochs: Annotated[int, typer.Option("--ppo-epochs", help="PPO epochs per rollout.")] = 1,
-    lr: Annotated[
-        float, typer.Option("--lr", help="Learning rate (the starting one with --target-kl).")
-    ] = 5e-4,
-    target_kl: TargetKlOpt = 0.0,
-    compile_rollout: CompileRolloutOpt = True,
-    compile_update: CompileUpdateOpt = True,
-    tf32: Tf32Opt = False,
-    total_steps: TotalStepsOpt = 1_000_000,
-    time_limit: Annotated[
-        float, typer.Option("--time-limit-s", min=0.0, help="Training-seconds budget (0: none).")
-    ] = 0.0,
-    checkpoint_every: CheckpointEveryOpt = 25_000,
+    settings: Settings,
     checkpoint: ResumeOpt = None,
     fresh: Annotated[
         bool, typer.Option("--fresh", help="Do not resume from artifacts/models/latest.pt.")
     ] = False,
-    device: DeviceOpt = "auto",
-    seed: SeedOpt = 0,
     env: EnvOpt = "sdfdag",
-    compile_encoder: Annotated[
-        bool, typer.Option("--compile/--no-compile", help="torch.compile the encoder on CUDA.")
-    ] = True,
     nproc: NprocOpt = 1,
     obstacles: ObstaclesOpt = 0,
     squad: SquadOpt = 0,
-    obs_storage: ObsStorageOpt = "auto",
-    max_minibatch: MaxMinibatchOpt = 8_192,
-    task: TaskOpt = "explore",
     engine: EngineOpt = None,
 ) -> None:
     """Train with PPO in-process with the environment; Ctrl+C saves a checkpoint first. Under torchrun
     (or with --nproc N) every rank trains its own actors on its own device with synchronous
     data-parallel PPO; --actors is per rank."""
-    from dataclasses import replace
-
     import torch
 
     from navi_learner.config import StorageError, default_actors
@@ -367,40 +291,19 @@ def train(
     if nproc > 1 and not dist.launched():
         raise typer.Exit(dist.relaunch(nproc, dist.strip_option(sys.argv[1:], "--nproc")))
     try:
-        d, dev = dist.setup(pick_device(device))
+        d, dev = dist.setup(pick_device(settings["device"]))
     except ValueError as err:
         raise fail(str(err)) from err
     signals = dist.StopSignals().install() if d.active else None
     try:
-        cfg = train_config(
-            actors,
-            temporal_core,
-            rollout_length,
-            ppo_epochs,
-            lr,
-            total_steps,
-            checkpoint_every,
-            dev,
-            seed,
-            obs_storage,
-            max_minibatch,
-            compile_encoder,
-            engine,
-            target_kl,
-        )
-        cfg = replace(
-            cfg,
-            time_limit_s=time_limit,
-            task=task,
-            compile_rollout=compile_rollout,
-            compile_update=compile_update,
-            tf32=tf32,
-        )
+        cfg = train_config(settings, dev, engine)
         resume, cfg = resume_choice(checkpoint, fresh, cfg)
         if resume is not None and engine:
             typer.echo(f"note: --engine is ignored: the engine comes from {resume}", err=True)
         n = cfg.n_actors or default_actors(torch.device(dev))
-        environment = build_env(env, corpus, n, dev, seed + d.rank, d.rank, d.world, obstacles, squad, task)
+        environment = build_env(
+            env, corpus, n, dev, cfg.seed + d.rank, d.rank, d.world, obstacles, squad, cfg.task
+        )
         summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
         result = run_train(
             environment,
@@ -599,12 +502,23 @@ def run_cmd(
     """The main job: build the corpora, train (CUDA: until competent on unseen scenes or the budget; CPU:
     fine-tune the shipped reference checkpoint), promote, evaluate against random and reactive on unseen scenes
     (--task pointgoal: train point-goal episodes from scratch, compare with random, greedy and oracle)."""
-    from navi_env.sim.config import TASKS
+    from navi_env.config import TASKS
     from navi_learner.evaluation.main_job import REFERENCE, MainJobConfig, MainJobError, main_job
 
     dev = pick_device(device)
     task = check_choice(task, TASKS, "--task")
-    job = MainJobConfig(corpus, unseen, MODELS_DIR, dev, seed, budget, eval_every, cpu_steps, REFERENCE, task)
+    job = MainJobConfig(
+        corpus=corpus,
+        unseen=unseen,
+        models_dir=MODELS_DIR,
+        device=dev,
+        seed=seed,
+        budget_s=budget,
+        eval_every_s=eval_every,
+        cpu_steps=cpu_steps,
+        reference=REFERENCE,
+        task=task,
+    )
     try:
         report = main_job(job)
     except MainJobError as err:

@@ -18,18 +18,10 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from navi.commands.common import (
-    ActorsOpt,
-    CheckpointEveryOpt,
-    CoreOpt,
-    DeviceOpt,
-    EnvOpt,
-    ResumeOpt,
-    RolloutOpt,
-    TotalStepsOpt,
-    fail,
-    pick_device,
-)
+from navi.commands.common import DeviceOpt, EnvOpt, ResumeOpt, fail, pick_device
+from navi.commands.learner import COMMAND_DEVICE
+from navi.commands.options import Settings, config_options
+from navi_learner.config import TrainConfig
 
 if TYPE_CHECKING:
     from navi_contracts.settings import NaviSettings
@@ -207,9 +199,9 @@ def serve_env(
 
     /metrics answers at once; while the corpus folder has no manifest the service waits for it (the
     learner builds the default corpus over compile jobs, or run `navi corpus build`), then serves."""
+    from navi_env.config import EnvConfig
     from navi_env.service import EnvServiceConfig
     from navi_env.service import serve_env as serve
-    from navi_env.sim.config import EnvConfig
 
     settings = load_settings()
     env = EnvConfig(
@@ -259,16 +251,26 @@ def wait_for_corpus(corpus: Path, stop: threading.Event, metrics_port: int, metr
     return True
 
 
+LEARNER_OPTIONS = (
+    "n_actors",
+    "temporal_core",
+    "rollout_length",
+    "total_steps",
+    "checkpoint_every",
+    "device",
+    "seed",
+)
+"""The TrainConfig settings `navi serve learner` takes as options."""
+
+
 @app.command("learner")
+@config_options(TrainConfig(), LEARNER_OPTIONS, defaults=COMMAND_DEVICE)
 def serve_learner(
+    *,
     mode: Annotated[str, typer.Option("--mode", help="train (PPO) or infer (run a model).")] = "train",
     corpus: CorpusOpt = Path("artifacts/corpus/default"),
     env_kind: EnvOpt = "sdfdag",
-    actors: ActorsOpt = 0,
-    temporal_core: CoreOpt = "mamba2",
-    rollout_length: RolloutOpt = 0,
-    total_steps: TotalStepsOpt = 1_000_000,
-    checkpoint_every: CheckpointEveryOpt = 25_000,
+    settings: Settings,
     checkpoint: ResumeOpt = None,
     resume_latest: Annotated[
         bool,
@@ -287,8 +289,6 @@ def serve_learner(
     infer_steps: Annotated[
         int, typer.Option("--infer-steps", min=0, help="infer: batched steps (0: forever).")
     ] = 0,
-    device: DeviceOpt = "auto",
-    seed: SeedOpt = 0,
     host: Annotated[
         str,
         typer.Option("--host", help="Control plane interface (127.0.0.1: this machine only; 0.0.0.0: all)."),
@@ -347,8 +347,8 @@ def serve_learner(
     """Training or inference in-process, publishing telemetry, with the REST control plane."""
     from navi.commands.learner import train_config
     from navi_learner.ppo import dist
-    from navi_learner.service import LearnerServiceConfig
-    from navi_learner.service import serve_learner as serve
+    from navi_learner.service.config import LearnerServiceConfig
+    from navi_learner.service.shell import serve_learner as serve
 
     if mode not in ("train", "infer"):
         raise typer.BadParameter(f"--mode must be train or infer, got {mode!r}")
@@ -360,20 +360,18 @@ def serve_learner(
         raise typer.BadParameter(f"--env must be sdfdag or toy, got {env_kind!r}")
     if corpus_build not in ("jobs", "local"):
         raise typer.BadParameter(f"--corpus-build must be jobs or local, got {corpus_build!r}")
-    settings = load_settings()
+    navi_settings = load_settings()
     try:
-        rank, dev = dist.setup(pick_device(device))
+        rank, dev = dist.setup(pick_device(settings["device"]))
     except ValueError as err:
         raise fail(str(err)) from err
-    train = train_config(
-        actors, temporal_core, rollout_length, 1, 5e-4, total_steps, checkpoint_every, dev, seed
-    )
+    train = train_config(settings, device=dev)
     cfg = LearnerServiceConfig(
         mode="train" if mode == "train" else "infer",
         corpus=corpus,
         corpus_build="local" if corpus_build == "local" else "jobs",
         corpus_scenes=corpus_scenes,
-        corpus_resolution=corpus_resolution or settings.gmdag_resolution,
+        corpus_resolution=corpus_resolution or navi_settings.gmdag_resolution,
         env_kind="toy" if env_kind == "toy" else "sdfdag",
         train=train,
         resume_from=checkpoint,
@@ -381,15 +379,15 @@ def serve_learner(
         model=model,
         follow_alias=follow_alias,
         infer_steps=infer_steps,
-        models_dir=settings.artifacts_dir / "models",
-        runs_dir=settings.artifacts_dir / "runs",
+        models_dir=navi_settings.artifacts_dir / "models",
+        runs_dir=navi_settings.artifacts_dir / "runs",
         observation_hz=observation_hz,
         api_host=host,
-        api_port=settings.api_port if port is None else port,
-        api_token=settings.api_token.get_secret_value(),
+        api_port=navi_settings.api_port if port is None else port,
+        api_token=navi_settings.api_token.get_secret_value(),
         api_read_only=read_only,
         exit_when_done=exit_when_done,
-        session=_session_config(settings, connect, zenoh_config),
+        session=_session_config(navi_settings, connect, zenoh_config),
     )
     from navi_env.corpus.folder import CorpusError
     from navi_env.corpus.jobs import CorpusBuildError

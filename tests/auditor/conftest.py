@@ -68,7 +68,7 @@ def make_env() -> Callable[[], Any]:
     """A factory of one-actor SdfDagEnvs (32x8 rays) in the room, spawning at its centre."""
     import torch
 
-    from navi_env.sim.config import EnvConfig
+    from navi_env.config import EnvConfig
     from navi_env.sim.env import SdfDagEnv
 
     corpus = room_corpus()

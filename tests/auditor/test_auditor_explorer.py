@@ -127,7 +127,7 @@ def test_explorer_shows_moving_obstacles(tmp_path: Path) -> None:
 
     import torch
 
-    from navi_env.sim.config import EnvConfig, ObstacleConfig
+    from navi_env.config import EnvConfig, ObstacleConfig
     from navi_env.sim.env import SdfDagEnv
     from navi_env.tracer import primitives as ob
 

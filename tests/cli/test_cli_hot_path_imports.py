@@ -11,7 +11,7 @@ SERVICE_ONLY = ("pydantic", "pydantic_settings", "zenoh", "fastapi", "uvicorn", 
 RL_LIBRARIES = ("gymnasium", "torchrl", "tensordict", "skrl")  # navi_env.ecosystem's optional extras
 HOT_PATH = (
     "navi_compiler.compile", "navi_compiler.gmdag", "navi_compiler.ingest", "navi_compiler.ingest.procedural",
-    "navi_env.sim.env", "navi_env.tracer.trace", "navi_env.corpus.folder", "navi_env.corpus.qualify",
+    "navi_env.sim.env", "navi_env.tracer.trace", "navi_env.corpus.folder", "navi_env.space.qualify",
     "navi_learner.ppo.train", "navi_learner.engine.policy", "navi_learner.evaluation.evaluate", "navi_learner.serving.checkpoint",
     "navi_learner.serving.registry", "navi_learner.evaluation.main_job", "navi_learner.envs.factory",
 )  # fmt: skip

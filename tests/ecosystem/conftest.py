@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from navi.cli import build_app
-from navi_env.sim.config import EnvConfig
+from navi_env.config import EnvConfig
 
 SMALL_VIEW = EnvConfig(azimuth_bins=16, elevation_bins=4)
 """16 x 4 rays: every adapter test and the learning tests run on it (fast on two cores)."""

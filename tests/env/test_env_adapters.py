@@ -6,9 +6,9 @@ import math
 
 import torch
 
+from navi_env.config import SensorConfig
+from navi_env.rays import ray_pattern
 from navi_env.sim.adapters import from_contract, from_equirect_depth, from_point_cloud, resample, to_contract
-from navi_env.sim.config import SensorConfig
-from navi_env.sim.sensor import ray_pattern
 
 
 def test_point_cloud_of_the_ray_pattern_is_the_depth_map() -> None:

@@ -16,7 +16,7 @@ from navi_bench.trace import TraceBenchConfig, place_agents
 from navi_compiler.compile import compile_scene
 from navi_compiler.gmdag import write_gmdag
 from navi_compiler.ingest.procedural import generate_scene
-from navi_env.sim.rays import spherical_directions
+from navi_env.rays import spherical_directions
 from navi_env.tracer.scene import SceneCorpus, load_scene
 from navi_env.tracer.trace import sample_distance
 from navi_env.tracer.trace_ref import trace_ref

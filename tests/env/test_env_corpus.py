@@ -16,16 +16,16 @@ from navi.commands import bench as cli_bench
 from navi.commands import env as cli_env
 from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag, write_gmdag
+from navi_env.config import EnvConfig
 from navi_env.corpus.folder import (
     CorpusError,
     SceneEntry,
     build_corpus,
     find_sources,
-    load_corpus,
+    load_corpus_folder,
     rank_share,
     read_manifest,
 )
-from navi_env.sim.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 
 RES, VOXEL = 32, 0.5
@@ -88,7 +88,7 @@ def test_build_list_and_load(sources: Path, tmp_path: Path) -> None:
     )
     assert entry.qualification["verdict"] == "pass" and entry.qualification["viable_spawns"] > 0
     assert read_manifest(out) == manifest
-    scenes, loaded = load_corpus(out, "cpu")
+    scenes, loaded = load_corpus_folder(out, "cpu")
     assert len(scenes) == 2 and loaded == manifest
     spawns = loaded.spawn_tensors()
     assert [s.shape[1] for s in spawns] == [3, 3] and all(s.shape[0] > 0 for s in spawns)
@@ -108,23 +108,23 @@ def test_data_parallel_ranks_load_disjoint_shares_of_the_scenes(
     full = build_corpus(find_sources(sources), out, resolution=32)
     costs = [s.trace_cost() for s in full.scenes]
     assert all(1.0 <= c <= EnvConfig().trace_max_steps for c in costs) and costs[0] != costs[1]
-    shares = [load_corpus(out, "cpu", rank, 2) for rank in (0, 1)]
+    shares = [load_corpus_folder(out, "cpu", rank, 2) for rank in (0, 1)]
     assert [len(scenes) for scenes, _ in shares] == [1, 1]
     first = max(range(2), key=lambda i: costs[i])
     assert [m.scenes[0] for _, m in shares] == [full.scenes[first], full.scenes[1 - first]]
-    scenes, alone = load_corpus(out, "cpu", scene=1)
+    scenes, alone = load_corpus_folder(out, "cpu", scene=1)
     assert len(scenes) == 1 and alone.scenes == (full.scenes[1],)
     with pytest.raises(CorpusError, match="cannot be shared by 3 ranks"):
-        load_corpus(out, "cpu", 0, 3)
+        load_corpus_folder(out, "cpu", 0, 3)
     raw = json.loads((out / "manifest.json").read_text())
     del raw["scenes"][1]["qualification"]["trace_cost"]  # a manifest from before the measurement
     (out / "manifest.json").write_text(json.dumps(raw))
     with caplog.at_level(logging.WARNING, logger="navi_env.corpus.folder"):
-        shares = [load_corpus(out, "cpu", rank, 2) for rank in (0, 1)]
+        shares = [load_corpus_folder(out, "cpu", rank, 2) for rank in (0, 1)]
     assert [m.scenes[0].name for _, m in shares] == ["room_a", "room_b"]  # every 2nd scene from the rank
     assert "no trace cost" in caplog.text and "navi corpus build" in caplog.text
     with pytest.raises(CorpusError, match="scene 2 alone"):
-        load_corpus(out, "cpu", scene=2)
+        load_corpus_folder(out, "cpu", scene=2)
 
 
 def _entry(name: str, cost: float) -> SceneEntry:
@@ -213,7 +213,7 @@ def test_scenes_declare_moving_obstacles_through_sidecar_and_manifest(tmp_path: 
     speeds = st.speed.abs()[active]
     assert bool(((speeds >= 1.0 - 1e-6) & (speeds <= 1.5 + 1e-6)).all())
     bad = dataclasses.replace(manifest.scenes[0], obstacles={"speed_min": 3.0, "speed_max": 1.0})
-    scenes, _ = load_corpus(tmp_path / "corpus")
+    scenes, _ = load_corpus_folder(tmp_path / "corpus")
     with pytest.raises(ValueError, match="hall"):
         SdfDagEnv(
             scenes, 2, "cpu", EnvConfig(), manifest.spawn_tensors(), scene_obstacles=[bad.obstacles, {}]

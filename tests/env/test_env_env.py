@@ -11,8 +11,8 @@ import torch
 
 from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag
+from navi_env.config import EnvConfig, ObstacleConfig, SensorConfig
 from navi_env.sim import env as env_module
-from navi_env.sim.config import EnvConfig, ObstacleConfig, SensorConfig
 from navi_env.sim.env import INFO_KEYS, SdfDagEnv
 from navi_env.sim.rewards import TERMS
 from navi_env.tracer.scene import SceneCorpus, load_corpus
@@ -143,7 +143,7 @@ def test_seeded_determinism(room: SceneCorpus) -> None:
 def test_fused_stages_compile_whole_and_change_nothing(
     room: SceneCorpus, monkeypatch: pytest.MonkeyPatch, obstacles: int, squad: int
 ) -> None:
-    """The stages EnvConfig.fused_step compiles on CUDA trace into whole graphs (fullgraph: no break, the
+    """The stages the env compiles on CUDA trace into whole graphs (fullgraph: no break, the
     distance samples as navi::sample_distance ops) that reproduce the eager rollout bit for bit; the
     "aot_eager" backend runs those graphs with the eager kernels (inductor's own: test_env_gpu.py)."""
     cfg = EnvConfig(

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from navi_env.config import EnvConfig
 from navi_env.sim import rng
-from navi_env.sim.config import EnvConfig
 from navi_env.sim.episodes import draw_spawns, next_scene, pick_index, rotation, spawn_table, truncation
 
 CFG = EnvConfig()

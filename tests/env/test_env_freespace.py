@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 
 from navi.cli import build_app
 from navi_bench.survey import flight_reward
-from navi_env.corpus.freespace import (
+from navi_env.config import EnvConfig, RewardConfig
+from navi_env.space.freespace import (
     Flight,
     FreeSpace,
     components,
@@ -27,7 +28,6 @@ from navi_env.corpus.freespace import (
     surface_distance,
     surface_distance_ref,
 )
-from navi_env.sim.config import EnvConfig, RewardConfig
 from navi_env.tracer.scene import load_corpus
 
 from .test_env_env import room_gmdag
@@ -223,7 +223,7 @@ def test_the_planner_stops_when_every_cell_is_entered_and_never_beats_the_bound(
 
 
 def test_a_lattice_too_large_is_refused_and_a_coarser_cell_found(monkeypatch: pytest.MonkeyPatch) -> None:
-    from navi_env.corpus import freespace
+    from navi_env.space import freespace
 
     corpus = load_corpus([room_gmdag()], "cpu")  # 28 x 28 x 12 voxels of 0.5 m
     monkeypatch.setattr(freespace, "MAX_VOXELS", 1000)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from navi_env.corpus.freespace import FreeSpace, free_space, geodesic_ref
-from navi_env.corpus.goals import goal_table, goal_table_ref
+from navi_env.space.freespace import FreeSpace, free_space, geodesic_ref
+from navi_env.space.goal_tables import goal_table, goal_table_ref
 from navi_env.tracer.scene import load_corpus
 
 from .test_env_env import room_gmdag

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from navi_compiler.dag.build import build_gmdag
-from navi_env.sim.config import EnvConfig, ObstacleConfig, SensorConfig
+from navi_env.config import EnvConfig, ObstacleConfig, SensorConfig
 from navi_env.sim.env import SdfDagEnv
 from navi_env.sim.observation import observe, observe_ref, semantic_table
 from navi_env.tracer.scene import load_corpus
@@ -40,19 +40,14 @@ def room() -> object:
 def rollout(
     device: str,
     steps: int,
-    graph: bool = True,
-    fused: bool = True,
     obstacles: int = 0,
     squad: int = 0,
-    fused_step: bool = True,
     obs_buffers: int = 1,
+    eager: bool = False,
 ) -> list[torch.Tensor]:
     cfg = EnvConfig(
         obs_buffers=obs_buffers,
         obstacles=ObstacleConfig(count=obstacles, speed_max=8.0, squad=squad),
-        cuda_graph=graph,
-        fused_observation=fused,
-        fused_step=fused_step,
         azimuth_bins=64,
         elevation_bins=16,
         max_steps_per_episode=12,
@@ -63,7 +58,7 @@ def rollout(
             [[4.0, 4.0, 3.0], [12.0, 12.0, 5.0], [6.0, 11.0, 2.0], [4.0, 12.0, 4.0], [13.0, 3.0, 3.0]]
         )
     ]
-    env = SdfDagEnv(load_corpus([room()], device), 16, device, cfg, spawns=spawns)
+    env = SdfDagEnv(load_corpus([room()], device), 16, device, cfg, spawns=spawns, eager=eager)
     g = torch.Generator().manual_seed(0)
     frames = [env.reset(seed=4).to("cpu", copy=True)]
     for _ in range(steps):
@@ -109,10 +104,13 @@ def test_cpu_and_cuda_rollouts_agree(obstacles: int, squad: int) -> None:
 
 @needs_cuda
 @pytest.mark.parametrize(("obstacles", "squad"), [(0, 0), (8, 0), (4, 4)])
-def test_cuda_graph_replay_matches_eager_steps(obstacles: int, squad: int) -> None:
-    graphed = rollout("cuda", 20, graph=True, obstacles=obstacles, squad=squad)
-    eager = rollout("cuda", 20, graph=False, obstacles=obstacles, squad=squad)
-    assert all(torch.equal(a, b) for a, b in zip(graphed, eager, strict=True))
+def test_the_cuda_path_is_bit_identical_to_the_eager_twin(obstacles: int, squad: int) -> None:
+    """The CUDA path (the physics, episode and reward stages, the obstacles' steps and the observation
+    compiled by inductor, the step replayed as a CUDA graph) gives the rollout of `eager=True` (plain
+    PyTorch kernels, step after step) bit for bit: no contraction, same rounding."""
+    fast = rollout("cuda", 20, obstacles=obstacles, squad=squad)
+    eager = rollout("cuda", 20, obstacles=obstacles, squad=squad, eager=True)
+    assert all(torch.equal(a, b) for a, b in zip(fast, eager, strict=True))
 
 
 @needs_cuda
@@ -150,24 +148,6 @@ def test_cuda_step_does_not_synchronise(
         torch.cuda.set_sync_debug_mode("default")
     out = env.step(actions)
     assert bool(torch.isfinite(out.obs).all()) and bool((out.obs > 0).any())  # the steps ran and saw walls
-
-
-@needs_cuda
-@pytest.mark.parametrize(("obstacles", "squad"), [(0, 0), (8, 0), (4, 4)])
-def test_fused_step_is_bit_identical_to_the_eager_stages(obstacles: int, squad: int) -> None:
-    """EnvConfig.fused_step (the physics, episode and reward stages compiled by inductor, replayed in the
-    step's CUDA graph) gives the eager kernels' rollout bit for bit: no contraction, same rounding."""
-    fused = rollout("cuda", 20, graph=True, obstacles=obstacles, squad=squad)
-    eager = rollout("cuda", 20, graph=False, obstacles=obstacles, squad=squad, fused_step=False)
-    assert all(torch.equal(a, b) for a, b in zip(fused, eager, strict=True))
-
-
-@needs_cuda
-def test_graphed_fused_observation_matches_eager_reference_steps() -> None:
-    """The compiled observation pass, recorded into the step's CUDA graph, gives bit for bit the
-    observations and rewards of eager steps with the eager observation kernels."""
-    fused, ref = rollout("cuda", 20, graph=True), rollout("cuda", 20, graph=False, fused=False)
-    assert all(torch.equal(a, b) for a, b in zip(fused, ref, strict=True))
 
 
 @needs_cuda

@@ -6,7 +6,8 @@ import math
 
 import torch
 
-from navi_env.sim.config import EnvConfig, SensorConfig
+from navi_env.config import EnvConfig, SensorConfig
+from navi_env.rays import ray_pattern, spherical_directions
 from navi_env.sim.observation import (
     front_bin_count,
     is_front,
@@ -19,8 +20,7 @@ from navi_env.sim.observation import (
     view_stats,
     write_observation,
 )
-from navi_env.sim.rays import spherical_directions
-from navi_env.sim.sensor import apply_sensor, dome_lidar, ray_pattern
+from navi_env.sim.sensor import apply_sensor, dome_lidar
 
 CFG = EnvConfig()
 

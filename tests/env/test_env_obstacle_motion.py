@@ -21,8 +21,8 @@ from typer.testing import CliRunner
 from navi.cli import build_app
 from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag, write_gmdag
+from navi_env.config import EnvConfig, ObstacleConfig
 from navi_env.sim import obstacles as om
-from navi_env.sim.config import EnvConfig, ObstacleConfig
 from navi_env.sim.env import SdfDagEnv
 from navi_env.tracer import primitives as ob
 from navi_env.tracer.scene import SceneCorpus, load_corpus
@@ -469,15 +469,14 @@ def test_squads_share_scenes_and_change_them_together() -> None:
 @pytest.mark.gpu
 def test_fused_obstacle_passes_match_the_eager_kernels_on_cuda(room: SceneCorpus) -> None:
     """On CUDA the obstacles' placement, script, move and nearest-obstacle distance run as compiled
-    passes (EnvConfig.fused_obstacles). The same seeded rollout with and without them: the same
+    passes. The same seeded rollout on the CUDA path and on the eager twin (`eager=True`): the same
     collisions, the obstacles within float32 reassociation of each other, and the same frames."""
     cuda = load_corpus([_room_gmdag()], "cuda")
 
     def run(fused: bool) -> list[torch.Tensor]:
-        cfg = EnvConfig(
-            azimuth_bins=64, elevation_bins=16, obstacles=ObstacleConfig(count=6), fused_obstacles=fused
-        )
-        env = SdfDagEnv(cuda, 64, "cuda", cfg, spawns=[s.cuda() for s in _spawns()], seed=3)
+        cfg = EnvConfig(azimuth_bins=64, elevation_bins=16, obstacles=ObstacleConfig(count=6))
+        spawns = [s.cuda() for s in _spawns()]
+        env = SdfDagEnv(cuda, 64, "cuda", cfg, spawns=spawns, seed=3, eager=not fused)
         env.reset(seed=7)
         g = torch.Generator(device="cuda").manual_seed(1)
         frames = []

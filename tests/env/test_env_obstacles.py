@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from navi_env.sim.rays import spherical_directions, tiled_ray_order
+from navi_env.rays import spherical_directions, tiled_ray_order
 from navi_env.tracer import primitives as ob
 from navi_env.tracer import trace as navi_trace
 from navi_env.tracer.analytic_scenes import AnalyticScene, Box, demo_room, free_points, random_directions

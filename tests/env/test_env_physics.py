@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from navi_env.sim.config import EnvConfig
+from navi_env.config import EnvConfig
 from navi_env.sim.physics import (
     body_to_world,
     body_velocity,

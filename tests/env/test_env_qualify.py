@@ -7,15 +7,15 @@ import torch
 
 from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag
-from navi_env.corpus.qualify import (
+from navi_env.config import EnvConfig, SensorConfig
+from navi_env.rays import ray_pattern
+from navi_env.space.qualify import (
     QualifyConfig,
     candidate_grid,
     candidate_score,
     observation_profile,
     qualify_scene,
 )
-from navi_env.sim.config import EnvConfig, SensorConfig
-from navi_env.sim.sensor import ray_pattern
 from navi_env.tracer.scene import load_corpus
 from navi_env.tracer.trace_ref import trace_ref
 

@@ -131,7 +131,7 @@ def test_warp_steps_charge_each_ray_its_warps_longest(rays: int, ordered: bool) 
 
 
 def test_spherical_pattern_layout() -> None:
-    from navi_env.sim.rays import spherical_directions
+    from navi_env.rays import spherical_directions
 
     d = spherical_directions(8, 4).view(8, 4, 3)  # (Az, El, 3)
     assert torch.allclose(d.norm(dim=-1), torch.ones(8, 4))

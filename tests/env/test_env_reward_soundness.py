@@ -19,7 +19,7 @@ import torch
 from navi_compiler.compile import compile_scene
 from navi_compiler.ingest import load_scene
 from navi_compiler.ingest.procedural import generate_scene
-from navi_env.sim.config import EnvConfig
+from navi_env.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 from navi_env.sim.rewards import SHAPING_TERMS, escape_potential, structure_potential, term_bounds
 from navi_env.tracer.scene import SceneCorpus, load_corpus

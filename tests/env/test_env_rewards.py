@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import torch
 
-from navi_env.sim.config import EnvConfig
+from navi_env.config import EnvConfig
 from navi_env.sim.rewards import (
     SHAPING_TERMS,
     TERMS,

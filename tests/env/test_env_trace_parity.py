@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from navi_env.sim.rays import spherical_directions, tiled_ray_order
+from navi_env.rays import spherical_directions, tiled_ray_order
 from navi_env.tracer import primitives
 from navi_env.tracer.analytic_scenes import (
     AnalyticScene,

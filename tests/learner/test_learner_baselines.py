@@ -16,7 +16,7 @@ from navi_compiler.compile import compile_scene
 from navi_compiler.gmdag import Gmdag
 from navi_compiler.ingest import load_scene
 from navi_compiler.ingest.procedural import generate_scene
-from navi_env.sim.config import EnvConfig
+from navi_env.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 from navi_env.tracer.scene import load_corpus
 from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env

@@ -21,7 +21,7 @@ import torch
 
 from navi_bench.learn import LearnConfig, bench_learn, run_devices, split_openarena
 from navi_env.corpus.folder import build_default_corpus
-from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe
 from navi_learner.envs.factory import make_env, parse_reward_overrides
 from navi_learner.envs.protocol import StepLike
 from navi_learner.envs.toy import ToyEnv
@@ -243,15 +243,14 @@ def test_split_openarena_holds_out_every_fifth_map() -> None:
     assert not set(train_maps) & set(held)
 
 
-def small_learn_config(**overrides: object) -> LearnConfig:
+def small_learn_config(task: str = "explore", **overrides: object) -> LearnConfig:
     """A bench learn job of seconds on a CPU: the gru core, 4 actors, a one-second budget, a tiny protocol."""
+    train = replace(learning_recipe(), n_actors=4, rollout_length=16, compile=False, task=task)
     small: dict[str, object] = dict(
         temporal_cores=("gru",),
         time_budget_s=1.0,
         eval_every_s=0.5,
-        actors=4,
-        rollout_length=16,
-        compile=False,
+        train=train,
         protocol=EvalProtocol(actors=4, steps=24, episode_steps=12, seed=5),
     )
     return LearnConfig(**(small | overrides))  # type: ignore[arg-type]
@@ -293,7 +292,7 @@ def test_bench_learn_point_goal_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     out = tmp_path / "out"
     result = bench_learn(cfg, out, "cpu", 64, root, None, say=lambda _: None)
     saved = json.loads((out / "result.json").read_text())
-    assert saved["config"]["task"] == "pointgoal" and "SPL" in saved["competence_bar"]
+    assert saved["config"]["train"]["task"] == "pointgoal" and "SPL" in saved["competence_bar"]
     assert set(saved["baselines"]["all"]) == {"random", "greedy", "oracle"}
     assert all(b["task"] == "pointgoal" for b in saved["baselines"]["all"].values())
     (run,) = saved["runs"]

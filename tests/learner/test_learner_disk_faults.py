@@ -127,7 +127,7 @@ def test_training_goes_on_through_a_full_disk_and_checkpoints_again_when_space_r
         disk.full = step in (3 * PER_UPDATE, 4 * PER_UPDATE)
 
     before = write_errors("checkpoint")
-    with caplog.at_level(logging.ERROR, logger="navi_learner.ppo.train"):
+    with caplog.at_level(logging.ERROR, logger="navi_learner.ppo.learner"):
         result = train(
             ToyEnv(ACTORS, seed=1),
             config(6),
@@ -186,7 +186,7 @@ def test_the_final_promotion_fails_on_a_full_disk_and_the_registry_keeps_its_las
     disk = DiskFull(monkeypatch, reg.root)
     disk.full = True
     before = write_errors("registry")
-    with caplog.at_level(logging.ERROR, logger="navi_learner.ppo.train"):
+    with caplog.at_level(logging.ERROR, logger="navi_learner.ppo.promotion"):
         result = train(
             ToyEnv(ACTORS, seed=1), config(2), run_dir=tmp_path / "run", registry=reg, progress=False
         )

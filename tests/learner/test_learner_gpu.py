@@ -11,7 +11,8 @@ import torch
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.engine.temporal import make_core
 from navi_learner.envs.toy import ToyEnv
-from navi_learner.ppo.train import StageTimers, train
+from navi_learner.ppo.timing import StageTimers
+from navi_learner.ppo.train import train
 
 pytestmark = [
     pytest.mark.gpu,

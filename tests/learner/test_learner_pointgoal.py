@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from navi_env.sim.config import EnvConfig, GoalConfig, RewardConfig
+from navi_env.config import EnvConfig, GoalConfig, RewardConfig
 from navi_env.sim.env import SdfDagEnv
 from navi_env.tracer.scene import load_corpus
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig

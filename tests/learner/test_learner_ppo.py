@@ -9,11 +9,12 @@ from dataclasses import replace
 import pytest
 import torch
 
-from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.config import EngineConfig, PPOConfig, TemporalCoreName, TrainConfig
 from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.ppo.compile import compile_graph, make_objective, ppo_objective
 from navi_learner.ppo.loss import ppo_loss
 from navi_learner.ppo.rollout import RolloutStorage
-from navi_learner.ppo.train import adapt_lr, compile_graph, make_objective, ppo_objective, update
+from navi_learner.ppo.train import adapt_lr, update
 
 
 def test_ppo_loss_hand_computed() -> None:
@@ -68,7 +69,7 @@ def test_ppo_loss_advantage_normalisation() -> None:
     assert abs(float(m1["policy_loss"])) < 1e-6
 
 
-def tiny_setup(core: str = "mamba2") -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
+def tiny_setup(core: TemporalCoreName = "mamba2") -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
     eng = EngineConfig(
         temporal_core=core,
         embed_dim=16,
@@ -223,7 +224,7 @@ def test_update_adapts_the_rate_once_per_minibatch(fused: bool) -> None:
 
 
 @pytest.mark.parametrize("core", ["mamba2", "gru"])
-def test_the_compiled_objective_updates_as_the_eager_one_does(core: str) -> None:
+def test_the_compiled_objective_updates_as_the_eager_one_does(core: TemporalCoreName) -> None:
     """`--compile-update` traces each minibatch's objective (sequence pass, PPO and RND losses; one graph
     with mamba2, the gru's per-episode segments break it) and its backward: traced here with the
     aot_eager backend (the CPU runs the same graphs without code generation), one update (2 minibatches)

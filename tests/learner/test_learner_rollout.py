@@ -15,17 +15,27 @@ from dataclasses import replace
 import pytest
 import torch
 
-from navi_env.sim.config import EnvConfig, SensorConfig
+from navi_env.config import EnvConfig, SensorConfig
 from navi_env.sim.env import SdfDagEnv
 from navi_env.tracer.analytic_scenes import demo_room, free_points
 from navi_env.tracer.scene import load_corpus
-from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, compact_storage, obs_bytes, resolve
+from navi_learner.config import (
+    EngineConfig,
+    PPOConfig,
+    TemporalCoreName,
+    TrainConfig,
+    compact_storage,
+    obs_bytes,
+    resolve,
+)
 from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
+from navi_learner.ppo.compile import compile_graph, make_forward, rollout_forward
 from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.stats import EpisodeStats
-from navi_learner.ppo.train import StageTimers, collect, compile_graph, make_forward, rollout_forward
+from navi_learner.ppo.timing import StageTimers
+from navi_learner.ppo.train import collect
 
 ACTORS, T_LEN, CHUNK = 6, 8, 4
 DEVICES = [
@@ -119,7 +129,7 @@ def test_default_rollout_is_64_steps_at_8192_actors_in_20_gb() -> None:
 
 
 @pytest.mark.parametrize("core", ["mamba2", "gru"])
-def test_the_compiled_rollout_step_collects_what_the_eager_one_does(core: str) -> None:
+def test_the_compiled_rollout_step_collects_what_the_eager_one_does(core: TemporalCoreName) -> None:
     """`--compile-rollout` traces the rollout's policy step whole (act, RND, memory; fullgraph), with
     either temporal core: traced here with the aot_eager backend (the CPU runs the same graph without
     code generation), two rollouts fill the storage, the RND normaliser and the episodic memory bit for

@@ -16,8 +16,9 @@ from navi_learner.envs.protocol import StepOut
 from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
 from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
-from navi_learner.ppo import train as train_module
-from navi_learner.ppo.train import StageTimers, train
+from navi_learner.ppo import timing as timing_module
+from navi_learner.ppo.timing import StageTimers
+from navi_learner.ppo.train import train
 from navi_learner.serving.checkpoint import load_checkpoint
 from navi_learner.serving.registry import ModelRegistry
 
@@ -165,7 +166,7 @@ def test_adaptive_rate_is_a_device_tensor_that_moves_and_resumes(tmp_path: Path)
 
 
 class Clock:
-    """A host clock that moves only when told: `perf_counter` for the training module."""
+    """A host clock that moves only when told: `perf_counter` for the timing module."""
 
     def __init__(self) -> None:
         self.now = 100.0
@@ -180,7 +181,7 @@ def test_stage_timers_without_sync_sum_the_host_time_per_stage_and_clear_on_read
     """Without sync each stage adds the host time between its boundaries; a read gives ms per env step
     and starts again from zero."""
     clock = Clock()
-    monkeypatch.setattr(train_module, "time", clock)
+    monkeypatch.setattr(timing_module, "time", clock)
     timers = StageTimers(sync=False)
     for seconds in (0.010, 0.020, 0.030):
         with timers("env"):

@@ -77,6 +77,11 @@ def client_session(endpoint: str) -> Any:
     return open_new_session(SessionConfig(connect=(endpoint,), connect_timeout_s=60.0))
 
 
+def connected_routers(sess: Any) -> int:
+    """How many routers the Zenoh session `sess` is connected to right now."""
+    return len(list(sess.info.routers_zid()))
+
+
 def matched(sess: Any, key: str, queryable: bool = False, timeout_s: float = 60.0) -> None:
     """Wait until a put (or, `queryable`, a query) from `sess` on `key` reaches a subscriber (queryable)
     declared elsewhere: Zenoh's matching status, which turns true once the router has told `sess` of

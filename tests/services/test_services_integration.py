@@ -21,14 +21,13 @@ import pytest
 import torch
 import zenoh
 from prometheus_client.parser import text_string_to_metric_families
-from services_testlib import HoldPoint, Services, matched, wait_for
+from services_testlib import HoldPoint, Services, connected_routers, matched, wait_for
 
 from navi_contracts.codec import encode
 from navi_contracts.models import CompileJob, CompileResult, Message, ModelPromoted, StepRequest, StepResult
 from navi_contracts.topics import ACTIONS, COMPILE_JOBS, MODEL_PROMOTED, OBSERVATIONS, STEP, TELEMETRY
 from navi_mesh.liveliness import live_tokens
 from navi_mesh.pubsub import RequestError, request, subscribe
-from navi_mesh.session import connected_routers
 
 pytestmark = pytest.mark.integration
 

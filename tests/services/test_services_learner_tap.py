@@ -232,7 +232,7 @@ def test_floor_plan_is_the_clearance_slice_of_the_scene() -> None:
 
     from navi_compiler.dag.build import build_gmdag
     from navi_env.tracer.scene import load_corpus
-    from navi_learner.service import floor_plan
+    from navi_learner.service.floor_plan import floor_plan
 
     res, voxel = 32, 0.5
     i = np.arange(res + 1, dtype=np.float64) * voxel

@@ -18,7 +18,15 @@ from typing import TypeVar
 import numpy as np
 import pytest
 import zenoh
-from services_testlib import ReservedPort, Service, client_session, loopback_router, matched, wait_for
+from services_testlib import (
+    ReservedPort,
+    Service,
+    client_session,
+    connected_routers,
+    loopback_router,
+    matched,
+    wait_for,
+)
 
 from navi_contracts.codec import encode
 from navi_contracts.models import CompileJob, CompileResult, Message, StepRequest, TelemetryEvent
@@ -31,7 +39,6 @@ from navi_mesh.session import (
     MeshError,
     SessionConfig,
     config_json,
-    connected_routers,
     open_new_session,
     router_locators,
     zenoh_config,

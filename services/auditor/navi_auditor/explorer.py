@@ -292,7 +292,7 @@ def scene_env(path: Path, device: str, obstacles: int = 0) -> Callable[[], Explo
     `obstacles` scripted moving obstacles."""
 
     def make() -> ExplorerEnv:
-        from navi_env.sim.config import EnvConfig, ObstacleConfig
+        from navi_env.config import EnvConfig, ObstacleConfig
         from navi_env.sim.env import SdfDagEnv
         from navi_env.tracer.scene import load_scene
 

@@ -18,7 +18,7 @@ import torch
 
 from navi_contracts.models import DistanceMatrix, StepRequest, StepResult
 from navi_contracts.topics import OBSERVATIONS, STEP
-from navi_env.sim.config import EnvConfig
+from navi_env.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 from navi_mesh import metrics
 from navi_mesh.liveliness import declare_alive
@@ -61,9 +61,9 @@ class StepError(ValueError):
 
 def load_env(cfg: EnvServiceConfig) -> SdfDagEnv:
     """The environment of a corpus folder, with the manifest's qualified spawns."""
-    from navi_env.corpus.folder import load_corpus
+    from navi_env.corpus.folder import load_corpus_folder
 
-    scenes, manifest = load_corpus(cfg.corpus, torch.device(cfg.device))
+    scenes, manifest = load_corpus_folder(cfg.corpus, torch.device(cfg.device))
     return SdfDagEnv(scenes, cfg.actors, cfg.device, cfg.env, spawns=manifest.spawn_tensors(), seed=cfg.seed)
 
 

@@ -1,13 +1,16 @@
 """navi_learner: the cognitive engine and the PPO learner that trains it in-process with the env.
 
-Sub-packages, in the order a training step uses them:
-  envs/         what the learner trains against: the BatchedEnv protocol, the env factory, a toy env,
-                and a remote env over Zenoh
+Sub-packages, bottom to top (a module imports only its own sub-package and those below it):
+  config.py     the typed configuration all of them read
   engine/       the cognitive engine: RayViT encoder -> RND -> episodic memory -> temporal core -> heads
-  ppo/          the algorithm: rollout storage, GAE, the PPO loss, the training loop, data-parallel sync,
-                episode statistics and the run folder
-  evaluation/   baselines, evaluation, the competence protocol, `navi bench learn|train`, the main job
+  envs/         what the learner trains against: the BatchedEnv protocol and the env capabilities it
+                reads, the env factory, a toy env, and a remote env over Zenoh
   serving/      checkpoints, the model registry, the REST control plane, ONNX export
-config.py holds the typed configuration all of them read; service.py is the thin `navi serve learner`
-shell. docs/ACTOR.md and docs/TRAINING.md describe them.
+  ppo/          the algorithm: rollout storage, GAE, the PPO loss, the training loop and its learner,
+                compiled policy steps, stage timers, promotion, data-parallel sync, episode statistics
+                and the run folder
+  evaluation/   baselines, evaluation, the competence protocol, the main job
+  service/      the `navi serve learner` service: the tap on the training loop, its publishers, floor
+                plans, bring-up, the training and inference loops, and the service shell
+docs/ACTOR.md and docs/TRAINING.md describe them.
 """

@@ -1,21 +1,36 @@
 """Typed configuration of the learner: the engine, PPO, and a training run.
 
-Every field is documented; the CLI maps its options onto these dataclasses, and the whole
-`TrainConfig` is stored (as plain dicts) inside every checkpoint.
+Every field is documented: the commands' options for these settings are generated from the fields,
+their defaults and their docstrings (navi/commands/options.py; a `CliOption` in a field's annotation
+names its option or bounds it), and the whole `TrainConfig` is stored (as plain dicts) inside every
+checkpoint. Importable without torch (`navi --help` reads it).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
-from typing import Any, Literal, get_args, get_origin, get_type_hints
+from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args, get_origin, get_type_hints
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
 TemporalCoreName = Literal["mamba2", "gru", "mambapy"]
 TEMPORAL_CORES: tuple[TemporalCoreName, ...] = ("mamba2", "gru", "mambapy")
 AttentionName = Literal["sdpa", "explicit"]
 ATTENTIONS: tuple[AttentionName, ...] = ("sdpa", "explicit")
+
+
+@dataclass(frozen=True)
+class CliOption:
+    """How the command option of a setting differs from the plain `--field-name`: another name, bounds."""
+
+    flag: str | None = None
+    """The option's name (e.g. --actors), where it is not the field's."""
+    min: float | None = None
+    """Smallest value the option accepts."""
+    max: float | None = None
+    """Largest value the option accepts."""
 
 
 @dataclass
@@ -133,7 +148,7 @@ class PPOConfig:
 
     lr: float = 5e-4
     """Adam learning rate (policy and RND predictor); the starting value when target_kl > 0."""
-    target_kl: float = 0.0
+    target_kl: Annotated[float, CliOption(min=0.0)] = 0.0
     """> 0: adaptive learning rate. Before each minibatch's optimizer step the approximate KL divergence
     from the rollout's policy is compared with this target: above 2× it the rate is divided by 1.5,
     below half of it multiplied by 1.5, within [lr_min, lr_max]. The rate stays on the device (no host
@@ -146,14 +161,13 @@ class PPOConfig:
     """Discount factor."""
     gae_lambda: float = 0.95
     """GAE λ."""
-    ppo_epochs: int = 1
+    ppo_epochs: Annotated[int, CliOption(min=1)] = 1
     """Passes over each rollout."""
     num_minibatches: int = 4
     """Minibatches per epoch; each holds whole BPTT sequences of a subset of (chunk, actor) pairs."""
-    max_minibatch: int = 8_192
-    """Upper bound on samples (steps) per minibatch; large rollouts get more minibatches. The default
-    engine's update holds about 13 GB of activations per 8,192 samples: with 64-step compact rollouts
-    at 8,192 actors (19.5 GB) a training job peaks at 34 GB on an H100."""
+    max_minibatch: Annotated[int, CliOption(min=1)] = 8_192
+    """Upper bound on samples (steps) per PPO minibatch; large rollouts get more minibatches. The update's
+    activation memory grows with it (lower it where the GPU runs out of memory)."""
     bptt_chunk: int = 32
     """Truncated-BPTT sequence length; the recurrent state is stored at every chunk start."""
     clip_coef: float = 0.2
@@ -182,16 +196,16 @@ class PPOConfig:
 class TrainConfig:
     """A training run: environment size, budget, checkpoints, device and the two configs above."""
 
-    n_actors: int = 0
+    n_actors: Annotated[int, CliOption("--actors", min=0)] = 0
     """N parallel actors; 0 picks the device default (4 on CPU, 4096 on CUDA)."""
-    rollout_length: int = 0
+    rollout_length: Annotated[int, CliOption(min=0)] = 0
     """T steps per actor per update; 0 picks ROLLOUT_DEFAULT for the device, capped so the rollout fits
     `rollout_memory_gb`."""
-    total_steps: int = 100_000
+    total_steps: Annotated[int, CliOption(min=1)] = 1_000_000
     """Budget in env steps (actor-steps); the run ends with a final checkpoint."""
-    time_limit_s: float = 0.0
+    time_limit_s: Annotated[float, CliOption(min=0.0)] = 0.0
     """Budget in seconds of training (a monitor's evaluations excluded); 0: no limit."""
-    checkpoint_every: int = 25_000
+    checkpoint_every: Annotated[int, CliOption(min=1)] = 25_000
     """Env steps between periodic checkpoints."""
     keep_checkpoints: int = 5
     """Newest K checkpoints kept in the run folder."""
@@ -200,26 +214,27 @@ class TrainConfig:
     seed: int = 0
     """Seed for torch and the environment."""
     device: str = "cpu"
-    """Torch device string (cpu, cuda, cuda:1)."""
+    """Torch device: cpu, cuda or cuda:N (a command's auto picks cuda where available, else cpu)."""
     amp: bool = True
     """bf16 autocast for the encoder on CUDA (ignored on CPU)."""
     compile: bool = True
-    """torch.compile the encoder (CUDA only; about a minute of compile time, ~1.7x the SPS)."""
+    """torch.compile the encoder (CUDA only; the first steps wait for the compile, the later ones run
+    fused kernels)."""
     compile_rollout: bool = True
     """With `compile`, on CUDA: also compile the rollout's whole policy step (encoder, temporal-core step,
     heads, action sample, RND novelty, episodic memory) as one graph, so the launch-bound forward of
-    small actor counts runs fewer, fused kernels (2,048 actors: 3.3 instead of 6.5 ms per step on an
-    H100). The same step as the eager one (a CPU parity test); False: the encoder alone is compiled."""
+    small actor counts runs fewer, fused kernels. The same step as the eager one (a CPU parity test);
+    False: the encoder alone is compiled."""
     compile_update: bool = True
     """With `compile`, on CUDA: compile each PPO minibatch's objective (the policy's sequence pass with
-    the temporal core's chunked scan, the PPO and RND losses) and its backward as one graph (8,192
-    actors on an H100: the update 15.2 instead of 21-24 ms per step); False: the encoder alone is
-    compiled. The same objective as the eager one (a CPU parity test)."""
+    the temporal core's chunked scan, the PPO and RND losses) and its backward as one graph, fewer and
+    fused kernels; False: the encoder alone is compiled. The same objective as the eager one (a CPU
+    parity test)."""
     tf32: bool = False
     """On CUDA: let float32 matrix products (the temporal core's, the heads' and RND's; the encoder runs
     in bf16 under `amp`) use TF32 tensor cores (torch.backends.cuda.matmul.allow_tf32, for the whole
     process from the run's start)."""
-    obs_dtype: str = "auto"
+    obs_dtype: Annotated[str, CliOption("--obs-storage")] = "auto"
     """Rollout observation storage: compact (float16 depth and a semantic byte per ray, 3 bytes; needs
     DistanceMatrix v2 observations, the drone env's), float32 (12 bytes per ray, any env), or auto
     (compact when the env says its observations are DistanceMatrix v2, float32 otherwise). Either way
@@ -264,6 +279,25 @@ def default_actors(device: torch.device) -> int:
     return 4096 if device.type == "cuda" else 4
 
 
+def learning_recipe(cfg: TrainConfig | None = None) -> TrainConfig:
+    """The settings of the measured learning run (`navi bench learn`, and `navi run` on CUDA) on top of
+    `cfg` (TrainConfig() when None): two PPO epochs per rollout at a learning rate of 3e-4 over minibatches
+    of up to 16,384 samples, and a step budget so large that the run's time limit ends it."""
+    base = TrainConfig() if cfg is None else cfg
+    ppo = replace(base.ppo, lr=3e-4, ppo_epochs=2, max_minibatch=16_384)
+    return replace(base, total_steps=10**12, ppo=ppo)
+
+
+def learning_size(cfg: TrainConfig, cuda: bool) -> TrainConfig:
+    """The learning run's actors and rollout length where `cfg` leaves them 0: 2,048 actors and 64-step
+    rollouts on CUDA, 8 actors and 32-step rollouts on a CPU."""
+    return replace(
+        cfg,
+        n_actors=cfg.n_actors or (2048 if cuda else 8),
+        rollout_length=cfg.rollout_length or (64 if cuda else 32),
+    )
+
+
 OBS_STORAGE = ("auto", "compact", "float32")
 """Values of TrainConfig.obs_dtype."""
 
@@ -298,6 +332,8 @@ def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = T
     `rollout_memory_gb`: at 256×48 and 8,192 actors compact that is 64 steps. The minibatch count
     grows so no minibatch exceeds max_minibatch.
     """
+    import torch
+
     device = torch.device(cfg.device)
     n_actors = cfg.n_actors or default_actors(device)
     rollout = cfg.rollout_length

@@ -148,11 +148,6 @@ def close_session() -> None:
         _session = None
 
 
-def connected_routers(sess: zenoh.Session) -> int:
-    """How many routers the session is connected to right now."""
-    return len(list(sess.info.routers_zid()))
-
-
 def router_locators(sess: zenoh.Session, timeout_s: float = 5.0) -> list[str]:
     """The endpoints a router session listens on, as bound (a `tcp/127.0.0.1:0` endpoint shows the port
     the OS picked), read from its own admin space; [] where the admin space is not readable."""

@@ -3,7 +3,7 @@
 Layout of a corpus folder:
   manifest.json    {"format": "navi-corpus", "version": 1, "created_at", "resolution", "scenes": [...],
                     "rejected": [...]}; each scene: name, file, source, resolution, voxel_size, bytes,
-                    qualification (navi_env.corpus.qualify.Qualification as JSON, with the viable spawns
+                    qualification (navi_env.space.qualify.Qualification as JSON, with the viable spawns
                     and the trace cost),
                     obstacles (moving obstacles it declares, from a mesh's sidecar or edited in; may be
                     absent)
@@ -30,9 +30,8 @@ from pathlib import Path
 
 import torch
 
-from navi_env.corpus.qualify import Qualification, QualifyConfig, qualify_scene
-from navi_env.tracer.scene import SceneCorpus
-from navi_env.tracer.scene import load_corpus as load_scenes
+from navi_env.space.qualify import Qualification, QualifyConfig, qualify_scene
+from navi_env.tracer.scene import SceneCorpus, load_corpus
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +158,7 @@ def rank_share(scenes: Sequence[SceneEntry], rank: int, world: int) -> tuple[Sce
     return tuple(scenes[i] for i in sorted(mine))
 
 
-def load_corpus(
+def load_corpus_folder(
     corpus_dir: str | os.PathLike[str],
     device: torch.device | str = "cpu",
     rank: int = 0,
@@ -202,7 +201,7 @@ def load_corpus(
         if not path.is_file() or path.stat().st_size != s.bytes:
             raise CorpusError(f"{path}: missing or not the size the manifest records ({s.bytes} bytes)")
         files.append(path)
-    return load_scenes(files, device), manifest
+    return load_corpus(files, device), manifest
 
 
 def find_sources(src_dir: str | os.PathLike[str]) -> list[str]:
@@ -275,7 +274,7 @@ def _build_into(
             _compile_one(source, path, resolution)
         except (OSError, ValueError, RuntimeError) as exc:
             raise CorpusError(f"{source}: {exc}") from exc
-        corpus = load_scenes([path], device)
+        corpus = load_corpus([path], device)
         verdict: Qualification = qualify_scene(corpus, 0, qualify)
         say(f"[{i}/{len(sources)}] {name}: {verdict.verdict} ({verdict.reason})")
         if not verdict.passed:

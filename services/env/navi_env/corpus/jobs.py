@@ -2,7 +2,7 @@
 
 `build_corpus_over_jobs` generates the procedural sources (navi_compiler.ingest.procedural) into a folder beside
 the target, sends one CompileJob per scene to the live compiler workers (as many at once as there
-are workers), qualifies each compiled scene here (navi_env.corpus.qualify, on this process's device) and
+are workers), qualifies each compiled scene here (navi_env.space.qualify, on this process's device) and
 swaps the finished corpus folder in with its manifest, as `navi corpus build` does: until then the
 target holds no manifest, and a failed build leaves no partial corpus. Progress goes to a callback
 after every scene. A job whose worker died (kill -9, lost host) is sent again to a live worker, up
@@ -166,7 +166,7 @@ def build_corpus_over_jobs(
 
     from navi_compiler.ingest.procedural import generate_corpus
     from navi_env.corpus.folder import CorpusManifest, SceneEntry, replace_directory
-    from navi_env.corpus.qualify import qualify_scene
+    from navi_env.space.qualify import qualify_scene
     from navi_env.tracer.scene import load_corpus
 
     stop = stop or threading.Event()

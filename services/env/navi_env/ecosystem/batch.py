@@ -9,8 +9,8 @@ from dataclasses import replace
 
 import torch
 
-from navi_env.corpus.folder import load_corpus
-from navi_env.sim.config import POINTGOAL_EPISODE_STEPS, EnvConfig
+from navi_env.config import POINTGOAL_EPISODE_STEPS, EnvConfig
+from navi_env.corpus.folder import load_corpus_folder
 from navi_env.sim.env import SdfDagEnv
 
 ACTION_DIM = 4
@@ -54,7 +54,7 @@ def make_batched_env(
         cfg = replace(cfg, obstacles=replace(cfg.obstacles, count=obstacles, squad=squad))
     if max_episode_steps > 0:
         cfg = replace(cfg, max_steps_per_episode=max_episode_steps)
-    scenes, manifest = load_corpus(corpus, torch.device(device))
+    scenes, manifest = load_corpus_folder(corpus, torch.device(device))
     return SdfDagEnv(
         scenes,
         num_envs,

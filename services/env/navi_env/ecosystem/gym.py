@@ -24,9 +24,9 @@ from gymnasium.spaces import Box
 from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
+from navi_env.config import EnvConfig
 from navi_env.ecosystem.batch import ACTION_DIM, make_batched_env, obs_bounds, pointgoal_config
 from navi_env.ecosystem.render import render_frame
-from navi_env.sim.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 
 ENV_ID = "Navi/Explore-v0"

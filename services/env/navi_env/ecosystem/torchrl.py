@@ -33,9 +33,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from navi_env.config import EnvConfig
 from navi_env.ecosystem.batch import ACTION_DIM, make_batched_env, obs_bounds
 from navi_env.ecosystem.rows import copy_rows
-from navi_env.sim.config import EnvConfig
 from navi_env.sim.env import SdfDagEnv
 
 FLAGS: tuple[str, ...] = ("collision", "obstacle_collision", "drone_collision", "novel_cell", "starved")

@@ -37,7 +37,7 @@ def _assemble(
 def bin_centres(
     azimuth_bins: int, elevation_bins: int, elevation_min_deg: float = -90.0, elevation_max_deg: float = 90.0
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Azimuth (Az,) and elevation (El,) bin centres, radians, as navi_env.sim.sensor lays them out."""
+    """Azimuth (Az,) and elevation (El,) bin centres, radians, as navi_env.rays lays them out."""
     az = torch.arange(azimuth_bins, dtype=torch.float64) * (2.0 * math.pi / azimuth_bins)  # (Az,)
     lo, hi = math.radians(elevation_min_deg), math.radians(elevation_max_deg)
     el = lo + (torch.arange(elevation_bins, dtype=torch.float64) + 0.5) * (

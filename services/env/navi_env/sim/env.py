@@ -25,12 +25,12 @@ from typing import Any, TypeVar, cast
 
 import torch
 
+from navi_env.config import EnvConfig
+from navi_env.rays import ray_pattern, tiled_ray_order
 from navi_env.sim import episodes, goals, physics, rewards
 from navi_env.sim import obstacles as obstacle_motion
-from navi_env.sim.config import EnvConfig
 from navi_env.sim.observation import CHANNELS, FIRST_MARK_CODE, observe, observe_ref, semantic_table
-from navi_env.sim.rays import tiled_ray_order
-from navi_env.sim.sensor import apply_sensor, ray_pattern
+from navi_env.sim.sensor import apply_sensor
 from navi_env.tracer import primitives as ob
 from navi_env.tracer.scene import SceneCorpus
 from navi_env.tracer.trace import sample_distance, trace
@@ -117,12 +117,15 @@ class SdfDagEnv:
         spawns: Sequence[torch.Tensor] | None = None,
         seed: int = 0,
         scene_obstacles: Sequence[Mapping[str, float]] | None = None,
+        *,
+        eager: bool = False,
     ) -> None:
         """`spawns`: per scene (K_s, 3) quality-gated positions (default: qualify every scene now).
         `scene_obstacles`: per scene, the obstacle settings it declares (obstacle_motion.SCENE_KEYS, e.g.
-        from the corpus manifest); they override config.obstacles in that scene."""
-        from navi_env.corpus.qualify import scene_spawns
-
+        from the corpus manifest); they override config.obstacles in that scene.
+        `eager`: run every stage as plain PyTorch kernels, one step after another, on CUDA too (no
+        torch.compile'd passes, no CUDA graph): the slow, obviously correct twin that the parity tests
+        compare the CUDA path with. The CPU always runs this way."""
         if n_actors < 1:
             raise ValueError("n_actors must be >= 1")
         want = torch.device(device)
@@ -130,20 +133,38 @@ class SdfDagEnv:
             raise ValueError(f"the corpus lives on {corpus.device}, the environment was asked for {want}")
         self.config = cfg = config or EnvConfig()
         self.corpus = corpus
-        self.device = dev = corpus.device
-        self.n = self.n_actors = n = n_actors
+        self.device = corpus.device
+        self.n = self.n_actors = n_actors
         self.timer: StageTimer | None = None
+        self._fast = self.device.type == "cuda" and not eager  # compiled passes and the step's CUDA graph
         self._graphs: list[torch.cuda.CUDAGraph | None] = [None, None]  # one per observation buffer
         self._eager_steps = 0
+        _check_band(corpus, cfg.drone_radius)
+        self._build_spawns(spawns)
+        self._build_bounds()
+        self._build_ray_pattern()
+        self._build_counters(seed)
+        self._build_obstacles(scene_obstacles)
+        self._build_state()
+        self._build_stages()
+        self._build_outputs()
+
+    def _f32(self, *shape: int) -> torch.Tensor:
+        return torch.zeros(*shape, dtype=torch.float32, device=self.device)
+
+    def _i64(self, *shape: int) -> torch.Tensor:
+        return torch.zeros(*shape, dtype=torch.int64, device=self.device)
+
+    def _flag(self, *shape: int) -> torch.Tensor:
+        return torch.zeros(*shape, dtype=torch.bool, device=self.device)
+
+    def _build_spawns(self, spawns: Sequence[torch.Tensor] | None) -> None:
+        """The spawn table (qualifying every scene when no spawns are given) and, in point-goal episodes,
+        the goal bank, which drops the spawns no goal pairs with."""
+        from navi_env.space.qualify import scene_spawns
+
+        cfg, corpus = self.config, self.corpus
         n_scenes = len(corpus)
-        for info in corpus.infos:
-            certified = (info.band - math.sqrt(3.0) / 2.0) * info.voxel_size  # a far cube's least bound, m
-            if certified < cfg.drone_radius:
-                raise ValueError(
-                    f"scene {info.name!r} is exact only {certified:.3f} m from its surfaces (band {info.band} "
-                    f"voxels of {info.voxel_size:.3f} m), less than the drone radius {cfg.drone_radius} m: far "
-                    "from walls the drone would read contact. Recompile it with `navi compile --band-m 0.5`."
-                )
         spawn_lists = (
             list(spawns) if spawns is not None else [scene_spawns(corpus, s) for s in range(n_scenes)]
         )
@@ -158,39 +179,44 @@ class SdfDagEnv:
                         f"keep codes {FIRST_MARK_CODE}-255 for the goal mark (at most 239 classes)"
                     )
             tables = goals.build_tables(corpus, spawn_lists, cfg.goal, cfg.drone_radius)
-            self.goal_bank, spawn_lists = goals.goal_bank(tables, spawn_lists, dev)
+            self.goal_bank, spawn_lists = goals.goal_bank(tables, spawn_lists, self.device)
         clearances = [self._clearance_at(s, p) for s, p in enumerate(spawn_lists)]
-        self.spawns = episodes.spawn_table(spawn_lists, clearances, dev)
-        lo = torch.tensor([info.bounds_min for info in corpus.infos], dtype=torch.float32)  # (S, 3)
-        hi = torch.tensor([info.bounds_max for info in corpus.infos], dtype=torch.float32)  # (S, 3)
-        self._lo = (lo - cfg.bounds_margin).to(dev)  # (S, 3)
-        self._hi = (hi + cfg.bounds_margin).to(dev)  # (S, 3)
+        self.spawns = episodes.spawn_table(spawn_lists, clearances, self.device)
+
+    def _build_bounds(self) -> None:
+        """Every scene's geometry bounds grown by the margin the drone is kept within."""
+        infos, margin = self.corpus.infos, self.config.bounds_margin
+        lo = torch.tensor([info.bounds_min for info in infos], dtype=torch.float32)  # (S, 3)
+        hi = torch.tensor([info.bounds_max for info in infos], dtype=torch.float32)  # (S, 3)
+        self._lo = (lo - margin).to(self.device)  # (S, 3)
+        self._hi = (hi + margin).to(self.device)  # (S, 3)
+
+    def _build_ray_pattern(self) -> None:
+        """The sensor's ray directions and, on CUDA, the order the tracer runs them in."""
+        cfg, dev = self.config, self.device
         self.directions = ray_pattern(cfg.azimuth_bins, cfg.elevation_bins, cfg.sensor, dev)  # (R, 3)
         tiles = dev.type == "cuda" and cfg.azimuth_bins % 16 == 0 and cfg.elevation_bins % 2 == 0
         # (R,) int32 16x2 tiles of neighbouring rays per GPU warp: same results, more coherent warps
         self.ray_order = tiled_ray_order(cfg.azimuth_bins, cfg.elevation_bins).to(dev) if tiles else None
 
-        def f32(*shape: int) -> torch.Tensor:
-            return torch.zeros(*shape, dtype=torch.float32, device=dev)
-
-        def i64(*shape: int) -> torch.Tensor:
-            return torch.zeros(*shape, dtype=torch.int64, device=dev)
-
-        def flag(*shape: int) -> torch.Tensor:
-            return torch.zeros(*shape, dtype=torch.bool, device=dev)
-
-        r = cfg.rays
-        table_bytes = (1 << cfg.reward.exploration_table_bits) // 8
+    def _build_counters(self, seed: int) -> None:
+        """The seed and step counter that key the random numbers, and the actor indices."""
+        dev = self.device
         self.seed = torch.full((), seed, dtype=torch.int64, device=dev)  # () seed of the random numbers
         self.tick = torch.zeros(
             (), dtype=torch.int64, device=dev
         )  # () step counter keying the random numbers
-        self.actor = torch.arange(n, dtype=torch.int64, device=dev)  # (N,)
+        self.actor = torch.arange(self.n, dtype=torch.int64, device=dev)  # (N,)
         self._actor32 = self.actor.to(torch.int32)  # (N,) each actor's obstacle world
+
+    def _build_obstacles(self, scene_obstacles: Sequence[Mapping[str, float]] | None) -> None:
+        """The primitive records the tracer reads: each scene's scripted obstacles, then the squad's drones."""
+        cfg, dev, n = self.config, self.device, self.n
+        n_scenes = len(self.corpus)
         declared = list(scene_obstacles) if scene_obstacles is not None else [{}] * n_scenes
         if len(declared) != n_scenes:
             raise ValueError(f"got obstacle settings for {len(declared)} scenes, the corpus has {n_scenes}")
-        names = [info.name for info in corpus.infos]
+        names = [info.name for info in self.corpus.infos]
         self.scene_obstacles = obstacle_motion.scene_obstacles(
             cfg.obstacles, declared, names, dev
         )  # (S,) each
@@ -216,6 +242,13 @@ class SdfDagEnv:
             mates[..., ob.OWNER] = self._mates.to(torch.float32)
             mates[..., ob.RADIUS] = cfg.drone_radius
             mates[..., ob.QUAT] = 1.0
+
+    def _build_state(self) -> None:
+        """Per-actor state (pose, episode counters, visited cells, goal), the traced rays and the
+        observation buffers."""
+        cfg, dev, n = self.config, self.device, self.n
+        f32, i64 = self._f32, self._i64
+        table_bytes = (1 << cfg.reward.exploration_table_bits) // 8
         self.actions = f32(n, 4)  # (N, 4) this step's actions (a fixed address for the CUDA graph)
         self.scene = i64(n)  # (N,) scene index per actor
         self.position = f32(n, 3)  # (N, 3) world meters
@@ -236,16 +269,19 @@ class SdfDagEnv:
         self.fresh = torch.ones(
             n, dtype=torch.bool, device=dev
         )  # (N,) previous frame is from another episode
-        self.depth = f32(n, r)  # (N, R) traced distance, meters
-        self.semantic = torch.zeros(n, r, dtype=torch.uint8, device=dev)  # (N, R) 0 miss, 1 + class on a hit
+        self.depth = f32(n, cfg.rays)  # (N, R) traced distance, meters
+        self.semantic = torch.zeros(
+            n, cfg.rays, dtype=torch.uint8, device=dev
+        )  # (N, R) 0 miss, 1 + class on a hit
         self._obs_ring = tuple(
             f32(n, CHANNELS, cfg.azimuth_bins, cfg.elevation_bins) for _ in range(cfg.obs_buffers)
-        )
+        )  # (N, 3, Az, El) each
         self._slot = 0  # the ring's buffer this step writes (and, on CUDA, its own graph)
         self.obs = self._obs_ring[0]  # (N, 3, Az, El)
-        self._fused_observation = cfg.fused_observation and dev.type == "cuda"
-        self._fused_obstacles = cfg.fused_obstacles and dev.type == "cuda"
-        fuse = fused if cfg.fused_step and dev.type == "cuda" else _eager
+
+    def _build_stages(self) -> None:
+        """The stages' elementwise functions: compiled on the CUDA path (`fused`), eager otherwise."""
+        fuse = fused if self._fast else _eager
         self._commanded_step = fuse(physics.commanded_step)
         self._safe_move = fuse(physics.safe_move)
         self._visit = fuse(rewards.visit)
@@ -255,7 +291,11 @@ class SdfDagEnv:
         self._draw_goal = fuse(goals.draw_goal)
         # eager everywhere: inductor rounds the hop sums of goal_distance differently
         self._goal_distance = goals.goal_distance
-        self._semantic_table = semantic_table(dev)  # (256,) float32 channel 1 per semantic code
+        self._semantic_table = semantic_table(self.device)  # (256,) float32 channel 1 per semantic code
+
+    def _build_outputs(self) -> None:
+        """View statistics, rewards, episode flags, info, and the StepOut per observation buffer."""
+        n, f32, i64, flag = self.n, self._f32, self._i64, self._flag
         self.void = f32(n)  # (N,) view statistics of the current observation
         self.near = f32(n)  # (N,)
         self.mid = f32(n)  # (N,)
@@ -263,7 +303,7 @@ class SdfDagEnv:
         # (N,) each: the statistics of the view the last action was chosen on
         self.before = {k: f32(n) for k in VIEW_KEYS}
         self.reward = f32(n)  # (N,)
-        self.terms = {name: f32(n) for name in rewards.task_terms(cfg.task)}  # name -> (N,)
+        self.terms = {name: f32(n) for name in rewards.task_terms(self.config.task)}  # name -> (N,)
         self.done = flag(n)  # (N,) terminated: at the goal (point-goal); always False when exploring
         self.truncated = flag(n)  # (N,)
         self.ended = flag(n)  # (N,) done or truncated: auto-reset this step
@@ -281,7 +321,7 @@ class SdfDagEnv:
             "obstacle_collision": flag(n),  # (N,) the collision was with a moving obstacle
             "drone_collision": flag(n),  # (N,) the collision was with another drone of the squad
         }
-        if cfg.task == "pointgoal":
+        if self.config.task == "pointgoal":
             self.info |= {
                 "success": flag(n),  # (N,) the episode ended at the goal
                 "goal_distance": f32(n),  # (N,) path length to the goal after the move, meters
@@ -377,13 +417,8 @@ class SdfDagEnv:
         return self._obs_ring[self._slot ^ 1]
 
     def _graph_ready(self) -> bool:
-        """Record the step as a CUDA graph now? (CUDA, enabled, no timer, after two eager steps)."""
-        return (
-            self.device.type == "cuda"
-            and self.config.cuda_graph
-            and self.timer is None
-            and self._eager_steps >= 2
-        )
+        """Record the step as a CUDA graph now? (the CUDA path, no timer, after two eager steps)."""
+        return self._fast and self.timer is None and self._eager_steps >= 2
 
     def _step(self) -> None:
         """One step of every actor: reads self.actions, writes the buffers (see the module docstring)."""
@@ -414,9 +449,7 @@ class SdfDagEnv:
             )  # (N,) bool
             contact, obstacle_contact, drone_contact = move.contact, struck, self._never
             if self.obstacles is not None:
-                nearest = obstacle_motion.obstacle_distance(
-                    self.obstacles, move.position, self._fused_obstacles
-                )  # (N,)
+                nearest = obstacle_motion.obstacle_distance(self.obstacles, move.position, self._fast)  # (N,)
                 obstacle_contact = struck | (move.contact & (nearest <= move.clearance + 1e-4))  # (N,)
                 contact = move.contact | struck  # (N,) bool
             if self.squad > 1:
@@ -576,7 +609,7 @@ class SdfDagEnv:
             self.seed,
             self.tick,
             self.actor,
-            self._fused_obstacles,
+            self._fast,
         )
 
     def _place_drones(self, position: torch.Tensor, radius: torch.Tensor) -> None:
@@ -622,7 +655,7 @@ class SdfDagEnv:
             self.seed,
             self.tick,
             self.actor,
-            self._fused_obstacles,
+            self._fast,
         )
 
     def _trace(self) -> None:
@@ -652,7 +685,7 @@ class SdfDagEnv:
         if cfg.sensor.enabled:
             depth, semantic = apply_sensor(depth, semantic, cfg.sensor, cfg.horizon, self.seed, self.tick)
         views = (self.obs, depth, semantic, self.fresh, self.depth, self.semantic)  # what both passes read
-        if self._fused_observation:
+        if self._fast:
             stats = observe(*views, self._semantic_table, cfg.horizon, cfg.reward, prev)
         else:
             stats = observe_ref(*views, cfg.horizon, cfg.reward, prev)
@@ -686,6 +719,19 @@ class SdfDagEnv:
         return sample_distance(self.corpus, ids, points.to(dev, torch.float32).contiguous()).cpu()
 
 
+def _check_band(corpus: SceneCorpus, drone_radius: float) -> None:
+    """Every scene's exact band reaches past the drone radius, or the drone would read contact far from
+    walls."""
+    for info in corpus.infos:
+        certified = (info.band - math.sqrt(3.0) / 2.0) * info.voxel_size  # a far cube's least bound, m
+        if certified < drone_radius:
+            raise ValueError(
+                f"scene {info.name!r} is exact only {certified:.3f} m from its surfaces (band {info.band} "
+                f"voxels of {info.voxel_size:.3f} m), less than the drone radius {drone_radius} m: far "
+                "from walls the drone would read contact. Recompile it with `navi compile --band-m 0.5`."
+            )
+
+
 @contextlib.contextmanager
 def _no_stage(name: str) -> Iterator[None]:
     yield
@@ -695,9 +741,9 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def fused(fn: F, backend: str = "inductor", fullgraph: bool = False) -> F:
-    """fn compiled by torch.compile into few kernels (the env's CUDA path, EnvConfig.fused_step),
-    compiled by the first eager steps, before the step's CUDA graph is recorded. Inductor runs without
-    fp contraction (`emulate_precision_casts`) and with round-to-nearest division
+    """fn compiled by torch.compile into few kernels (the env's CUDA path; `SdfDagEnv(eager=True)` runs
+    fn itself), compiled by the first eager steps, before the step's CUDA graph is recorded. Inductor
+    runs without fp contraction (`emulate_precision_casts`) and with round-to-nearest division
     (`eager_numerics.division_rounding`), so every float operation rounds as in the eager kernels;
     `sample_distance` enters the graph as an opaque op (navi_env.tracer.trace._sample_op).
 

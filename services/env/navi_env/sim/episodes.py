@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import torch
 
+from navi_env.config import EnvConfig
 from navi_env.sim import rng
-from navi_env.sim.config import EnvConfig
 
 
 @dataclass(frozen=True)

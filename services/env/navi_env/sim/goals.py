@@ -2,7 +2,7 @@
 the true path length to the goal from any point, and the goal mark in the observation.
 
 The GoalBank is built once, when a point-goal env is created (`goal_bank`): per scene, the free space at
-the drone's radius, its goals and their path-length fields (navi_env.corpus.goals.GoalTable), and which
+the drone's radius, its goals and their path-length fields (navi_env.space.goal_tables.GoalTable), and which
 spawn pairs with which goal. Spawns that no goal pairs with are dropped from that env's spawn table.
 
 The goal reaches the policy through the observation only (docs/TASKS.md): `paint_goal` writes the goal
@@ -19,12 +19,12 @@ from dataclasses import dataclass
 
 import torch
 
-from navi_env.corpus.freespace import free_space, lattice_cell
-from navi_env.corpus.goals import CORNERS, GoalTable, goal_table
+from navi_env.config import EnvConfig, GoalConfig
 from navi_env.sim import rng
-from navi_env.sim.config import EnvConfig, GoalConfig
 from navi_env.sim.episodes import pick_index
 from navi_env.sim.observation import MARK_BANDS
+from navi_env.space.freespace import free_space, lattice_cell
+from navi_env.space.goal_tables import CORNERS, GoalTable, goal_table
 from navi_env.tracer.scene import SceneCorpus
 
 MARK_EDGES: tuple[float, ...] = (

@@ -3,7 +3,7 @@
 Channels: 0 depth / horizon in [0, 1] (1 = miss), rounded to float16 (10 bits of mantissa: 0.05% of
 the depth); 1 semantic: 0 for a miss, 0.5 + 0.5 * class / 255 for a hit (so any hit reads >= 0.5, class
 0 "unknown" reads 0.5); 2 delta depth: channel 0 minus its value one step earlier (exact in float32,
-both being float16 values in [0, 1]), 0 right after a reset. Layout of (Az, El): see navi_env.sim.sensor.
+both being float16 values in [0, 1]), 0 right after a reset. Layout of (Az, El): see navi_env.rays.
 
 So an observation is fully given by its compact form (`pack`): channel 0 as float16 and the semantic
 code as one byte per ray (3 bytes per ray instead of 12), with channel 2 recomputed from two
@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from navi_env.sim.config import RewardConfig
+from navi_env.config import RewardConfig
 
 CHANNELS = 3
 """C: depth, semantic, delta depth."""
@@ -143,7 +143,7 @@ def front_bin_count(azimuth_bins: int) -> int:
 
 
 def view_stats(depth: torch.Tensor, hit: torch.Tensor, azimuth_bins: int, cfg: RewardConfig) -> ViewStats:
-    """Statistics of views: depth (N, R) meters, hit (N, R) bool; rays ordered as navi_env.sim.sensor says.
+    """Statistics of views: depth (N, R) meters, hit (N, R) bool; rays ordered as navi_env.rays says.
 
     Near and mid-range rays are counted by depth (a miss reads the horizon, beyond both bands). The
     front half is the azimuth bins that look forward (see `is_front`). The clearance is the shortest

@@ -32,8 +32,8 @@ from typing import TypeVar, cast
 
 import torch
 
+from navi_env.config import OBSTACLE_MOTIONS, ObstacleConfig
 from navi_env.sim import rng
-from navi_env.sim.config import OBSTACLE_MOTIONS, ObstacleConfig
 from navi_env.sim.episodes import SpawnTable, pick_index
 from navi_env.tracer import primitives as ob
 from navi_env.tracer import trace

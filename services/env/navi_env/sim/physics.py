@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from navi_env.sim.config import EnvConfig
+from navi_env.config import EnvConfig
 
 DistanceFn = Callable[[torch.Tensor], torch.Tensor]
 """Maps points (N, 3) float32 meters to signed clearances (N,) float32 meters (positive in free space)."""
@@ -44,7 +44,7 @@ class Move:
 def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Dot products (N,) of vectors (N, 3), summed in x, y, z order. Elementwise operations only (no
     reduction kernel, no scalar divisor, which eager CUDA turns into a reciprocal multiply), so the eager
-    kernels and a torch.compile'd graph (EnvConfig.fused_step) round every physics value identically."""
+    kernels and a torch.compile'd graph (the env's CUDA path) round every physics value identically."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 

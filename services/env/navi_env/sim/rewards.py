@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from navi_env.sim.config import EnvConfig, RewardConfig
+from navi_env.config import EnvConfig, RewardConfig
 
 TERMS: tuple[str, ...] = (
     "collision",

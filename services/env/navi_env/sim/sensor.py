@@ -1,42 +1,20 @@
-"""The sensor: the ray pattern in the body frame and the optional range noise and dropout.
+"""The sensor's range noise and dropout over exact traced depths, and the dome LiDAR preset.
 
-Pattern layout (docs/SIMULATION.md): ray r = a * El + e for azimuth bin a and elevation bin e.
-Azimuth bin a looks at angle 2*pi*a/Az from body +X toward body +Y (counter-clockwise seen from
-above), so bin 0 is straight ahead and bin Az/4 is to the left. Elevation bin e is centred at
-lo + (e + 0.5) * (hi - lo) / El, from the lowest (straight down by default) to the highest.
+The ray pattern itself is navi_env.rays.ray_pattern.
 """
 
 from __future__ import annotations
 
-import math
-
 import torch
 
+from navi_env.config import SensorConfig
 from navi_env.sim import rng
-from navi_env.sim.config import SensorConfig
 
 
 def dome_lidar() -> SensorConfig:
     """Preset: a dome LiDAR (360 degrees around, -7 to +52 degrees of elevation, 2 cm range noise,
     1% dropout), like common 360-degree dome scanners on small drones."""
     return SensorConfig(range_noise_std=0.02, dropout=0.01, elevation_min_deg=-7.0, elevation_max_deg=52.0)
-
-
-def ray_pattern(
-    azimuth_bins: int, elevation_bins: int, sensor: SensorConfig, device: torch.device | str = "cpu"
-) -> torch.Tensor:
-    """Unit ray directions (R, 3) float32 in the body frame, R = Az * El, azimuth-major (see module doc)."""
-    az = torch.arange(azimuth_bins, dtype=torch.float64) * (2.0 * math.pi / azimuth_bins)  # (Az,)
-    lo, hi = math.radians(sensor.elevation_min_deg), math.radians(sensor.elevation_max_deg)
-    el = lo + (torch.arange(elevation_bins, dtype=torch.float64) + 0.5) * (
-        (hi - lo) / elevation_bins
-    )  # (El,)
-    a, e = torch.meshgrid(az, el, indexing="ij")  # (Az, El) each
-    dirs = torch.stack(
-        (torch.cos(e) * torch.cos(a), torch.cos(e) * torch.sin(a), torch.sin(e)), dim=-1
-    )  # (Az, El, 3)
-    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-    return dirs.reshape(-1, 3).to(device=device, dtype=torch.float32).contiguous()  # (R, 3)
 
 
 def apply_sensor(

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from navi_env.sim.rays import spherical_directions
+from navi_env.rays import spherical_directions
 from navi_env.tracer.scene import SceneCorpus, load_scene
 from navi_env.tracer.trace import trace
 

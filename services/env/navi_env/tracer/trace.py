@@ -268,7 +268,6 @@ def trace(
     prims: torch.Tensor | None = None,
     prim_world: torch.Tensor | None = None,
     hit_slope: float = 0.0,
-    origin_pass: bool = True,
 ) -> None:
     """Sphere-trace B actors x R rays; write depth (meters), semantic and step counts in place.
 
@@ -278,7 +277,7 @@ def trace(
     out_depth: (B, R) float32 meters, `horizon` on a miss. out_semantic: (B, R) int32 or uint8,
     0 = miss, 1 + class id on a hit (uint8 saturates at 255). out_steps: (B, R) int32 main-loop steps.
     ray_order: (R,) int32 permutation deciding which rays share a GPU warp (e.g.
-    `navi_env.sim.rays.tiled_ray_order`); results do not depend on it, speed does (coherent warps).
+    `navi_env.rays.tiled_ray_order`); results do not depend on it, speed does (coherent warps).
     Without validation a non-permutation leaves some outputs unwritten (never out of bounds).
     max_steps: bound per ray; a ray out of steps reports the distance reached and semantic 0.
     hit_epsilon: meters; None uses 0.1 voxel of each scene. hit_slope: the hit threshold grows with
@@ -289,10 +288,53 @@ def trace(
     prims: (W, K, 16) float32 dynamic primitive records (navi_env.tracer.primitives); prim_world: (B,) int32
     world of each actor (default: actor b sees world b). A ray reports the first primitive it enters
     when that comes before the static surface; actor b never sees the primitive it owns.
-    origin_pass: sample each actor's origin once before its rays (every ray whose origin lies in the
-    cube takes its first sample there) instead of once per ray; the results, steps included, are the
-    same bit for bit (False is for tests and measurements).
+    The launch samples each actor's origin once before its rays: every ray whose origin lies in the cube
+    takes its first sample there.
     """
+    _trace(
+        scenes,
+        scene_ids,
+        origins,
+        directions,
+        out_depth=out_depth,
+        out_semantic=out_semantic,
+        yaw=yaw,
+        out_steps=out_steps,
+        ray_order=ray_order,
+        max_steps=max_steps,
+        horizon=horizon,
+        hit_epsilon=hit_epsilon,
+        skip_direction_validation=skip_direction_validation,
+        prims=prims,
+        prim_world=prim_world,
+        hit_slope=hit_slope,
+        origin_pass=True,
+    )
+
+
+def _trace(
+    scenes: SceneCorpus,
+    scene_ids: torch.Tensor,
+    origins: torch.Tensor,
+    directions: torch.Tensor,
+    *,
+    out_depth: torch.Tensor,
+    out_semantic: torch.Tensor | None = None,
+    yaw: torch.Tensor | None = None,
+    out_steps: torch.Tensor | None = None,
+    ray_order: torch.Tensor | None = None,
+    max_steps: int = DEFAULT_MAX_STEPS,
+    horizon: float = DEFAULT_HORIZON,
+    hit_epsilon: float | None = None,
+    skip_direction_validation: bool = False,
+    prims: torch.Tensor | None = None,
+    prim_world: torch.Tensor | None = None,
+    hit_slope: float = 0.0,
+    origin_pass: bool,
+) -> None:
+    """`trace`, with origin_pass=False sampling each ray's origin in the ray itself: the slow twin the
+    origin-sample parity tests compare the launch with (the results, steps included, are the same bit for
+    bit)."""
     p = validate_trace(
         scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps, ray_order,
         max_steps, horizon, hit_epsilon, skip_direction_validation, hit_slope,

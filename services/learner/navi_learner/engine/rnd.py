@@ -11,7 +11,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from navi_learner.ppo.dist import pooled_moments
+from navi_learner.engine.moments import pooled_moments
 
 
 def mlp(dim_in: int, hidden: int, dim_out: int) -> nn.Sequential:

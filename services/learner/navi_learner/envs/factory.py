@@ -14,7 +14,7 @@ from navi_learner.envs.protocol import BatchedEnv
 from navi_learner.envs.toy import ToyEnv
 
 if TYPE_CHECKING:
-    from navi_env.sim.config import RewardConfig
+    from navi_env.config import RewardConfig
 
 EnvKind = Literal["sdfdag", "toy"]
 
@@ -41,7 +41,7 @@ def corpus_summary(corpus: Path | None, kind: EnvKind) -> dict[str, Any]:
 def reward_config(overrides: Mapping[str, float]) -> RewardConfig:
     """The default RewardConfig with the named float fields replaced; ValueError names an unknown
     field or one that is not a float weight (exploration_table_bits is a size, not a weight)."""
-    from navi_env.sim.config import RewardConfig
+    from navi_env.config import RewardConfig
 
     floats = {f.name for f in fields(RewardConfig) if f.type in ("float", float)}
     unknown = sorted(set(overrides) - floats)
@@ -96,13 +96,13 @@ def make_env(
     if not corpus.is_dir():
         raise EnvUnavailable(f"corpus folder {corpus} does not exist (build one with `navi corpus build`)")
     try:
-        from navi_env.corpus.folder import CorpusError, load_corpus
-        from navi_env.sim.config import POINTGOAL_EPISODE_STEPS, EnvConfig, ObstacleConfig
+        from navi_env.config import POINTGOAL_EPISODE_STEPS, EnvConfig, ObstacleConfig
+        from navi_env.corpus.folder import CorpusError, load_corpus_folder
         from navi_env.sim.env import SdfDagEnv
     except ImportError as err:
         raise EnvUnavailable(f"navi_env's SdfDagEnv is not importable: {err}") from err
     try:
-        scenes, manifest = load_corpus(corpus, torch.device(device), rank, world, scene)
+        scenes, manifest = load_corpus_folder(corpus, torch.device(device), rank, world, scene)
     except CorpusError as err:
         raise EnvUnavailable(str(err)) from err
     steps = episode_steps if episode_steps > 0 else POINTGOAL_EPISODE_STEPS if task == "pointgoal" else 0

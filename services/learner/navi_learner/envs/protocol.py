@@ -20,7 +20,7 @@ starvation), "novel_cell" (N,) bool.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import torch
 
@@ -63,10 +63,8 @@ class StepLike(Protocol):
 class BatchedEnv(Protocol):
     """N actors stepped together on one device.
 
-    An env whose observations are DistanceMatrix v2 exactly as navi_env.sim.observation writes them (channel
-    0 float16 values, channel 1 from the semantic table, channel 2 the difference of consecutive channel
-    0s, 0 where an episode starts) says so with a true `compact_obs` attribute: its rollouts are then
-    stored in 3 bytes per ray (navi_learner.ppo.rollout). Without it, or false, they are stored as float32.
+    What an env may offer beyond these members is its capabilities (EnvCapabilities, read by
+    `capabilities`): the learner and the baselines ask that one function, never the env itself.
     """
 
     @property
@@ -86,3 +84,58 @@ class BatchedEnv(Protocol):
         """Apply actions (N, 4) float32 in [-1, 1] and advance one step. The returned tensors may be the
         env's own buffers, valid until the next step: the learner copies what it keeps."""
         ...
+
+
+@dataclass(frozen=True)
+class EnvCapabilities:
+    """What an env offers beyond BatchedEnv, each optional; the defaults are those of an env that offers
+    none (the toy env offers `horizon`, the drone env navi_env.sim.env.SdfDagEnv all of them)."""
+
+    compact_obs: bool = False
+    """Observations are DistanceMatrix v2 exactly as navi_env.sim.observation writes them (channel 0
+    float16 values, channel 1 from the semantic table, channel 2 the difference of consecutive channel
+    0s, 0 where an episode starts): rollouts are then stored in 3 bytes per ray (navi_learner.ppo.rollout),
+    else as float32. The env's `compact_obs` attribute."""
+    goal_marks: bool = False
+    """Channel 1 carries point-goal marks (semantic codes of the goal bands). The env's `goal_marks`."""
+    goal_paths: bool = False
+    """The env holds path lengths to its goals (a point-goal drone env's `goal_bank`), which the oracle
+    baseline follows."""
+    task: str = "explore"
+    """The episodes' task: "explore" or "pointgoal" (the drone env's config.task)."""
+    shaping_gamma: float | None = None
+    """The discount of the env's potential-based reward shaping (config.reward.shaping_gamma)."""
+    horizon: float | None = None
+    """Meters that depth 1.0 in channel 0 stands for (config.horizon, or the env's own `horizon`)."""
+    elevation_deg: tuple[float, float] | None = None
+    """The rays' lowest and highest elevation in degrees (config.sensor); None where not known."""
+    dt: float = 0.1
+    """Seconds per step (config.dt)."""
+    scenes: tuple[str, ...] = ()
+    """Names of the scenes the env flies (its corpus's infos)."""
+
+
+def capabilities(env: Any) -> EnvCapabilities:
+    """The capabilities `env` declares: its `compact_obs`, `goal_marks`, `goal_bank`, `horizon` and
+    `corpus` attributes, and its `config` (a navi_env EnvConfig: task, reward.shaping_gamma, horizon,
+    sensor, dt) where it has one; the EnvCapabilities default for each one it lacks."""
+    cfg: Any = getattr(env, "config", None)
+    sensor = getattr(cfg, "sensor", None)
+    horizon = getattr(env, "horizon", None)
+    if sensor is not None:
+        horizon, elevation = float(cfg.horizon), (sensor.elevation_min_deg, sensor.elevation_max_deg)
+    else:
+        horizon, elevation = (float(horizon) if isinstance(horizon, (int, float)) else None), None
+    shaping_gamma = getattr(getattr(cfg, "reward", None), "shaping_gamma", None)
+    infos = getattr(getattr(env, "corpus", None), "infos", None) or []
+    return EnvCapabilities(
+        compact_obs=bool(getattr(env, "compact_obs", False)),
+        goal_marks=bool(getattr(env, "goal_marks", False)),
+        goal_paths=getattr(env, "goal_bank", None) is not None,
+        task=str(getattr(cfg, "task", "explore")),
+        shaping_gamma=None if shaping_gamma is None else float(shaping_gamma),
+        horizon=horizon,
+        elevation_deg=elevation,
+        dt=float(getattr(cfg, "dt", 0.1)),
+        scenes=tuple(str(getattr(info, "name", "")) for info in infos),
+    )

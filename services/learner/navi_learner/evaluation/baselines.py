@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from navi_learner.engine.heads import ACTION_DIM
+from navi_learner.envs.protocol import capabilities
 
 
 class EvalPolicy(Protocol):
@@ -163,15 +164,13 @@ def reactive_for(horizon: float, elevation_min: float, elevation_max: float) -> 
 
 
 def reactive_for_env(env: object) -> ReactivePolicy:
-    """The reactive baseline tuned to an env: the drone env's horizon and ray pattern (`config`), a
-    toy env's `horizon`, or the defaults."""
-    cfg = getattr(env, "config", None)
-    if cfg is not None and hasattr(cfg, "sensor"):
-        return reactive_for(cfg.horizon, cfg.sensor.elevation_min_deg, cfg.sensor.elevation_max_deg)
-    horizon = getattr(env, "horizon", None)
-    if isinstance(horizon, (int, float)):
-        return reactive_for(float(horizon), -90.0, 90.0)
-    return ReactivePolicy()
+    """The reactive baseline tuned to an env's capabilities: its horizon and ray pattern (the drone env),
+    its horizon over every elevation (the toy env), or the defaults."""
+    caps = capabilities(env)
+    if caps.horizon is None:
+        return ReactivePolicy()
+    low, high = caps.elevation_deg or (-90.0, 90.0)
+    return reactive_for(caps.horizon, low, high)
 
 
 @dataclass(frozen=True)
@@ -269,7 +268,7 @@ class OracleGoalPolicy(GoalSeekerPolicy):
         self, env: Any, cfg: GoalSeekerConfig | None = None, probe: float = 0.5, straight: float = 1.5
     ):
         super().__init__(cfg)
-        if getattr(env, "goal_bank", None) is None:
+        if not capabilities(env).goal_paths:
             raise ValueError("the oracle needs a point-goal SdfDagEnv (EnvConfig(task='pointgoal'))")
         self.env, self.probe, self.straight = env, probe, straight
         offsets = torch.tensor(
@@ -306,13 +305,10 @@ class OracleGoalPolicy(GoalSeekerPolicy):
 def goal_seeker_for_env(name: str, env: Any) -> GoalSeekerPolicy:
     """The `greedy` or `oracle` point-goal baseline tuned to a point-goal drone env (its horizon and ray
     pattern); ValueError for any other env."""
-    cfg = getattr(env, "config", None)
-    if cfg is None or getattr(cfg, "task", "explore") != "pointgoal":
+    caps = capabilities(env)
+    if caps.task != "pointgoal" or caps.horizon is None or caps.elevation_deg is None:
         raise ValueError("the point-goal baselines need a point-goal drone env (--task pointgoal)")
-    avoid = ReactiveConfig(
-        horizon=cfg.horizon,
-        elevation_min=cfg.sensor.elevation_min_deg,
-        elevation_max=cfg.sensor.elevation_max_deg,
-    )
+    low, high = caps.elevation_deg
+    avoid = ReactiveConfig(horizon=caps.horizon, elevation_min=low, elevation_max=high)
     seeker = GoalSeekerConfig(avoid=avoid)
     return OracleGoalPolicy(env, seeker) if name == "oracle" else GreedyGoalPolicy(seeker)

@@ -18,7 +18,7 @@ from typing import Any
 import torch
 
 from navi_learner.engine.policy import CognitiveMambaPolicy
-from navi_learner.envs.protocol import BatchedEnv
+from navi_learner.envs.protocol import BatchedEnv, capabilities
 from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, goal_seeker_for_env, reactive_for_env
 from navi_learner.evaluation.evaluate import EvalMetrics, ModulePolicy, competent, evaluate, goal_competent
 
@@ -56,15 +56,10 @@ class EvalProtocol:
         return cls() if device.type == "cuda" else cls(actors=48, steps=500, episode_steps=250)
 
 
-def env_task(env: object) -> str:
-    """The task of a drone env (EnvConfig.task); explore for any other env."""
-    return str(getattr(getattr(env, "config", None), "task", "explore"))
-
-
 def evaluate_baselines(env: BatchedEnv, protocol: EvalProtocol) -> dict[str, EvalMetrics]:
     """random and reactive on the protocol's env seed; random, greedy and oracle for point-goal episodes."""
     policies: list[EvalPolicy] = [RandomPolicy(protocol.seed)]
-    if env_task(env) == "pointgoal":
+    if capabilities(env).task == "pointgoal":
         policies += [goal_seeker_for_env("greedy", env), goal_seeker_for_env("oracle", env)]
     else:
         policies.append(reactive_for_env(env))

@@ -35,7 +35,7 @@ import torch
 from navi_learner.config import EngineConfig
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
-from navi_learner.envs.protocol import BatchedEnv
+from navi_learner.envs.protocol import BatchedEnv, capabilities
 from navi_learner.evaluation.baselines import EvalPolicy
 from navi_learner.serving.checkpoint import load_checkpoint
 
@@ -247,7 +247,7 @@ def evaluate(
         "soft_spl",
         "goal_seconds",
     )
-    dt = float(getattr(getattr(env, "config", None), "dt", 0.1))  # seconds per step
+    dt = capabilities(env).dt  # seconds per step
     acc = {k: torch.zeros(n, dtype=torch.float64, device=device) for k in names}  # (N,) float64 each
     has = {
         k: False for k in ("collision", "obstacle_collision", "clearance", "starved", "position", "success")

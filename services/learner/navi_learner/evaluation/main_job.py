@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe, learning_size
 from navi_learner.envs.factory import EnvUnavailable, corpus_summary, make_env
 from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, goal_seeker_for_env, reactive_for_env
 from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol, plot_curves
@@ -118,16 +118,14 @@ def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int 
 
 
 def cuda_config(job: MainJobConfig) -> TrainConfig:
-    """Training on a GPU: the learning benchmark's settings (navi_bench.learn.train_config), time-limited."""
-    return TrainConfig(
-        n_actors=2048,
-        rollout_length=64,
-        total_steps=10**12,
+    """Training on a GPU: the learning benchmark's run (config.learning_recipe at learning_size's 2,048
+    actors and 64-step rollouts), time-limited by the job's budget."""
+    return replace(
+        learning_size(learning_recipe(), cuda=True),
         time_limit_s=job.budget_s,
         seed=job.seed,
         device=job.device,
         task=job.task,
-        ppo=PPOConfig(lr=3e-4, ppo_epochs=2, max_minibatch=16_384),
     )
 
 
@@ -145,7 +143,7 @@ def cpu_config(job: MainJobConfig, start_step: int) -> TrainConfig:
         total_steps=start_step + job.cpu_steps,
         seed=job.seed,
         device=job.device,
-        ppo=PPOConfig(lr=CPU_LR, ppo_epochs=1),
+        ppo=PPOConfig(lr=CPU_LR),
     )
 
 

@@ -14,7 +14,8 @@ copy on its own device (cuda:LOCAL_RANK, or the CPU). What crosses ranks, and wh
 - every update: the stop flags (max: a signal on any rank, a time limit, a monitor) and the mean
   extrinsic reward;
 - every log row and checkpoint: the episode statistics (sums).
-With world size 1 there is no process group and none of these calls are made.
+With world size 1 there is no process group and none of these calls are made: the training loop calls
+Solo, Sync's single-process twin, whose every call leaves its values as they are.
 
 Collectives fail after NAVI_DIST_TIMEOUT_S seconds (default 120): gloo raises, and the error becomes a
 DistError naming the timeout; NCCL's watchdog tears the process down (TORCH_NCCL_ASYNC_ERROR_HANDLING=1,
@@ -43,6 +44,8 @@ from typing import Any, TypeVar
 import torch
 import torch.distributed as tdist
 from torch import nn
+
+from navi_learner.engine.moments import pooled_moments
 
 TIMEOUT_ENV = "NAVI_DIST_TIMEOUT_S"
 """Seconds a collective may wait for the other ranks before the run fails."""
@@ -153,9 +156,65 @@ def collective(d: Dist, what: str, call: Callable[[], T]) -> T:
         ) from err
 
 
+class Solo:
+    """The collectives of a single-process run, Sync's twin: each leaves its values as they are, so the
+    training loop reads the same for one rank and for N. `reduce` is None: statistics are taken over
+    this process's batch directly (RND normaliser, episode statistics), and `pools_advantages` is
+    False: the minibatch objective normalises its own advantages."""
+
+    active = False
+    pools_advantages = False
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+
+    @property
+    def reduce(self) -> Callable[[torch.Tensor], torch.Tensor] | None:
+        """What sums a tensor over ranks in place, for statistics that pool over ranks: none here."""
+        return None
+
+    def sum_(self, t: torch.Tensor) -> torch.Tensor:
+        """t itself (the sum over one rank)."""
+        return t
+
+    def barrier(self) -> None:
+        """Nothing to wait for."""
+
+    def mean(self, values: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """`values` themselves (the mean over one rank)."""
+        return values
+
+    def average_grads(self, loss: torch.Tensor) -> torch.Tensor:
+        """() bool: this process's loss is non-finite (the gradients are this process's)."""
+        return ~torch.isfinite(loss)
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        """x as it is: the objective normalises a minibatch's advantages (pools_advantages is False)."""
+        return x
+
+    def agree(self, interrupt: bool, stop: bool, ext_mean: torch.Tensor) -> tuple[bool, bool, torch.Tensor]:
+        """The flags and the mean extrinsic reward as they are."""
+        return interrupt, stop, ext_mean
+
+    def broadcast_module(self, module: nn.Module) -> None:
+        """Nothing to copy: this replica is the only one."""
+
+    def broadcast_object(self, obj: T) -> T:
+        """`obj` itself."""
+        return obj
+
+    def gather_object(self, obj: T) -> list[T]:
+        """[obj]."""
+        return [obj]
+
+
 class Sync:
     """The collectives of one data-parallel run on `device`; the gradient buffer is allocated once.
-    With `timers` (training's StageTimers) every all-reduce is timed as the stage "sync"."""
+    With `timers` (training's StageTimers) every all-reduce is timed as the stage "sync". A
+    single-process run uses its twin Solo, whose every call leaves the values as they are."""
+
+    active = True
+    pools_advantages = True
 
     def __init__(
         self,
@@ -177,6 +236,11 @@ class Sync:
         with self.timers("sync") if self.timers is not None else nullcontext():
             collective(self.d, what, lambda: tdist.all_reduce(t, op=op))
         return t
+
+    @property
+    def reduce(self) -> Callable[[torch.Tensor], torch.Tensor] | None:
+        """What sums a tensor over ranks in place (sum_), for statistics that pool over ranks."""
+        return self.sum_
 
     def sum_(self, t: torch.Tensor) -> torch.Tensor:
         """Sum t over ranks, in place; returns t."""
@@ -251,16 +315,18 @@ class Sync:
         return out
 
 
-def pooled_moments(
-    x: torch.Tensor, reduce: Callable[[torch.Tensor], torch.Tensor]
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean and population variance () float64 of the union of every rank's x (any shape); `reduce`
-    sums a tensor over ranks in place (Sync.sum_)."""
-    v = x.detach().double().reshape(-1)  # (n,) float64
-    count = torch.full((), float(v.numel()), dtype=torch.float64, device=x.device)  # () float64
-    stats = reduce(torch.stack([v.sum(), v.pow(2).sum(), count]))  # (3,) float64 summed over ranks
-    mean = stats[0] / stats[2]  # () float64
-    return mean, (stats[1] / stats[2] - mean.pow(2)).clamp(min=0.0)
+Collectives = Solo | Sync
+"""What the training loop calls across ranks: Sync on several ranks, Solo on one."""
+
+
+def collectives(
+    d: Dist,
+    params: list[nn.Parameter],
+    device: torch.device,
+    timers: Callable[[str], AbstractContextManager[None]] | None = None,
+) -> Collectives:
+    """Sync for a data-parallel rank (`d.active`), else Solo."""
+    return Sync(d, params, device, timers) if d.active else Solo(device)
 
 
 class StopSignals:

@@ -23,8 +23,8 @@ constexpr float kSecantReach = 16.0f;   // a stop within the threshold reports t
 // actor before the rays (one thread per actor), together with what every ray of the actor would
 // otherwise derive again: the scene id, the origin in voxel space and the cosine and sine of the yaw.
 // Each ray then starts from the record (start_ray) and takes its first step from it (first_step):
-// bit-identical to each ray loading, converting and sampling for itself, and on an 8,192-actor launch
-// of short rays the per-ray set-up was as many instructions as the walk (docs/PERFORMANCE.md).
+// bit-identical to each ray loading, converting and sampling for itself, and on short rays a per-ray
+// set-up costs as many instructions as the walk (docs/PERFORMANCE.md).
 constexpr int32_t kOriginValid = 1;     // the record holds the frame and the sample (origin finite, in the cube)
 constexpr int32_t kOriginSolid = 2;     // FieldSample.solid
 constexpr int32_t kOriginFarFree = 4;   // FieldSample.far_free
@@ -251,7 +251,7 @@ NAVI_HD float slab_exit(float o, float d, float inv, float res, float t1) {
 // start (actor_start); with kOriginValid in its frame the voxel-space origin and the yaw come from the
 // frame and the origin lies in the cube (the clip starts at t = 0), else the ray derives them itself.
 // kPrims: the launch has primitives (a separate instantiation, so a launch without them runs the plain
-// walk: measured 6-8% slower on an H100 when one kernel served both); `t`: its tables (prim_tables).
+// walk: one kernel serving both is slower, docs/PERFORMANCE.md); `t`: its tables (prim_tables).
 template <bool kPrims>
 NAVI_HD Ray start_ray(const TraceArgs& a, int64_t b, int64_t j, int64_t r, const PrimTables& t,
                       const ActorStart& st) {
@@ -365,10 +365,10 @@ NAVI_HD float far_step(const Ray& ray, const Leaf& leaf, float t, float d) {
 // What one main-loop step does after its sample f (at t, in the walker's leaf w.leaf): the hit tests,
 // then the step. Returns true when the ray is done (a miss, kSurface or kCrossing); otherwise t, prev_t
 // and prev_d have moved on. first_step calls it; walk_ray's loop spells the same tests out inline (both
-// share far_step, which compiles to the same device code as the step written out), because with the
-// loop calling this function (and the first step peeled inside walk_ray) the device code ran 0-4%
-// slower on the 50 OpenArena maps instead of 2-5% faster (docs/PERFORMANCE.md). Tests trace with and
-// without origin samples and demand the same outputs bit for bit, which holds the two copies together.
+// share far_step, which compiles to the same device code as the step written out), because a loop
+// calling this function (with the first step peeled inside walk_ray) compiles to slower device code
+// (docs/PERFORMANCE.md). Tests trace with and without origin samples and demand the same outputs bit
+// for bit, which holds the two copies together.
 NAVI_HD bool take_step(const TraceArgs& a, Ray& ray, const Walker& w, const FieldSample& f, float& t, float& prev_t,
                        float& prev_d) {
   const float d = f.dist;
@@ -415,9 +415,9 @@ NAVI_HD void first_step(const TraceArgs& a, Ray& ray, int64_t b, const ActorFram
 // samples is not (end_out_of_steps). The loop keeps its state in locals and has one exit for both hit
 // tests: which of them stopped the ray is read after the loop from what the stop leaves behind (the
 // last sample's field, written to end_d at the stop, and the walker's leaf), and a miss from t past
-// t1, where no stop can leave it. With an exit per outcome the device compiler set the outcome's
-// codes in registers on every step; the one exit took the common brick step from 66 to 55 SASS
-// instructions (docs/PERFORMANCE.md, "Tracer").
+// t1, where no stop can leave it. An exit per outcome makes the device compiler set the outcome's
+// codes in registers on every step; one exit keeps the common brick step short (docs/PERFORMANCE.md,
+// "Design lessons").
 NAVI_HD void walk_ray(const TraceArgs& a, Ray& ray) {
   const Scene& s = ray.s;
   Walker& w = ray.w;

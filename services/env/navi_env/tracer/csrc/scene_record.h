@@ -53,11 +53,10 @@ enum SceneWord : int {
 };
 
 // A scene record decoded into registers. It keeps only what the walk reads, combined once: the grid
-// shift instead of L, and no R - 1 as a float (cell_max, recomputed on the rare clamped path). With L
-// and R - 1 held, the device code spilled L and reloaded it from local memory on every leaf change,
-// ahead of the grid load; without them the main loop ran in 48 registers with no local memory
-// access (measured +1.0-2.1% on all 50 OpenArena maps, bit-identical). Taken once per actor before a
-// block's rays (actor_start), the record's fields now sit in uniform registers.
+// shift instead of L, and no R - 1 as a float (cell_max, recomputed on the rare clamped path), so the
+// main loop does not spill L and reload it from local memory on every leaf change, ahead of the grid
+// load. Taken once per actor before a block's rays (actor_start), the record's fields sit in uniform
+// registers.
 struct Scene {
   uint32_t root, node_offset, brick_offset, grid_offset;
   int resolution;

@@ -2,30 +2,25 @@
 // as the CPU launchers in trace_cpu.cpp. No synchronisation: errors of the launch itself are
 // returned; errors of the kernel surface at the caller's next synchronisation.
 //
-// One thread per work item (ray), 128 threads per block: small blocks free their slot on the SM as
-// soon as their slowest ray ends (measured faster than 64, 256 or 512 on an H100, and faster than
-// persistent warps refilling lanes from a work counter). Warps that refill idle lanes from a chunk of
-// 256-3,072 of the actor's rays once 4-16 lanes are idle were 9-38% slower still (docs/PERFORMANCE.md):
-// the refilled lanes no longer take the same branches (brick, far cube, leaf lookup) together. At
-// least 12 blocks per SM (40 registers, an 8-byte spill, none of it in the main loop): the walk wants
-// warps to hide its texture and leaf-grid latency. That fits because a block takes the actor's start
-// (actor_start: frame, scene record) once before its rays, so the compiler keeps the scene's fields,
-// the hit epsilon and the atlas scale in uniform registers: the 9-map set traced 1.05-1.08x as fast as
-// with the same code at 10 blocks (48 registers), which itself ran 1.02-1.07x the per-ray start. Before
-// that, 12 blocks spilled inside the loop, and 10 blocks were 0.2-1.1% faster than 9 (56 registers) and
-// 6% faster than 8 (60 registers); outputs bit-identical (docs/PERFORMANCE.md). The grid is 2-d: x walks an
-// actor's rays in chunks of ray groups, y the actors, so no thread divides to find its actor. Where
-// the launch is large enough (launch_shape), a block traces kGroupsPerBlock consecutive ray groups of
-// one actor: 768 rays, one strip of 16 azimuths by all 48 elevations of the 256 x 48 pattern in the
-// tiled order (and in the azimuth-major order). Its warps then walk neighbouring directions from one
-// origin in turn and find the bricks and leaf-grid entries of the strip in the SM's L1: on an H100 the
-// 50 OpenArena maps traced 1.01-1.06x as fast (median 1.03x) as with a block on one ray group of 4
-// actors (the schedule before it; docs/PERFORMANCE.md); on 9 of them 2, 3, 4, 8, 12, 24, 48 and 96
-// groups per block did less (96: 0.95x), and so did 2 actors of 6 groups. Smaller launches keep a block per ray group and, above 2,048 actors, trace it
-// for several actors strided by the grid's height (grid_rows): each warp goes on to its next actor
-// without waiting for the block's slowest warp (1.9-8.0% faster than one actor per block at 8,192
-// actors on the 50 OpenArena maps, H200). 32 threads per block were worse, and persistent warps taking
-// tiles from an atomic counter gained most on the slowest map but lost 13% on the fastest.
+// The launch, and why (the measurements are in docs/PERFORMANCE.md, "Design lessons"):
+// - One thread per work item (ray), 128 threads per block: a small block frees its slot on the SM as
+//   soon as its slowest ray ends.
+// - No lane refill (persistent warps, work counters, chunks of an actor's rays): refilled lanes stop
+//   taking the same branches (brick, far cube, leaf lookup) together.
+// - At least 12 blocks per SM (40 registers, an 8-byte spill, none of it in the main loop): the walk
+//   needs the warps to hide the latency of its texture and leaf-grid reads.
+// - A block takes the actor's start (actor_start: frame, scene record) once before its rays, so the
+//   compiler keeps the scene's fields, the hit epsilon and the atlas scale in uniform registers; that
+//   is what lets 12 blocks fit.
+// - The grid is 2-d: x walks an actor's rays in chunks of ray groups, y the actors, so no thread
+//   divides to find its actor.
+// - Where the launch is large enough (launch_shape), a block traces kGroupsPerBlock consecutive ray
+//   groups of one actor: 768 rays, one strip of 16 azimuths by all 48 elevations of the 256 x 48
+//   pattern in the tiled order (and in the azimuth-major order). Its warps walk neighbouring directions
+//   from one origin in turn and find the strip's bricks and leaf-grid entries in the SM's L1.
+// - Smaller launches keep a block per ray group and, above 2,048 actors, trace it for several actors
+//   strided by the grid's height (grid_rows): each warp goes on to its next actor without waiting for
+//   the block's slowest warp.
 #include <cuda_runtime.h>
 
 #include <cstdint>
@@ -37,9 +32,8 @@ namespace {
 
 constexpr int kThreads = 128;
 constexpr int kMinBlocksPerSm = 12;
-// The primitive kernel at 10 blocks (48 registers, no spill in the walk's loop, the actor's start
-// taken once per block): K = 8 primitives traced 1.02-1.04x as fast as at 9 blocks (56 registers); before
-// the actor's start moved out of the rays, 10 blocks spilled inside the loop (docs/PERFORMANCE.md).
+// The primitive kernel runs 10 blocks per SM (48 registers, no spill in the walk's loop): at K = 8
+// primitives it traces faster than at 9 blocks (56 registers).
 constexpr int kMinBlocksPerSmPrims = 10;
 static_assert(kThreads == navi::kRayGroup, "a CUDA block is one ray group");
 

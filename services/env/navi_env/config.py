@@ -266,24 +266,6 @@ class EnvConfig:
     """Observation buffers the env writes in turn: 1 (each step overwrites the last observation) or 2 (a
     step's observation stays intact through the next step, and the one before it is `previous_obs`: what
     Gymnasium-style adapters hand out without copying; one more (N, 3, Az, El) float32 buffer)."""
-    cuda_graph: bool = True
-    """On CUDA, record one step as a CUDA graph after two eager steps and replay it (same results,
-    far less launch overhead). Steps with a StageTimer attached always run eagerly."""
-    fused_observation: bool = True
-    """On CUDA, compute the observation and the view statistics in one torch.compile'd pass
-    (navi_env.sim.observation.observe; bit-identical to the eager kernels, compiled by the first `reset`
-    or `step`, before the CUDA graph is recorded). False, and always on CPU: the eager kernels."""
-    fused_obstacles: bool = True
-    """On CUDA, run the elementwise parts of the moving obstacles' step (placement, script, move, nearest
-    obstacle) as torch.compile'd passes (navi_env.sim.obstacles; compiled by the first `reset` or
-    `step`, before the CUDA graph is recorded): a few kernels instead of about 430 per step. False, and
-    always on CPU: the eager kernels."""
-    fused_step: bool = True
-    """On CUDA, compile the elementwise work of the physics, episode and reward stages (the commanded
-    move, the contact-safe move's bisection around its distance samples, the exploration cells, spawns,
-    scene hops and reward terms) with torch.compile (`navi_env.sim.env.fused`; compiled by the first steps,
-    before the CUDA graph is recorded; bit-identical to the eager kernels): a whole step launches about
-    150 kernels instead of about 640. False, and always on CPU: the eager kernels."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """Optional noise, dropout and ray pattern; off by default."""
     reward: RewardConfig = field(default_factory=RewardConfig)

@@ -1,6 +1,6 @@
 """Point-goal episodes of a scene: goals that can be reached from its spawns, and true path lengths to them.
 
-A GoalTable holds G goal voxels of the scene's free space (navi_env.corpus.freespace), each with its
+A GoalTable holds G goal voxels of the scene's free space (navi_env.space.freespace), each with its
 geodesic field (the path length in meters from every voxel to the goal through free voxels), and which
 spawns pair with which goals: same connected part, and a path length within [near, far] (default 5 to
 30 m). An episode starts at a spawn and draws one of its goals; `distance` reads the path length from
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from navi_env.corpus.freespace import FreeSpace, components, geodesic_many, geodesic_ref
+from navi_env.space.freespace import FreeSpace, components, geodesic_many, geodesic_ref
 
 CORNERS = torch.tensor(list(itertools.product((0, 1), repeat=3)))
 """(8, 3) offsets from the lower corner voxel to the 8 voxel centres around a point."""

@@ -11,7 +11,8 @@ The scene fails with no viable candidate or when its best (lowest) starvation is
 
 A passing scene also records its trace cost: the mean sphere-tracing steps per ray of the same
 pattern cast from its best spawns with the env's hit threshold and step cap. The tracer's time per
-ray follows its mean steps per ray, so data-parallel ranks share the scenes out by it (load_corpus).
+ray follows its mean steps per ray, so data-parallel ranks share the scenes out by it
+(corpus.folder.load_corpus_folder).
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 
-from navi_env.sim.config import EnvConfig, SensorConfig
-from navi_env.sim.sensor import ray_pattern
+from navi_env.config import EnvConfig, SensorConfig
+from navi_env.rays import ray_pattern
 from navi_env.tracer.scene import SceneCorpus
 from navi_env.tracer.trace import sample_distance, trace
 

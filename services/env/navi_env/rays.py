@@ -1,4 +1,10 @@
-"""Ray patterns in the body frame (+X ahead, +Y left, +Z up).
+"""Ray patterns in the body frame (+X ahead, +Y left, +Z up), and the tiled order the tracer runs them in.
+
+`ray_pattern(az, el, sensor)` is the sensor's pattern: ray r = a * El + e for azimuth bin a and
+elevation bin e (docs/SIMULATION.md). Azimuth bin a looks at angle 2*pi*a/Az from body +X toward
+body +Y (counter-clockwise seen from above), so bin 0 is straight ahead and bin Az/4 is to the left.
+Elevation bin e is centred at lo + (e + 0.5) * (hi - lo) / El, from the sensor's lowest elevation
+(straight down by default) to its highest.
 
 `spherical_directions(az, el)` covers the full sphere: azimuth bin a is centred on yaw angle 2*pi*a/Az
 (bin 0 straight ahead along +X, increasing counter-clockwise seen from above, i.e. towards +Y);
@@ -11,6 +17,8 @@ from __future__ import annotations
 import math
 
 import torch
+
+from navi_env.config import SensorConfig
 
 
 def spherical_directions(
@@ -47,3 +55,20 @@ def tiled_ray_order(
         azimuth_bins // tile_azimuth, tile_azimuth, elevation_bins // tile_elevation, tile_elevation
     )
     return tiles.permute(0, 2, 1, 3).reshape(-1).contiguous()  # (Az*El,) int32
+
+
+def ray_pattern(
+    azimuth_bins: int, elevation_bins: int, sensor: SensorConfig, device: torch.device | str = "cpu"
+) -> torch.Tensor:
+    """Unit ray directions (R, 3) float32 in the body frame, R = Az * El, azimuth-major (see module doc)."""
+    az = torch.arange(azimuth_bins, dtype=torch.float64) * (2.0 * math.pi / azimuth_bins)  # (Az,)
+    lo, hi = math.radians(sensor.elevation_min_deg), math.radians(sensor.elevation_max_deg)
+    el = lo + (torch.arange(elevation_bins, dtype=torch.float64) + 0.5) * (
+        (hi - lo) / elevation_bins
+    )  # (El,)
+    a, e = torch.meshgrid(az, el, indexing="ij")  # (Az, El) each
+    dirs = torch.stack(
+        (torch.cos(e) * torch.cos(a), torch.cos(e) * torch.sin(a), torch.sin(e)), dim=-1
+    )  # (Az, El, 3)
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    return dirs.reshape(-1, 3).to(device=device, dtype=torch.float32).contiguous()  # (R, 3)
