@@ -12,10 +12,10 @@ import torch
 
 from navi_env.rays import tiled_ray_order
 from navi_env.tracer import primitives as obstacles
+from navi_env.tracer import trace as trace_module
 from navi_env.tracer.abi import ORIGIN_SAMPLE_BYTES, check_layout
 from navi_env.tracer.analytic_scenes import AnalyticScene, free_points, leaf_kind_scenes, random_directions
 from navi_env.tracer.scene import SceneCorpus, load_corpus
-from navi_env.tracer.trace import _trace as trace_with_origin_pass
 from navi_env.tracer.trace import cpu_launcher, trace
 from navi_env.tracer.trace_ref import trace_ref
 
@@ -67,10 +67,15 @@ def _trace(
     depth = torch.full((b, R), -1.0, device=dev)  # (B, R) float32
     sem = torch.full((b, R), -1, dtype=torch.int32, device=dev)  # (B, R) int32
     steps = torch.full((b, R), -1, dtype=torch.int32, device=dev)  # (B, R) int32
-    trace_with_origin_pass(
-        corpus, ids.to(dev), origins.to(dev), dirs, yaw=yaw, out_depth=depth, out_semantic=sem, out_steps=steps,
-        ray_order=tiled_ray_order(16, 16).to(dev), hit_slope=0.01, prims=prims, origin_pass=origin_pass,
-    )  # fmt: skip
+    before = trace_module._ORIGIN_PASS
+    trace_module._ORIGIN_PASS = origin_pass
+    try:
+        trace(
+            corpus, ids.to(dev), origins.to(dev), dirs, yaw=yaw, out_depth=depth, out_semantic=sem,
+            out_steps=steps, ray_order=tiled_ray_order(16, 16).to(dev), hit_slope=0.01, prims=prims,
+        )  # fmt: skip
+    finally:
+        trace_module._ORIGIN_PASS = before
     return depth.nan_to_num(-7.0).cpu(), sem.cpu(), steps.cpu()
 
 

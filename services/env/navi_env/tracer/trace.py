@@ -250,6 +250,12 @@ def launch(stage: str, args: TraceArgs | SampleArgs | SweepArgs, device: torch.d
         raise ValueError(f"the {stage} launcher runs on cpu or cuda devices, not {device}")
 
 
+_ORIGIN_PASS = True
+"""Sample each actor's origin once before its rays (the launch). False samples every ray's origin in
+the ray itself: the slow twin the origin-sample parity tests compare the launch with (results, steps
+included, are the same bit for bit); only those tests set it."""
+
+
 def trace(
     scenes: SceneCorpus,
     scene_ids: torch.Tensor,
@@ -291,50 +297,6 @@ def trace(
     The launch samples each actor's origin once before its rays: every ray whose origin lies in the cube
     takes its first sample there.
     """
-    _trace(
-        scenes,
-        scene_ids,
-        origins,
-        directions,
-        out_depth=out_depth,
-        out_semantic=out_semantic,
-        yaw=yaw,
-        out_steps=out_steps,
-        ray_order=ray_order,
-        max_steps=max_steps,
-        horizon=horizon,
-        hit_epsilon=hit_epsilon,
-        skip_direction_validation=skip_direction_validation,
-        prims=prims,
-        prim_world=prim_world,
-        hit_slope=hit_slope,
-        origin_pass=True,
-    )
-
-
-def _trace(
-    scenes: SceneCorpus,
-    scene_ids: torch.Tensor,
-    origins: torch.Tensor,
-    directions: torch.Tensor,
-    *,
-    out_depth: torch.Tensor,
-    out_semantic: torch.Tensor | None = None,
-    yaw: torch.Tensor | None = None,
-    out_steps: torch.Tensor | None = None,
-    ray_order: torch.Tensor | None = None,
-    max_steps: int = DEFAULT_MAX_STEPS,
-    horizon: float = DEFAULT_HORIZON,
-    hit_epsilon: float | None = None,
-    skip_direction_validation: bool = False,
-    prims: torch.Tensor | None = None,
-    prim_world: torch.Tensor | None = None,
-    hit_slope: float = 0.0,
-    origin_pass: bool,
-) -> None:
-    """`trace`, with origin_pass=False sampling each ray's origin in the ray itself: the slow twin the
-    origin-sample parity tests compare the launch with (the results, steps included, are the same bit for
-    bit)."""
     p = validate_trace(
         scenes, scene_ids, origins, directions, out_depth, out_semantic, yaw, out_steps, ray_order,
         max_steps, horizon, hit_epsilon, skip_direction_validation, hit_slope,
@@ -347,7 +309,7 @@ def _trace(
         nbytes = prim_scratch_bytes(p.batch, p.rays, per_world, p.shared)
         scratch = torch.empty(nbytes, dtype=torch.uint8, device=scenes.device)  # (bytes,)
     origin = None
-    if origin_pass and p.batch * p.rays > 0:
+    if _ORIGIN_PASS and p.batch * p.rays > 0:
         # the launch's origin samples: like the primitive tables a fresh buffer per call (free from the
         # caching allocator, private to a CUDA graph's pool, correct when calls overlap on streams)
         nbytes = p.batch * ORIGIN_SAMPLE_BYTES
