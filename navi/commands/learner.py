@@ -28,7 +28,7 @@ from navi.commands.common import (
     pick_device,
 )
 from navi.commands.options import Settings, config_options
-from navi_learner.config import TrainConfig
+from navi_learner.config import RunBudget, TrainConfig
 
 if TYPE_CHECKING:
     from navi_learner.evaluation.baselines import EvalPolicy
@@ -471,7 +471,9 @@ def export(
 
 
 @app.command(name="run", rich_help_panel=PANEL)
+@config_options(RunBudget(), ("budget_s", "eval_every_s", "cpu_steps"))
 def run_cmd(
+    *,
     corpus: Annotated[
         Path, typer.Option("--corpus", help="Training corpus (procedural seed 0, built when missing).")
     ] = DEFAULT_CORPUS,
@@ -481,20 +483,7 @@ def run_cmd(
             "--unseen", help="Unseen corpus for evaluation (procedural seed 1000, built when missing)."
         ),
     ] = UNSEEN_CORPUS,
-    budget: Annotated[
-        float,
-        typer.Option(
-            "--budget-s", min=1.0, help="CUDA: training seconds at most (stops earlier at competence)."
-        ),
-    ] = 600.0,
-    eval_every: Annotated[
-        float,
-        typer.Option("--eval-every-s", min=1.0, help="CUDA: training seconds between unseen evaluations."),
-    ] = 30.0,
-    cpu_steps: Annotated[
-        int,
-        typer.Option("--cpu-steps", min=0, help="CPU: env steps of fine-tuning the reference checkpoint."),
-    ] = 2048,
+    settings: Settings,
     device: DeviceOpt = "auto",
     seed: SeedOpt = 0,
     task: TaskOpt = "explore",
@@ -513,9 +502,7 @@ def run_cmd(
         models_dir=MODELS_DIR,
         device=dev,
         seed=seed,
-        budget_s=budget,
-        eval_every_s=eval_every,
-        cpu_steps=cpu_steps,
+        **asdict(settings.config()),
         reference=REFERENCE,
         task=task,
     )

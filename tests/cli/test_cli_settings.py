@@ -1,5 +1,5 @@
 """Training settings have one declaration: the config dataclasses. A command's option for a TrainConfig,
-PPOConfig or EngineConfig field is generated from that field (navi/commands/options.py), so its name,
+PPOConfig, EngineConfig or RunBudget field is generated from that field (navi/commands/options.py), so its name,
 default and help come from the dataclass; no command declares such an option by hand."""
 
 from __future__ import annotations
@@ -14,16 +14,16 @@ from typer.testing import CliRunner
 
 from navi.cli import build_app
 from navi.commands.options import Setting, config_fields, field_docs, generated_settings
-from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe
+from navi_learner.config import EngineConfig, PPOConfig, RunBudget, TrainConfig, learning_recipe
 
-FIELDS = set(config_fields(TrainConfig))
-"""Every scalar setting of TrainConfig, its PPOConfig and its EngineConfig."""
+FIELDS = set(config_fields(TrainConfig)) | set(config_fields(RunBudget))
+"""Every scalar setting of TrainConfig, its PPOConfig and its EngineConfig, and of `navi run`'s RunBudget."""
 
 CONTEXT = {"device", "seed", "task", "total_steps"}
 """Settings that commands which train nothing (evaluation, serving an env, benchmarks of a stage) take for
 themselves: their device, their seed, the task they fly and how many steps they run."""
 
-TRAINING_COMMANDS = {"train", "bench learn", "bench train", "serve learner", "bc"}
+TRAINING_COMMANDS = {"train", "bench learn", "bench train", "serve learner", "bc", "run"}
 
 OTHER_CONFIGS = {("bc", "lr")}
 """Options of another config that share a field's name: `navi bc --lr` is BCConfig.lr (behavioural cloning)."""
@@ -101,7 +101,7 @@ def test_generated_defaults_are_the_dataclass_defaults() -> None:
             if base == recipe:
                 declared = functools.reduce(getattr, setting.path, recipe)
             else:
-                assert base in (TrainConfig(), EngineConfig()), name
+                assert base in (TrainConfig(), EngineConfig(), RunBudget()), name
             assert setting.default == declared, (name, p.name, setting.default, declared)
 
 

@@ -345,3 +345,15 @@ def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = T
     minibatches = max(cfg.ppo.num_minibatches, -(-n_actors * rollout // cfg.ppo.max_minibatch))
     ppo = replace(cfg.ppo, bptt_chunk=bptt, num_minibatches=minibatches)
     return replace(cfg, n_actors=n_actors, rollout_length=rollout, ppo=ppo)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunBudget:
+    """How long `navi run` trains: seconds on CUDA, env steps on a CPU (its MainJobConfig extends this)."""
+
+    budget_s: Annotated[float, CliOption(min=1.0)] = 600.0
+    """CUDA: training seconds at most (evaluations excluded; stops earlier at competence)."""
+    eval_every_s: Annotated[float, CliOption(min=1.0)] = 30.0
+    """CUDA: training seconds between two unseen evaluations."""
+    cpu_steps: Annotated[int, CliOption(min=0)] = 2048
+    """CPU: env steps of fine-tuning the reference checkpoint (point-goal: of training from scratch)."""

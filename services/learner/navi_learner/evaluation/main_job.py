@@ -23,7 +23,14 @@ from pathlib import Path
 
 import torch
 
-from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe, learning_size
+from navi_learner.config import (
+    EngineConfig,
+    PPOConfig,
+    RunBudget,
+    TrainConfig,
+    learning_recipe,
+    learning_size,
+)
 from navi_learner.envs.factory import EnvUnavailable, corpus_summary, make_env
 from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, goal_seeker_for_env, reactive_for_env
 from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol, plot_curves
@@ -67,20 +74,14 @@ class MainJobError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class MainJobConfig:
-    """`navi run` options."""
+class MainJobConfig(RunBudget):
+    """`navi run` options: the corpora, device and task, and the run budget (RunBudget's fields)."""
 
     corpus: Path
     unseen: Path
     models_dir: Path
     device: str
     seed: int = 0
-    budget_s: float = 600.0
-    """CUDA: training seconds at most (evaluations excluded)."""
-    eval_every_s: float = 30.0
-    """CUDA: training seconds between two unseen evaluations."""
-    cpu_steps: int = 2048
-    """CPU: fine-tuning env steps."""
     reference: Path = REFERENCE
     task: str = "explore"
     """explore, or pointgoal (trained from scratch on either path)."""
