@@ -1,4 +1,4 @@
-"""`navi bench compile|trace|env|wrappers|train|learn`: each measures one stage (or learning itself) and prints its
+"""`navi bench compile|trace|env|wrappers|train|learn|transfer`: each measures one stage (or learning itself) and prints its
 result; `--json` prints one JSON object and `--record DIR` appends it to DIR/DATE-GPU.jsonl
 (docs/PERFORMANCE.md). Targets are benchmarks, never timed tests."""
 
@@ -582,6 +582,110 @@ def bench_learn_cmd(
     summary = {"out": str(folder), "summary": jsonable(result["summary"])}
     if record is not None:
         record_result(summary, "learn", dev, record)
+    if as_json:
+        typer.echo(json.dumps(summary))
+    else:
+        typer.echo((folder / "report.md").read_text())
+        typer.echo(f"results: {folder}")
+
+
+@app.command(name="transfer")
+@config_options(
+    learning_recipe(),
+    LEARN_OPTIONS,
+    defaults=COMMAND_DEVICE,
+    helps={
+        "n_actors": "Actors per run (0: 2,048 on CUDA, 8 on CPU).",
+        "rollout_length": "Steps per rollout (0: 64 on CUDA, 32 on CPU).",
+    },
+)
+def bench_transfer_cmd(
+    *,
+    arms: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--arm",
+            help="What a run trains on (repeatable): procedural[:SEMANTICS[:FAMILY+FAMILY...]] (procedural "
+            "scenes of seed 0; SEMANTICS object or surface) or openarena (the maps outside the held-out fifth). "
+            "Default: procedural and openarena.",
+        ),
+    ] = None,
+    seeds: Annotated[
+        int, typer.Option("--seeds", min=1, help="Training seeds per arm (FIRST, FIRST+1, ...).")
+    ] = 3,
+    first_seed: Annotated[int, typer.Option("--first-seed", min=0, help="First training seed.")] = 0,
+    budget: Annotated[float, typer.Option("--budget-s", min=1.0, help="Training seconds per run.")] = 240.0,
+    settings: Settings,
+    eval_actors: Annotated[
+        int, typer.Option("--eval-actors", min=1, help="Actors per evaluation, spread over the scenes.")
+    ] = 1000,
+    eval_steps: Annotated[int, typer.Option("--eval-steps", min=1, help="Steps per evaluation.")] = 1000,
+    episode_steps: Annotated[
+        int, typer.Option("--eval-episode-steps", min=1, help="Episode length in evaluations.")
+    ] = 500,
+    gpus: Annotated[
+        int,
+        typer.Option(
+            "--gpus", min=0, help="One run per GPU at a time on cuda:0.. (0: all runs on --device)."
+        ),
+    ] = 0,
+    procedural_train: Annotated[
+        int, typer.Option("--procedural-train", min=1, help="Procedural train scenes per arm.")
+    ] = 16,
+    openarena_maps: Annotated[
+        int,
+        typer.Option("--openarena-maps", min=0, help="Only the first N OpenArena maps by name (0: all 50)."),
+    ] = 0,
+    resolution: Annotated[
+        int, typer.Option("--resolution", help="Cells per cube edge of every scene.")
+    ] = 512,
+    corpus_root: Annotated[
+        Path,
+        typer.Option("--corpus-root", help="Where the corpora are built (reused when present)."),
+    ] = Path("artifacts/corpus/bench-transfer"),
+    openarena: Annotated[
+        Path,
+        typer.Option("--openarena", help="openarena-081-maps pak1-maps.pk3 (left out when missing)."),
+    ] = Path("artifacts/data/openarena/pak1-maps.pk3"),
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Result folder (default artifacts/bench/transfer/<time>).")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False,
+    record: RecordOpt = None,
+    engine: EngineOpt = None,
+) -> None:
+    """Train on procedural scenes alone (and, as the upper reference, on real maps), then fly every final
+    checkpoint on the OpenArena maps it never saw, per map, against the baselines; collisions broken down
+    by the surface touched (docs/TRAINING.md, "Real maps never seen")."""
+    from navi_bench.transfer import TransferConfig, bench_transfer, parse_arm
+    from navi_learner.evaluation.competence import EvalProtocol
+    from navi_learner.evaluation.evaluate import jsonable
+
+    try:
+        chosen = tuple(parse_arm(a) for a in (arms or ["procedural", "openarena"]))
+    except ValueError as err:
+        raise fail(str(err)) from err
+    dev = pick_device(settings["device"])
+    cfg = TransferConfig(
+        arms=chosen,
+        seeds=tuple(range(first_seed, first_seed + seeds)),
+        budget_s=budget,
+        train=train_config(settings, dev, engine),
+        protocol=EvalProtocol(actors=eval_actors, steps=eval_steps, episode_steps=episode_steps),
+        gpus=gpus,
+        procedural_train=procedural_train,
+        openarena_maps=openarena_maps,
+    )
+    folder = out or Path("artifacts/bench/transfer") / time.strftime("%Y%m%d-%H%M%S")
+    try:
+        result = bench_transfer(
+            cfg, folder, dev, resolution, corpus_root, openarena, say=lambda m: typer.echo(m, err=True)
+        )
+    except ValueError as err:
+        raise fail(str(err)) from err
+    summary = {"out": str(folder), "summary": jsonable(result["summary"]["parts"]), "notes": result["notes"]}
+    if record is not None:
+        record_result(summary, "transfer", dev, record)
     if as_json:
         typer.echo(json.dumps(summary))
     else:

@@ -11,6 +11,7 @@ import typer
 from typer.testing import CliRunner
 
 from navi.commands import scenes
+from navi_compiler.ingest import procedural
 from navi_compiler.ingest import load_scene
 from navi_compiler.ingest.procedural import (
     CLASS_NAMES,
@@ -21,6 +22,7 @@ from navi_compiler.ingest.procedural import (
     Cylinder,
     Family,
     Layout,
+    Semantics,
     Solid,
     air_grid,
     build_layout,
@@ -29,16 +31,22 @@ from navi_compiler.ingest.procedural import (
     generate_scene,
     is_clear,
     mesh_layout,
+    slab_between,
+    solid_bounds,
     solid_distance,
 )
+from navi_compiler.ingest.bsp import CLASS_NAMES as SURFACE_CLASS_NAMES
+from navi_compiler.ingest.bsp import HORIZONTAL_NZ
 
 SEEDS = (0, 1, 2)
-OPEN = {Family.FOREST, Family.YARD}
+OPEN = {Family.FOREST, Family.YARD, Family.PLATFORMS}
 EXPECTED_CLASS = {
     Family.HALL: "pillar",
     Family.FOREST: "trunk",
     Family.BUILDING: "stairs",
     Family.YARD: "obstacle",
+    Family.ARENA: "railing",
+    Family.PLATFORMS: "pillar",
 }
 
 
@@ -86,12 +94,7 @@ def clear_voxels(layout: Layout, step: float) -> tuple[np.ndarray, np.ndarray]:
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
     clear = cubes_in_air(grid, points.reshape(-1, 3), DRONE_RADIUS).reshape(points.shape[:3])
     for solid in layout.solids:
-        shape = solid.shape
-        if isinstance(shape, Box):
-            box_lo, box_hi = np.array(shape.lo), np.array(shape.hi)
-        else:
-            box_lo = np.array([shape.x - shape.radius, shape.y - shape.radius, shape.z0])
-            box_hi = np.array([shape.x + shape.radius, shape.y + shape.radius, shape.z1])
+        box_lo, box_hi = solid_bounds(solid)
         first = np.maximum(np.floor((box_lo - DRONE_RADIUS - lo) / step).astype(int), 0)
         last = np.ceil((box_hi + DRONE_RADIUS - lo) / step).astype(int) + 1
         window = tuple(slice(f, t) for f, t in zip(first, last, strict=True))
@@ -172,9 +175,46 @@ def test_solid_distance_matches_geometry() -> None:
     )
 
 
+def test_slab_distance_matches_its_mesh() -> None:
+    """An oriented slab (a 25 degree ramp) measures the same distance as its 12 triangles from outside."""
+    ramp = Solid(slab_between((0.0, 0.0, 0.0), (4.0, 1.0, 2.0), 2.0, 0.3), 8)
+    tris, _ = procedural._solid_triangles(ramp.shape)
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-2.0, 6.0, (400, 3))  # (P, 3)
+    want = np.array([point_triangle_distance(p, tris).min() for p in points])  # (P,) to the surface
+    got = solid_distance(ramp, points)  # (P,)
+    outside = got > 1e-9
+    assert outside.sum() > 300
+    np.testing.assert_allclose(got[outside], want[outside], atol=1e-9)
+    lo, hi = solid_bounds(ramp)
+    np.testing.assert_allclose(lo, tris.reshape(-1, 3).min(0))
+    np.testing.assert_allclose(hi, tris.reshape(-1, 3).max(0))
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])  # (12, 3) outward when wound right
+    centre = np.array(ramp.shape.centre)  # type: ignore[union-attr]
+    assert (np.einsum("ij,ij->i", normal, tris.mean(1) - centre) > 0).all()
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_surface_semantics_class_faces_as_a_quake_map_does(family: Family) -> None:
+    """The same triangles; classes from {floor, wall, ceiling, patch} by the face normal, as ingest.bsp does."""
+    layout = build_layout(family, 3)
+    by_object, by_surface = mesh_layout(layout), mesh_layout(layout, Semantics.SURFACE)
+    np.testing.assert_array_equal(by_object.vertices, by_surface.vertices)
+    np.testing.assert_array_equal(by_object.faces, by_surface.faces)
+    assert by_surface.class_names == SURFACE_CLASS_NAMES
+    tris = by_surface.vertices[by_surface.faces]
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    nz = normal[:, 2] / np.linalg.norm(normal, axis=1)
+    names = np.array(SURFACE_CLASS_NAMES)[by_surface.face_class]
+    assert (nz[names == "floor"] >= HORIZONTAL_NZ).all() and (nz[names == "ceiling"] <= -HORIZONTAL_NZ).all()
+    assert (np.abs(nz[names == "wall"]) < HORIZONTAL_NZ).all() and "unknown" not in set(names)
+    round_solids = any(isinstance(s.shape, Cylinder) for s in layout.solids)
+    assert ("patch" in set(names)) == round_solids
+
+
 def test_corpus_cycles_families_and_is_deterministic(tmp_path: Path) -> None:
-    a = generate_corpus(tmp_path / "a", 10, seed=4)
-    b = generate_corpus(tmp_path / "b", 10, seed=4)
+    a = generate_corpus(tmp_path / "a", len(FAMILIES) + 2, seed=4)
+    b = generate_corpus(tmp_path / "b", len(FAMILIES) + 2, seed=4)
     c = generate_corpus(tmp_path / "c", 3, seed=5, families=["maze"])
     assert [p.name.split("_")[0] for p in a] == [f.value for f in FAMILIES] + [
         FAMILIES[0].value,
@@ -189,7 +229,7 @@ def test_corpus_cycles_families_and_is_deterministic(tmp_path: Path) -> None:
     assert a[0].read_bytes() != a[8].read_bytes()  # same family, different scene
     assert [p.name for p in c] == ["maze_0000.obj", "maze_0001.obj", "maze_0002.obj"]
     sizes = {tuple(np.round(np.subtract(*load_scene(p).bounds[::-1]), 1)) for p in a}
-    assert len(sizes) == 10
+    assert len(sizes) == len(FAMILIES) + 2
 
 
 def test_scenes_generate_command(tmp_path: Path) -> None:

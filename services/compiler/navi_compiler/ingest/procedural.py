@@ -2,8 +2,9 @@
 
 Every scene is a `Layout`: the interior is the union of axis-aligned *air* boxes carved out of
 solid rock (its boundary becomes floor / wall / ceiling faces), plus solid obstacles standing in
-that air (pillars, trunks, crates, stairs). Open families (forest, yard) have no drawn roof: the
-top of the interior becomes an undrawn barrier, like a Quake 3 sky. World meters, +Z up, the
+that air (pillars, trunks, crates, stairs, and oriented slabs: ramps, balconies, slanted struts,
+railings). Open families (forest, yard, platforms) have no drawn roof: the top of the interior
+becomes an undrawn barrier, like a Quake 3 sky. World meters, +Z up, the
 floor at z = 0. Passages are sized for a drone of radius 0.3 m (doorways ≥ 1.2 m wide, corridors
 and tunnels ≥ 1.6 m wide, obstacles ≥ 1.4 m apart).
 
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from navi_compiler.ingest import bsp
 from navi_compiler.ingest.sidecar import Sidecar, write_sidecar
 from navi_compiler.scene import Scene
 
@@ -36,12 +38,38 @@ class Family(StrEnum):
     FOREST = "forest"
     BUILDING = "building"
     YARD = "yard"
+    ARENA = "arena"
+    PLATFORMS = "platforms"
 
 
 FAMILIES: tuple[Family, ...] = tuple(Family)
 
-CLASS_NAMES = ("unknown", "floor", "wall", "ceiling", "pillar", "trunk", "obstacle", "stairs")
-FLOOR, WALL, CEILING, PILLAR, TRUNK, OBSTACLE, STAIRS = 1, 2, 3, 4, 5, 6, 7
+CLASS_NAMES = (
+    "unknown",
+    "floor",
+    "wall",
+    "ceiling",
+    "pillar",
+    "trunk",
+    "obstacle",
+    "stairs",
+    "ramp",
+    "railing",
+)
+FLOOR, WALL, CEILING, PILLAR, TRUNK, OBSTACLE, STAIRS, RAMP, RAILING = 1, 2, 3, 4, 5, 6, 7, 8, 9
+
+
+class Semantics(StrEnum):
+    """What a scene's face classes name (the semantic channel the drone sees)."""
+
+    OBJECT = "object"
+    """What each face belongs to: floor, wall, ceiling of the air, and the solid's kind (CLASS_NAMES)."""
+    SURFACE = "surface"
+    """What a Quake 3 map's faces say (navi_compiler.ingest.bsp.CLASS_NAMES): floor, wall or ceiling by the
+    face's normal, and patch for the curved sides of cylinders. Solids then read as real maps' brushes."""
+
+
+SEMANTICS: tuple[Semantics, ...] = tuple(Semantics)
 
 DRONE_RADIUS = 0.3  # meters
 SEED_CLEARANCE = 0.5  # meters of free space around every seed (drone radius plus a margin)
@@ -69,10 +97,43 @@ class Cylinder:
 
 
 @dataclass(frozen=True)
+class Slab:
+    """Oriented box, meters: a centre, half extents along three orthonormal axes (ramps, tilted struts,
+    balconies, rails)."""
+
+    centre: tuple[float, float, float]
+    half: tuple[float, float, float]  # half extents along axes[0], axes[1], axes[2]
+    axes: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+
+    def corners(self) -> np.ndarray:
+        """The 8 corners (8, 3), bit order (x, y, z) of the local signs as in _box_quads."""
+        signs = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))  # (8, 3)
+        local = signs * np.array(self.half)  # (8, 3)
+        return np.array(self.centre) + local @ np.array(self.axes)  # (8, 3)
+
+
+def slab_between(
+    a: Sequence[float], b: Sequence[float], width: float, thickness: float, top: bool = True
+) -> Slab:
+    """A slab of `width` whose centre line runs from point a to point b (3,) meters, `thickness` thick
+    across it; with `top` the segment lies on its upper face (a ramp's walking surface), else on its axis
+    (a beam). a and b must not lie on one vertical line."""
+    p, q = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    along = (q - p) / np.linalg.norm(q - p)  # (3,)
+    side = np.cross([0.0, 0.0, 1.0], along)  # (3,) horizontal, across the slab
+    side /= np.linalg.norm(side)
+    normal = np.cross(along, side)  # (3,) the slab's up
+    centre = (p + q) / 2 - (normal * thickness / 2 if top else 0.0)
+    half = (float(np.linalg.norm(q - p)) / 2, width / 2, thickness / 2)
+    rows = tuple(tuple(round(float(v), 9) for v in axis) for axis in (along, side, normal))
+    return Slab(tuple(round(float(v), 4) for v in centre), half, rows)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
 class Solid:
     """An obstacle standing in the air: its shape and its face class id."""
 
-    shape: Box | Cylinder
+    shape: Box | Cylinder | Slab
     cls: int  # index into CLASS_NAMES
 
 
@@ -154,9 +215,25 @@ def solid_distance(solid: Solid, points: np.ndarray) -> np.ndarray:
     if isinstance(shape, Box):
         gap = np.maximum(np.maximum(np.array(shape.lo) - points, points - np.array(shape.hi)), 0.0)  # (S, 3)
         return np.linalg.norm(gap, axis=1)
+    if isinstance(shape, Slab):
+        local = (points - np.array(shape.centre)) @ np.array(shape.axes).T  # (S, 3) in the slab's frame
+        gap = np.maximum(np.abs(local) - np.array(shape.half), 0.0)  # (S, 3)
+        return np.linalg.norm(gap, axis=1)
     radial = np.maximum(np.hypot(points[:, 0] - shape.x, points[:, 1] - shape.y) - shape.radius, 0.0)  # (S,)
     vertical = np.maximum(np.maximum(shape.z0 - points[:, 2], points[:, 2] - shape.z1), 0.0)  # (S,)
     return np.hypot(radial, vertical)
+
+
+def solid_bounds(solid: Solid) -> tuple[np.ndarray, np.ndarray]:
+    """The axis-aligned bounds (lo (3,), hi (3,)) of a solid."""
+    shape = solid.shape
+    if isinstance(shape, Box):
+        return np.array(shape.lo), np.array(shape.hi)
+    if isinstance(shape, Slab):
+        corners = shape.corners()  # (8, 3)
+        return corners.min(axis=0), corners.max(axis=0)
+    lo = np.array([shape.x - shape.radius, shape.y - shape.radius, shape.z0])
+    return lo, np.array([shape.x + shape.radius, shape.y + shape.radius, shape.z1])
 
 
 def is_clear(grid: AirGrid, solids: Sequence[Solid], points: np.ndarray, radius: float) -> np.ndarray:
@@ -570,6 +647,217 @@ def _yard(rng: np.random.Generator) -> _Parts:
     return [_box(0.0, 0.0, 0.0, length, width, height)], solids, height, []
 
 
+class _Ground:
+    """Footprints (x0, y0, x1, y1) reserved on a floor, so that what stands on it keeps GAP apart."""
+
+    GAP = 1.4
+
+    def __init__(self, rng: np.random.Generator, lo: tuple[float, float], hi: tuple[float, float]) -> None:
+        self.rng, self.lo, self.hi = rng, lo, hi
+        self.taken: list[tuple[float, float, float, float]] = []
+
+    def free(self, x0: float, y0: float, x1: float, y1: float) -> bool:
+        inside = self.lo[0] <= x0 and self.lo[1] <= y0 and x1 <= self.hi[0] and y1 <= self.hi[1]
+        g = self.GAP
+        return inside and not any(
+            x0 < b[2] + g and b[0] < x1 + g and y0 < b[3] + g and b[1] < y1 + g for b in self.taken
+        )
+
+    def place(self, sx: float, sy: float, margin: float = 1.0, tries: int = 40) -> tuple[float, float] | None:
+        """The lower corner of a free sx × sy footprint at least `margin` from the edges (reserved), or None."""
+        for _ in range(tries):
+            x = float(
+                self.rng.uniform(self.lo[0] + margin, max(self.lo[0] + margin, self.hi[0] - margin - sx))
+            )
+            y = float(
+                self.rng.uniform(self.lo[1] + margin, max(self.lo[1] + margin, self.hi[1] - margin - sy))
+            )
+            if self.free(x, y, x + sx, y + sy):
+                self.taken.append((x, y, x + sx, y + sy))
+                return x, y
+        return None
+
+
+def _ramp_run(rise: float, rng: np.random.Generator, longest: float) -> float | None:
+    """The horizontal run of a ramp climbing `rise` meters at 15-32 degrees, at most `longest` (None: too
+    steep then, above 40 degrees)."""
+    run = rise / np.tan(np.radians(rng.uniform(15.0, 32.0)))
+    run = min(float(run), longest)
+    return run if run > 0 and np.degrees(np.arctan2(rise, run)) <= 40.0 else None
+
+
+def _arena(rng: np.random.Generator) -> _Parts:
+    """A deathmatch arena: a tall atrium with balconies behind railings, ramps up to them, thick and thin
+    pillars, slanted struts, ledges and jump-pad pedestals, and doorways to corridors and side rooms."""
+    length, width = float(rng.uniform(22.0, 40.0)), float(rng.uniform(16.0, 30.0))
+    height = float(rng.uniform(8.0, 18.0))
+    air = [_box(0.0, 0.0, 0.0, length, width, height)]
+    solids: list[Solid] = []
+    preferred = [(length / 2, width / 2, 1.5), (length / 2, width / 2, height / 2)]
+    ground = _Ground(rng, (0.0, 0.0), (length, width))
+    deck = float(rng.uniform(3.5, min(6.0, height - 3.0)))  # top of the balconies' floor
+    depth = float(rng.uniform(3.0, 5.0))
+    for side in (0,) if rng.random() < 0.5 else (0, 1):
+        y0, y1 = (0.0, depth) if side == 0 else (width - depth, width)
+        edge = y1 if side == 0 else y0  # the balcony's open edge
+        inward = 1.0 if side == 0 else -1.0  # from the edge into the atrium
+        solids.append(Solid(_box(0.0, y0, deck - 0.4, length, y1, deck), FLOOR))
+        preferred.append((length / 2, (y0 + y1) / 2, deck + 1.5))
+        gap = None  # x range of the railing left open where the ramp arrives
+        rw = float(rng.uniform(2.0, 3.2))
+        run = _ramp_run(deck, rng, width - 2 * depth - 2.0)
+        if run is not None:
+            xr = float(rng.uniform(2.0 + rw / 2, length - 2.0 - rw / 2))
+            foot = (xr - rw / 2, min(edge, edge + inward * run), xr + rw / 2, max(edge, edge + inward * run))
+            if ground.free(*foot):
+                ground.taken.append(foot)
+                solids.append(
+                    Solid(slab_between((xr, edge + inward * run, 0.0), (xr, edge, deck), rw, 0.3), RAMP)
+                )
+                gap = (xr - rw / 2 - 0.2, xr + rw / 2 + 0.2)
+        post_r, pitch = float(rng.uniform(0.05, 0.1)), float(rng.uniform(1.2, 2.0))
+        rail_y = edge - inward * 0.15
+        spans = [(0.0, length)] if gap is None else [(0.0, gap[0]), (gap[1], length)]
+        for a, b in spans:
+            if b - a < 0.5:
+                continue
+            for x in np.arange(a + 0.2, b - 0.1, pitch):
+                solids.append(Solid(Cylinder(float(x), rail_y, post_r, deck, deck + 1.0), RAILING))
+            solids.append(Solid(_box(a, rail_y - 0.05, deck + 0.95, b, rail_y + 0.05, deck + 1.05), RAILING))
+    for _ in range(int(rng.integers(3, 11))):  # pillars, thick or thin, round or square
+        r = float(rng.uniform(0.4, 0.9)) if rng.random() < 0.5 else float(rng.uniform(0.1, 0.25))
+        spot = ground.place(2 * r, 2 * r)
+        if spot is not None:
+            x, y = spot[0] + r, spot[1] + r
+            top = height if rng.random() < 0.7 else float(rng.uniform(1.0, height - 2.0))
+            shape = (
+                Cylinder(x, y, r, 0.0, top)
+                if rng.random() < 0.6
+                else _box(x - r, y - r, 0.0, x + r, y + r, top)
+            )
+            solids.append(Solid(shape, PILLAR))
+    for _ in range(int(rng.integers(0, 4))):  # slanted struts leaning across the air
+        reach, rise = float(rng.uniform(1.5, 4.0)), float(rng.uniform(2.5, min(6.0, height - 1.0)))
+        spot = ground.place(reach, 0.6)
+        if spot is not None:
+            x, y = spot[0], spot[1] + 0.3
+            low, high = (x, y, 0.0), (x + reach, y, rise)
+            solids.append(
+                Solid(slab_between(low, high, float(rng.uniform(0.2, 0.4)), 0.3, top=False), OBSTACLE)
+            )
+    for _ in range(int(rng.integers(1, 4))):  # ledges and jump-pad pedestals
+        if rng.random() < 0.5:
+            sx, sy = float(rng.uniform(2.5, 6.0)), float(rng.uniform(2.5, 6.0))
+            spot = ground.place(sx, sy)
+            if spot is not None:
+                top = float(rng.uniform(0.8, 2.5))
+                solids.append(Solid(_box(spot[0], spot[1], 0.0, spot[0] + sx, spot[1] + sy, top), OBSTACLE))
+                preferred.append((spot[0] + sx / 2, spot[1] + sy / 2, top + 1.5))
+        else:
+            r = float(rng.uniform(0.6, 1.0))
+            spot = ground.place(2 * r, 2 * r)
+            if spot is not None:
+                pad = Cylinder(spot[0] + r, spot[1] + r, r, 0.0, float(rng.uniform(0.15, 0.35)))
+                solids.append(Solid(pad, OBSTACLE))
+    room = 58.0 - length  # meters left along x for corridors and rooms at the two ends
+    for end in (0, 1) if rng.random() < 0.6 else (int(rng.integers(0, 2)),):
+        door_w, door_h = float(rng.uniform(1.4, 2.2)), float(rng.uniform(2.2, min(2.8, deck - 0.5)))
+        hall_w, hall_h = float(rng.uniform(door_w, 3.5)), float(rng.uniform(door_h + 0.2, deck - 0.4))
+        long_ = float(rng.uniform(3.0, max(3.0, room / 2 - 6.0)))
+        r = float(rng.uniform(2.0, max(2.0, min(4.0, (room / 2 - long_ - 0.3) / 2))))
+        c = (
+            float(rng.uniform(depth + r + 0.5, width - depth - r - 0.5))
+            if width - 2 * depth > 2 * r + 1
+            else width / 2
+        )
+        sign, wall_x = (1.0, length) if end == 1 else (-1.0, 0.0)
+        xs = [
+            wall_x,
+            wall_x + sign * 0.3,
+            wall_x + sign * (0.3 + long_),
+            wall_x + sign * (0.3 + long_ + 2 * r),
+        ]
+        air.append(_box(min(xs[0], xs[1]), c - door_w / 2, 0.0, max(xs[0], xs[1]), c + door_w / 2, door_h))
+        air.append(_box(min(xs[1], xs[2]), c - hall_w / 2, 0.0, max(xs[1], xs[2]), c + hall_w / 2, hall_h))
+        air.append(_box(min(xs[2], xs[3]), c - r, 0.0, max(xs[2], xs[3]), c + r, min(height, hall_h + 1.5)))
+        preferred.append(((xs[1] + xs[2]) / 2, c, 1.4))
+        preferred.append(((xs[2] + xs[3]) / 2, c, 1.5))
+    return air, solids, None, preferred
+
+
+def _platforms(rng: np.random.Generator) -> _Parts:
+    """Open-air platforms on posts at several heights with ramps up to them, slanted struts, thin poles,
+    low walls and arches, under an open sky."""
+    length, width = float(rng.uniform(24.0, 56.0)), float(rng.uniform(24.0, 56.0))
+    height = float(rng.uniform(10.0, 22.0))
+    solids: list[Solid] = []
+    preferred: list[tuple[float, float, float]] = []
+    ground = _Ground(rng, (0.0, 0.0), (length, width))
+    for _ in range(int(np.clip(length * width / 250.0, 2, 6))):
+        sx, sy = float(rng.uniform(4.0, 10.0)), float(rng.uniform(4.0, 10.0))
+        deck = float(rng.uniform(2.4, min(8.0, height - 3.0)))
+        run = _ramp_run(deck, rng, 14.0)
+        rw = float(rng.uniform(1.8, 3.0))
+        along_x = rng.random() < 0.5
+        full = (sx + (run or 0.0), sy) if along_x else (sx, sy + (run or 0.0))
+        spot = ground.place(*full)
+        if spot is None:
+            continue
+        x0, y0 = spot
+        px, py = (x0 + (run or 0.0), y0) if along_x else (x0, y0 + (run or 0.0))  # the platform's corner
+        solids.append(Solid(_box(px, py, deck - 0.4, px + sx, py + sy, deck), FLOOR))
+        post = float(rng.uniform(0.12, 0.3))
+        for cx, cy in itertools.product((px + 0.4, px + sx - 0.4), (py + 0.4, py + sy - 0.4)):
+            solids.append(Solid(Cylinder(cx, cy, post, 0.0, deck - 0.4), PILLAR))
+        if run is not None:
+            if along_x:
+                c = float(rng.uniform(py + rw / 2, py + sy - rw / 2))
+                solids.append(Solid(slab_between((x0, c, 0.0), (px, c, deck), rw, 0.3), RAMP))
+            else:
+                c = float(rng.uniform(px + rw / 2, px + sx - rw / 2))
+                solids.append(Solid(slab_between((c, y0, 0.0), (c, py, deck), rw, 0.3), RAMP))
+        preferred.append((px + sx / 2, py + sy / 2, deck + 1.5))
+        if deck - 0.4 >= 2.2:
+            preferred.append((px + sx / 2, py + sy / 2, (deck - 0.4) / 2))
+    for _ in range(int(rng.integers(4, 15))):  # thin poles
+        r = float(rng.uniform(0.06, 0.15))
+        spot = ground.place(2 * r, 2 * r, margin=0.6)
+        if spot is not None:
+            pole = Cylinder(spot[0] + r, spot[1] + r, r, 0.0, float(rng.uniform(3.0, min(7.0, height - 1.0))))
+            solids.append(Solid(pole, PILLAR))
+    for _ in range(int(rng.integers(2, 6))):  # slanted struts
+        reach, rise = float(rng.uniform(2.0, 5.0)), float(rng.uniform(3.0, 6.0))
+        spot = ground.place(reach, 0.6)
+        if spot is not None:
+            foot, head = (spot[0], spot[1] + 0.3, 0.0), (spot[0] + reach, spot[1] + 0.3, rise)
+            solids.append(
+                Solid(slab_between(foot, head, float(rng.uniform(0.2, 0.5)), 0.3, top=False), OBSTACLE)
+            )
+    for _ in range(int(rng.integers(2, 7))):  # low walls
+        lw, th, tall = (
+            float(rng.uniform(2.0, 8.0)),
+            float(rng.uniform(0.2, 0.3)),
+            float(rng.uniform(0.8, 1.5)),
+        )
+        sx, sy = (lw, th) if rng.random() < 0.5 else (th, lw)
+        spot = ground.place(sx, sy)
+        if spot is not None:
+            solids.append(Solid(_box(spot[0], spot[1], 0.0, spot[0] + sx, spot[1] + sy, tall), WALL))
+    for _ in range(int(rng.integers(0, 3))):  # arches: two piers and a lintel
+        span, pier, top = (
+            float(rng.uniform(2.5, 5.0)),
+            float(rng.uniform(0.4, 0.8)),
+            float(rng.uniform(3.0, 5.0)),
+        )
+        spot = ground.place(span + 2 * pier, pier)
+        if spot is not None:
+            x, y = spot
+            solids.append(Solid(_box(x, y, 0.0, x + pier, y + pier, top), WALL))
+            solids.append(Solid(_box(x + pier + span, y, 0.0, x + 2 * pier + span, y + pier, top), WALL))
+            solids.append(Solid(_box(x, y, top, x + 2 * pier + span, y + pier, top + 0.6), WALL))
+    return [_box(0.0, 0.0, 0.0, length, width, height)], solids, height, preferred
+
+
 def build_layout(family: Family | str, seed: int) -> Layout:
     """The primitives of one scene of a family; the same (family, seed) always gives the same layout."""
     fam = Family(family)
@@ -591,6 +879,10 @@ def build_layout(family: Family | str, seed: int) -> Layout:
             parts = _building(rng)
         case Family.YARD:
             parts = _yard(rng)
+        case Family.ARENA:
+            parts = _arena(rng)
+        case Family.PLATFORMS:
+            parts = _platforms(rng)
     air, solids, open_top, preferred = parts
     seeds = _pick_seeds(rng, air, solids, preferred)
     return Layout(family=fam, seed=seed, air=tuple(air), solids=tuple(solids), open_top=open_top, seeds=seeds)
@@ -668,8 +960,39 @@ def _split_quads(quads: np.ndarray) -> np.ndarray:
     return np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
 
 
-def mesh_layout(layout: Layout) -> Scene:
-    """Triangulate a layout: air boundary (floor/wall/ceiling), solids, and the open-top barrier."""
+def _solid_triangles(shape: Box | Cylinder | Slab) -> tuple[np.ndarray, np.ndarray]:
+    """A solid's triangles (T, 3, 3), counter-clockwise seen from outside, and which of them are the
+    curved side of a cylinder (T,) bool."""
+    if isinstance(shape, Box):
+        tris = _split_quads(_box_quads(shape))
+    elif isinstance(shape, Slab):
+        faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        tris = _split_quads(
+            shape.corners()[np.array(faces)]
+        )  # (12, 3, 3): a right-handed frame keeps the winding
+    else:
+        tris = _cylinder_triangles(shape)
+        side = np.arange(len(tris)) < 2 * CYLINDER_SEGMENTS  # (T,) the side comes first
+        return tris, side
+    return tris, np.zeros(len(tris), dtype=bool)
+
+
+def surface_classes(tris: np.ndarray, curved: np.ndarray) -> np.ndarray:
+    """Classes (T,) uint8 of triangles (T, 3, 3) as a Quake 3 map's faces get them (ingest.bsp): floor or
+    ceiling where the normal's |z| >= HORIZONTAL_NZ (facing up or down), patch where `curved` (T,) bool,
+    else wall."""
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])  # (T, 3)
+    nz = normal[:, 2] / np.maximum(np.linalg.norm(normal, axis=1), 1e-12)  # (T,)
+    classes = np.full(len(tris), bsp.CLASS_WALL, dtype=np.uint8)  # (T,) uint8
+    classes[nz >= bsp.HORIZONTAL_NZ] = bsp.CLASS_FLOOR
+    classes[nz <= -bsp.HORIZONTAL_NZ] = bsp.CLASS_CEILING
+    classes[curved] = bsp.CLASS_PATCH
+    return classes
+
+
+def mesh_layout(layout: Layout, semantics: Semantics | str = Semantics.OBJECT) -> Scene:
+    """Triangulate a layout: air boundary (floor/wall/ceiling), solids, and the open-top barrier; face
+    classes as `semantics` says (Semantics)."""
     quads, normal = _air_quads(air_grid(layout.air))  # (Q, 4, 3), (Q,)
     quad_class = np.full(len(quads), WALL, dtype=np.uint8)  # (Q,) uint8
     quad_class[normal == 3] = FLOOR
@@ -679,15 +1002,17 @@ def mesh_layout(layout: Layout) -> Scene:
         lid = (normal == -3) & np.isclose(quads[:, 0, 2], layout.open_top)
     tris = [_split_quads(quads[~lid])]  # list of (T, 3, 3)
     classes = [np.tile(quad_class[~lid], 2)]  # list of (T,)
+    curved = [np.zeros(len(tris[0]), dtype=bool)]  # list of (T,)
     for solid in layout.solids:
-        shape_tris = (
-            _split_quads(_box_quads(solid.shape))
-            if isinstance(solid.shape, Box)
-            else _cylinder_triangles(solid.shape)
-        )
+        shape_tris, side = _solid_triangles(solid.shape)
         tris.append(shape_tris)
         classes.append(np.full(len(shape_tris), solid.cls, dtype=np.uint8))
+        curved.append(side)
     drawn = np.concatenate(tris)  # (F, 3, 3)
+    face_class: np.ndarray = np.concatenate(classes)  # (F,) uint8
+    class_names: tuple[str, ...] = CLASS_NAMES
+    if Semantics(semantics) == Semantics.SURFACE:
+        face_class, class_names = surface_classes(drawn, np.concatenate(curved)), bsp.CLASS_NAMES
     barrier = _split_quads(quads[lid])  # (Fb, 3, 3)
     corners = np.concatenate([drawn, barrier]).reshape(-1, 3)  # ((F + Fb)·3, 3)
     vertices, index = np.unique(np.round(corners, 6), axis=0, return_inverse=True)  # (V, 3), ((F + Fb)·3,)
@@ -696,16 +1021,16 @@ def mesh_layout(layout: Layout) -> Scene:
         name=f"{layout.family.value}_{layout.seed}",
         vertices=vertices.astype(np.float64),
         faces=index[: len(drawn)],
-        face_class=np.concatenate(classes),
-        class_names=CLASS_NAMES,
+        face_class=face_class,
+        class_names=class_names,
         barrier_faces=index[len(drawn) :],
         seeds=layout.seeds.astype(np.float64),
     )
 
 
-def generate_scene(family: Family | str, seed: int) -> Scene:
-    """One procedural scene of a family, deterministic in (family, seed)."""
-    return mesh_layout(build_layout(family, seed))
+def generate_scene(family: Family | str, seed: int, semantics: Semantics | str = Semantics.OBJECT) -> Scene:
+    """One procedural scene of a family, deterministic in (family, seed), its faces classed by `semantics`."""
+    return mesh_layout(build_layout(family, seed), semantics)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -775,8 +1100,10 @@ def generate_corpus(
     seed: int,
     families: Sequence[Family | str] | None = None,
     progress: Callable[[int, int, Path], None] | None = None,
+    semantics: Semantics | str = Semantics.OBJECT,
 ) -> list[Path]:
-    """Write `count` scenes into out_dir as `<family>_<index>.obj` (+ sidecars), cycling the families.
+    """Write `count` scenes into out_dir as `<family>_<index>.obj` (+ sidecars), cycling the families
+    (all of FAMILIES when None), their faces classed by `semantics`.
 
     Scene i uses family families[i % len(families)] and a seed derived from (seed, i): the same
     arguments always write the same files. Returns the mesh paths in order.
@@ -790,7 +1117,8 @@ def generate_corpus(
     for i in range(count):
         family = chosen[i % len(chosen)]
         scene_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
-        path = write_scene_mesh(generate_scene(family, scene_seed), root / f"{family.value}_{i:04d}.obj")
+        scene = generate_scene(family, scene_seed, semantics)
+        path = write_scene_mesh(scene, root / f"{family.value}_{i:04d}.obj")
         paths.append(path)
         if progress is not None:
             progress(i + 1, count, path)

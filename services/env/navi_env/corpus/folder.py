@@ -393,6 +393,26 @@ def merge_corpora(parts: Sequence[str | os.PathLike[str]], out: str | os.PathLik
     return merged
 
 
+def subset_corpus(
+    corpus: str | os.PathLike[str], names: Sequence[str], out: str | os.PathLike[str]
+) -> CorpusManifest:
+    """A corpus folder `out` holding the scenes of `corpus` named in `names` (copied, in the corpus's
+    order), transactionally like build_corpus; CorpusError when a name is not in it."""
+    manifest = read_manifest(corpus)
+    missing = sorted(set(names) - {s.name for s in manifest.scenes})
+    if missing:
+        raise CorpusError(f"{corpus} has no scenes named {', '.join(missing)}")
+    keep = tuple(s for s in manifest.scenes if s.name in set(names))
+    with _transaction(out, "subset") as work:
+        for scene in keep:
+            shutil.copyfile(Path(corpus) / scene.file, work / scene.file)
+        sub = replace(
+            manifest, created_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), scenes=keep, rejected=()
+        )
+        _write_manifest(work, sub)
+    return sub
+
+
 def build_default_corpus(
     out: str | os.PathLike[str],
     resolution: int = 512,
@@ -400,12 +420,15 @@ def build_default_corpus(
     seed: int = 0,
     device: torch.device | str = "cpu",
     progress: Progress | None = None,
+    families: Sequence[str] | None = None,
+    semantics: str = "object",
 ) -> CorpusManifest:
-    """Generate `count` procedural scenes (navi_compiler.ingest.procedural) and build them into the corpus `out`."""
+    """Generate `count` procedural scenes (navi_compiler.ingest.procedural: `families` cycled, all when None,
+    face classes by `semantics`) and build them into the corpus `out`."""
     from navi_compiler.ingest.procedural import generate_corpus
 
     target = Path(out)
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f".{target.name}.sources-", dir=target.parent) as tmp:
-        meshes = generate_corpus(tmp, count, seed)
+        meshes = generate_corpus(tmp, count, seed, families=families, semantics=semantics)
         return build_corpus(meshes, target, resolution, device, progress=progress)

@@ -56,14 +56,19 @@ class EvalProtocol:
         return cls() if device.type == "cuda" else cls(actors=48, steps=500, episode_steps=250)
 
 
-def evaluate_baselines(env: BatchedEnv, protocol: EvalProtocol) -> dict[str, EvalMetrics]:
-    """random and reactive on the protocol's env seed; random, greedy and oracle for point-goal episodes."""
+def baseline_policies(env: BatchedEnv, protocol: EvalProtocol) -> list[EvalPolicy]:
+    """The task's baselines for `env`: random and reactive; random, greedy and oracle for point-goal episodes."""
     policies: list[EvalPolicy] = [RandomPolicy(protocol.seed)]
     if capabilities(env).task == "pointgoal":
         policies += [goal_seeker_for_env("greedy", env), goal_seeker_for_env("oracle", env)]
     else:
         policies.append(reactive_for_env(env))
-    return {p.name: evaluate(env, p, protocol.steps, protocol.seed) for p in policies}
+    return policies
+
+
+def evaluate_baselines(env: BatchedEnv, protocol: EvalProtocol) -> dict[str, EvalMetrics]:
+    """The task's baselines (baseline_policies) on the protocol's env seed."""
+    return {p.name: evaluate(env, p, protocol.steps, protocol.seed) for p in baseline_policies(env, protocol)}
 
 
 def meets_bar(metrics: EvalMetrics, baselines: dict[str, EvalMetrics]) -> bool:

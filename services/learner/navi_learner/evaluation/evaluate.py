@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,7 +36,7 @@ import torch
 from navi_learner.config import EngineConfig
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
-from navi_learner.envs.protocol import BatchedEnv, capabilities
+from navi_learner.envs.protocol import BatchedEnv, StepLike, capabilities
 from navi_learner.evaluation.baselines import EvalPolicy
 from navi_learner.serving.checkpoint import load_checkpoint
 
@@ -127,6 +128,9 @@ class EvalMetrics:
     ci: dict[str, list[float]] = field(default_factory=dict)
     per_actor: dict[str, list[float]] = field(default_factory=dict)
     """Per-actor sums behind the paired comparisons (PAIRED_SUMS: steps, cells, collision), (N,) each."""
+    per_scene: dict[str, dict[str, float]] = field(default_factory=dict)
+    """With `evaluate(by_scene=True)`: scene name -> its actors' count ("actors") and every metric's point
+    value over them (no intervals), each actor counted in the scene it flew first."""
 
 
 @dataclass
@@ -167,6 +171,22 @@ class ActorSums:
         }
 
 
+NEEDS = {
+    "collisions_per_1k": "collision",
+    "obstacle_collisions_per_1k": "obstacle_collision",
+    "mean_clearance": "clearance",
+    "coverage_per_1k": "position",
+    "distance_per_1k": "position",
+    "starvation_rate": "starved",
+    "success_rate": "success",
+    "spl": "success",
+    "soft_spl": "success",
+    "collisions_per_episode": "success",
+    "time_to_goal_s": "success",
+}
+"""The info key each metric needs (an env without it gives NaN)."""
+
+
 def ratio(num: np.ndarray, den: np.ndarray, scale: float) -> float:
     """scale * sum(num) / sum(den), NaN when the denominator is 0."""
     total = float(den.sum())
@@ -189,23 +209,10 @@ def bootstrap_ci(
 
 def summarise(name: str, sums: ActorSums, steps: int, has: dict[str, bool], elapsed: float) -> EvalMetrics:
     """EvalMetrics with bootstrap intervals from per-actor sums; metrics without their info key are NaN."""
-    needs = {
-        "collisions_per_1k": "collision",
-        "obstacle_collisions_per_1k": "obstacle_collision",
-        "mean_clearance": "clearance",
-        "coverage_per_1k": "position",
-        "distance_per_1k": "position",
-        "starvation_rate": "starved",
-        "success_rate": "success",
-        "spl": "success",
-        "soft_spl": "success",
-        "collisions_per_episode": "success",
-        "time_to_goal_s": "success",
-    }
     values: dict[str, float] = {}
     ci: dict[str, list[float]] = {}
     for metric, (num, den, scale) in sums.ratios().items():
-        if not has.get(needs.get(metric, ""), True):
+        if not has.get(NEEDS.get(metric, ""), True):
             values[metric], ci[metric] = math.nan, [math.nan, math.nan]
             continue
         values[metric] = ratio(num, den, scale)
@@ -221,14 +228,41 @@ def summarise(name: str, sums: ActorSums, steps: int, has: dict[str, bool], elap
         sps=n * steps / max(elapsed, 1e-9),
         ci=ci,
         per_actor=per_actor,
+        per_scene={},
         **values,
     )
 
 
+def scene_values(
+    sums: ActorSums, scene: np.ndarray, names: Sequence[str], has: dict[str, bool]
+) -> dict[str, dict[str, float]]:
+    """Per scene name: its actors' count and the point value of every metric over them; actors (N,) are
+    grouped by `scene` (N,) int64, the index into `names`. Metrics without their info key are NaN."""
+    out: dict[str, dict[str, float]] = {}
+    for k, name in enumerate(names):
+        mine = scene == k  # (N,) bool
+        if not mine.any():
+            continue
+        row: dict[str, float] = {"actors": float(mine.sum())}
+        for metric, (num, den, scale) in sums.ratios().items():
+            known = has.get(NEEDS.get(metric, ""), True)
+            row[metric] = ratio(num[mine], den[mine], scale) if known else math.nan
+        out[name] = row
+    return out
+
+
 def evaluate(
-    env: BatchedEnv, policy: EvalPolicy, steps: int, seed: int = 0, progress: bool = False
+    env: BatchedEnv,
+    policy: EvalPolicy,
+    steps: int,
+    seed: int = 0,
+    progress: bool = False,
+    by_scene: bool = False,
+    observe: Callable[[StepLike], None] | None = None,
 ) -> EvalMetrics:
-    """Run `steps` batched steps from env.reset(seed) and summarise (one host read at the end)."""
+    """Run `steps` batched steps from env.reset(seed) and summarise (one host read at the end). With
+    `by_scene` the result also holds per-scene values (EvalMetrics.per_scene; the env's info "scene_id"
+    and its capabilities' scene names); `observe` sees every step's output (analyses that record more)."""
     n, device = env.n_actors, env.device
     policy.reset(n, device)
     obs = env.reset(seed=seed)
@@ -258,9 +292,16 @@ def evaluate(
     cells: list[torch.Tensor] = []
     prev_pos: torch.Tensor | None = None
     same_episode = torch.zeros(n, dtype=torch.bool, device=device)  # (N,) prev_pos is this episode's
+    first_scene: torch.Tensor | None = None  # (N,) int64 the scene each actor flew first
     t0 = time.perf_counter()
     for i in range(steps):
         out = env.step(policy.act(obs, resets))
+        if observe is not None:
+            observe(out)
+        if by_scene and first_scene is None:
+            if "scene_id" not in out.info:
+                raise ValueError("by_scene needs an env whose info has scene_id (the drone env)")
+            first_scene = out.info["scene_id"].long().clone()
         ends = out.done | out.truncated  # (N,) bool
         ret += out.reward
         acc["reward"] += out.reward
@@ -304,7 +345,10 @@ def evaluate(
     if progress and sys.stderr.isatty():
         sys.stderr.write("\n")
     sums = ActorSums(steps=np.full(n, float(steps)), cells=covered.cpu().numpy(), **host)
-    return summarise(policy.name, sums, steps, has, elapsed)
+    result = summarise(policy.name, sums, steps, has, elapsed)
+    if first_scene is not None:
+        result.per_scene = scene_values(sums, first_scene.cpu().numpy(), capabilities(env).scenes, has)
+    return result
 
 
 def jsonable(value: object) -> object:

@@ -1,0 +1,606 @@
+"""`navi bench transfer`: does a drone trained on procedural scenes alone fly real maps it never saw?
+
+Protocol (docs/TRAINING.md, "Real maps never seen"):
+- Arms. Each arm trains the learning recipe (navi_learner.config.learning_recipe, learning_size's actors
+  and rollouts) from scratch for `budget_s` seconds of training on its own train split, once per seed:
+  - `procedural[:SEMANTICS[:FAMILY+FAMILY...]]`: procedural scenes of seed 0 (the main job's corpus),
+    face classes by SEMANTICS (object or surface, navi_compiler.ingest.procedural.Semantics; default
+    object), of the listed families (default all);
+  - `openarena`: the OpenArena maps outside the held-out fifth (every fifth map by name, as `navi bench
+    learn` holds out): the upper reference, a drone that has seen real maps.
+- Evaluation. Every arm's final checkpoint flies (EvalProtocol, deterministic, same env seed) on:
+  - `openarena`: all OpenArena maps, per map too (no procedural arm has seen any of them);
+  - `openarena-held-out`: the held-out fifth, which no arm has seen: the parity comparison;
+  - `procedural`: procedural scenes of seed 1000, every family, in the arm's semantics.
+  The task's baselines fly the same envs (random and the reactive avoider; random, greedy and oracle
+  for point-goal). On `openarena` every collision is classed by the surface it touched (the distance
+  field's normal there: floor, ceiling, wall or slope; thin when the solid behind it is thinner than
+  THIN_M) and counted per map.
+- Runs are placed one per GPU (`gpus`), each GPU working through its share in turn; the corpora are
+  built once under `root` and reused.
+Output folder: result.json and report.md (and transfer.png where matplotlib is installed).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from navi_bench.learn import Say, openarena_maps, say_stderr, split_openarena
+from navi_learner.config import TrainConfig, learning_recipe, learning_size
+from navi_learner.envs.factory import corpus_summary, make_env
+from navi_learner.envs.protocol import StepLike
+from navi_learner.evaluation.competence import EvalProtocol, baseline_policies
+from navi_learner.evaluation.evaluate import comparison_table, evaluate, jsonable
+
+PROCEDURAL_TRAIN = 16
+"""Procedural train scenes per arm (the main job's corpus size on CUDA)."""
+TRAIN_SEED, UNSEEN_SEED = 0, 1000
+"""Seeds of the procedural train and unseen scenes (the main job's)."""
+THIN_M = 0.4
+"""A collision is with thin geometry when the solid behind the touched surface is thinner than this."""
+NORMAL_STEP_M = 0.05
+"""Finite-difference step of the distance field's normal at a collision."""
+SURFACES = ("floor", "ceiling", "wall", "slope")
+"""Collision classes by the touched surface's normal n: floor n_z >= 0.7 (the surface is below), ceiling
+n_z <= -0.7, wall |n_z| < 0.2, slope in between (ramps, stairs' noses, curved patches)."""
+
+
+@dataclass(frozen=True)
+class Arm:
+    """What one arm trains on (see the module docstring for the spec syntax)."""
+
+    spec: str
+    real: bool
+    semantics: str = "object"
+    families: tuple[str, ...] = ()
+
+    @property
+    def key(self) -> str:
+        """A folder-safe name of its train corpus."""
+        if self.real:
+            return "openarena"
+        return f"procedural-{self.semantics}-{'+'.join(self.families) or 'all'}"
+
+
+def parse_arm(spec: str) -> Arm:
+    """An Arm from `openarena` or `procedural[:SEMANTICS[:FAMILY+FAMILY...]]`; ValueError on anything else."""
+    from navi_compiler.ingest.procedural import FAMILIES, SEMANTICS
+
+    parts = spec.strip().split(":")
+    if parts == ["openarena"]:
+        return Arm(spec.strip(), real=True)
+    if parts[0] != "procedural" or len(parts) > 3:
+        raise ValueError(f"arm {spec!r}: expected openarena or procedural[:SEMANTICS[:FAMILY+FAMILY...]]")
+    semantics = parts[1] if len(parts) > 1 and parts[1] else "object"
+    if semantics not in {s.value for s in SEMANTICS}:
+        raise ValueError(f"arm {spec!r}: semantics must be one of {', '.join(s.value for s in SEMANTICS)}")
+    families = tuple(f for f in parts[2].split("+") if f) if len(parts) > 2 else ()
+    unknown = sorted(set(families) - {f.value for f in FAMILIES})
+    if unknown:
+        raise ValueError(f"arm {spec!r}: unknown families {', '.join(unknown)}")
+    return Arm(spec.strip(), real=False, semantics=semantics, families=families)
+
+
+@dataclass(frozen=True)
+class TransferConfig:
+    """One `navi bench transfer` job."""
+
+    arms: tuple[Arm, ...]
+    seeds: tuple[int, ...] = (0, 1, 2)
+    budget_s: float = 240.0
+    """Training seconds per run."""
+    train: TrainConfig = field(default_factory=learning_recipe)
+    """The runs' settings (the learning recipe); 0 actors or rollout length: learning_size's."""
+    protocol: EvalProtocol = field(default_factory=lambda: EvalProtocol(actors=1000))
+    """The evaluation: 1,000 actors spread over the scenes (20 per OpenArena map) x 1,000 steps."""
+    gpus: int = 0
+    """> 0: one run per GPU at a time on cuda:0 .. cuda:gpus-1 (and the corpora built on them in parallel)."""
+    procedural_train: int = PROCEDURAL_TRAIN
+    procedural_unseen: int = 0
+    """Unseen procedural scenes (0: one per family)."""
+    openarena_maps: int = 0
+    """Use only the first this many OpenArena maps by name (0: all; small jobs and tests)."""
+
+
+@dataclass(frozen=True)
+class Corpora:
+    """The corpus folders of one job."""
+
+    train: dict[str, Path]
+    """Arm key -> its train corpus."""
+    unseen: dict[str, dict[str, Path]]
+    """Arm key -> evaluation part -> corpus."""
+    scenes: dict[str, list[str]]
+    notes: list[str] = field(default_factory=list)
+
+
+class BuildJob:
+    """One corpus to build on one device (a picklable callable for the worker processes)."""
+
+    def __init__(self, out: Path, kind: str, args: dict[str, Any]) -> None:
+        self.out, self.kind, self.args = out, kind, args
+
+    def __call__(self, device: str, say: Say) -> None:
+        from navi_env.corpus.folder import build_corpus, build_default_corpus
+
+        if (self.out / "manifest.json").is_file():
+            return
+        say(f"[bench transfer] building {self.out} on {device}")
+        if self.kind == "procedural":
+            build_default_corpus(self.out, device=device, **self.args)
+        else:
+            build_corpus(self.args["sources"], self.out, self.args["resolution"], device)
+
+
+def plan_corpora(
+    cfg: TransferConfig, root: Path, resolution: int, pk3: Path | None
+) -> tuple[list[BuildJob], Callable[[], Corpora]]:
+    """The build jobs of the job's corpora under `root` and a function that, once they are built, merges
+    the OpenArena parts and returns the Corpora."""
+    from navi_compiler.ingest.procedural import FAMILIES
+    from navi_env.corpus.folder import merge_corpora, read_manifest, subset_corpus
+
+    jobs: list[BuildJob] = []
+    notes: list[str] = []
+    unseen_count = cfg.procedural_unseen or len(FAMILIES)
+    train: dict[str, Path] = {}
+    unseen: dict[str, dict[str, Path]] = {}
+    have_maps = pk3 is not None and pk3.is_file()
+    arms = [a for a in cfg.arms if have_maps or not a.real]
+    if len(arms) < len(cfg.arms):
+        notes.append(f"OpenArena maps not found at {pk3}: the openarena arm and parts are left out")
+    chunks: list[Path] = []
+    maps: list[str] = []
+    if have_maps:
+        assert pk3 is not None
+        maps = openarena_maps(pk3)[: cfg.openarena_maps or None]
+        pieces = max(1, cfg.gpus)
+        for k in range(pieces):
+            mine = maps[k::pieces]
+            if mine:
+                chunks.append(root / f"openarena-{len(maps)}maps-{k}of{pieces}-{resolution}")
+                sources = [f"{pk3}:{m}" for m in mine]
+                jobs.append(BuildJob(chunks[-1], "openarena", {"sources": sources, "resolution": resolution}))
+    for arm in arms:
+        if arm.real:
+            continue
+        folder = root / f"{arm.key}-train-{resolution}"
+        if folder not in [j.out for j in jobs]:
+            args = {
+                "resolution": resolution,
+                "count": cfg.procedural_train,
+                "seed": TRAIN_SEED,
+                "families": list(arm.families) or None,
+                "semantics": arm.semantics,
+            }
+            jobs.append(BuildJob(folder, "procedural", args))
+        train[arm.key] = folder
+    for semantics in sorted({a.semantics for a in arms}):
+        folder = root / f"procedural-{semantics}-unseen-{unseen_count}-{resolution}"
+        args = {"resolution": resolution, "count": unseen_count, "seed": UNSEEN_SEED, "semantics": semantics}
+        jobs.append(BuildJob(folder, "procedural", args))
+
+    def finish() -> Corpora:
+        scenes: dict[str, list[str]] = {}
+        real: dict[str, Path] = {}
+        if chunks:
+            train_maps, held = split_openarena(maps)
+            names = {m: Path(m).stem for m in maps}
+            merged = root / f"openarena-{len(maps)}maps-all-{resolution}"
+            if not (merged / "manifest.json").is_file():
+                merge_corpora(chunks, merged)
+            by_name = {s.name: s for s in read_manifest(merged).scenes}
+            for part, chosen in (("train", train_maps), ("held-out", held)):
+                folder = root / f"openarena-{len(maps)}maps-{part}-{resolution}"
+                keep = [names[m] for m in chosen if names[m] in by_name]
+                if not (folder / "manifest.json").is_file():
+                    subset_corpus(merged, keep, folder)
+                real[part] = folder
+            real["all"] = merged
+            train["openarena"] = real["train"]
+            scenes["openarena/train"] = [names[m] for m in train_maps]
+            scenes["openarena/held-out"] = [names[m] for m in held]
+        for arm in arms:
+            parts = {"procedural": root / f"procedural-{arm.semantics}-unseen-{unseen_count}-{resolution}"}
+            if real:
+                parts = {"openarena": real["all"], "openarena-held-out": real["held-out"], **parts}
+            unseen[arm.key] = parts
+        for key, folder in train.items():
+            scenes[f"train/{key}"] = [s.name for s in read_manifest(folder).scenes]
+        return Corpora(train, unseen, scenes, notes)
+
+    return jobs, finish
+
+
+class CollisionSites:
+    """An `evaluate` observer that keeps where each collision happened: (scene, position) per contact."""
+
+    def __init__(self) -> None:
+        self.scene: list[torch.Tensor] = []
+        self.position: list[torch.Tensor] = []
+
+    def __call__(self, out: StepLike) -> None:
+        hit = out.info["collision"].bool()  # (N,)
+        self.scene.append(out.info["scene_id"].long()[hit])  # (C_t,)
+        self.position.append(out.info["position"].float()[hit])  # (C_t, 3)
+
+    def classify(self, env: Any, names: tuple[str, ...]) -> dict[str, dict[str, int]]:
+        """Per scene name (and "all"): contacts per surface class (SURFACES) and how many were thin."""
+        from navi_env.tracer.trace import sample_distance
+
+        scene = torch.cat(self.scene) if self.scene else torch.zeros(0, dtype=torch.long)  # (C,)
+        pos = torch.cat(self.position) if self.position else torch.zeros(0, 3)  # (C, 3)
+        out: dict[str, dict[str, int]] = {"all": {k: 0 for k in (*SURFACES, "thin")}}
+        if scene.numel() == 0:
+            return out
+        corpus = env.corpus
+
+        def field_at(points: torch.Tensor) -> torch.Tensor:  # (C, 3) -> (C,) signed distance
+            return sample_distance(corpus, scene, points.contiguous())
+
+        axes = torch.eye(3, device=pos.device) * NORMAL_STEP_M  # (3, 3)
+        grad = torch.stack([field_at(pos + axes[a]) - field_at(pos - axes[a]) for a in range(3)], 1)  # (C, 3)
+        normal = grad / grad.norm(dim=1, keepdim=True).clamp(min=1e-9)  # (C, 3) away from the surface
+        d = field_at(pos)  # (C,) distance to the surface
+        nz = normal[:, 2]  # (C,)
+        surface = torch.where(
+            nz >= 0.7, 0, torch.where(nz <= -0.7, 1, torch.where(nz.abs() < 0.2, 2, 3))
+        )  # (C,) index into SURFACES
+        thin = torch.zeros_like(d, dtype=torch.bool)  # (C,) the solid ends within THIN_M behind the surface
+        for depth in torch.arange(NORMAL_STEP_M, THIN_M + 1e-6, NORMAL_STEP_M).tolist():
+            behind = pos - normal * (d.clamp(min=0.0) + depth)[:, None]  # (C, 3)
+            thin |= field_at(behind) > 0.0
+        for k, name in enumerate([*names, "all"]):
+            mine = scene == k if name != "all" else torch.ones_like(thin)  # (C,) bool
+            row = {s: int(((surface == i) & mine).sum()) for i, s in enumerate(SURFACES)}
+            row["thin"] = int((thin & mine).sum())
+            if name == "all" or any(row.values()):
+                out[name] = row
+        return out
+
+
+@dataclass(frozen=True)
+class RunJob:
+    """One (arm, seed) run: train, then evaluate on the arm's unseen parts."""
+
+    arm: Arm
+    seed: int
+    cfg: TransferConfig
+    train: Path
+    unseen: dict[str, Path]
+    run_dir: Path
+
+    def __call__(self, device: str, say: Say) -> dict[str, Any]:
+        from navi_learner.evaluation.evaluate import CheckpointPolicy
+        from navi_learner.ppo.train import train
+
+        dev = torch.device(device)
+        tcfg = replace(
+            learning_size(self.cfg.train, dev.type == "cuda"),
+            time_limit_s=self.cfg.budget_s,
+            checkpoint_every=10**12,
+            seed=self.seed,
+            device=device,
+        )
+        say(f"[bench transfer] {self.arm.spec} seed {self.seed}: training on {self.train} ({device})")
+        env = make_env(self.train, tcfg.n_actors, device, self.seed, task=tcfg.task)
+        result = train(
+            env,
+            tcfg,
+            run_dir=self.run_dir,
+            corpus_summary=corpus_summary(self.train, "sdfdag"),
+            progress=False,
+        )
+        del env
+        trained = CheckpointPolicy(result.final_checkpoint, dev)
+        finals: dict[str, Any] = {}
+        collisions: dict[str, dict[str, int]] = {}
+        for part, corpus in self.unseen.items():
+            env = eval_env(corpus, self.cfg, device)
+            sites = CollisionSites() if part == "openarena" else None
+            p = self.cfg.protocol
+            metrics = evaluate(env, trained, p.steps, p.seed, by_scene=part == "openarena", observe=sites)
+            metrics.policy = f"{self.arm.spec} seed {self.seed}"
+            metrics.per_actor = {}
+            finals[part] = asdict(metrics)
+            if sites is not None:
+                collisions = sites.classify(env, _names(env))
+            say(
+                f"[bench transfer] {self.arm.spec} seed {self.seed} on {part}:\n{comparison_table([metrics])}"
+            )
+        return {
+            "arm": self.arm.spec,
+            "seed": self.seed,
+            "checkpoint": str(result.final_checkpoint),
+            "steps": result.step_id,
+            "train_s": float(result.last_metrics.get("train_s", 0.0)),
+            "sps": result.sps,
+            "final_by_part": finals,
+            "collisions_by_surface": collisions,
+        }
+
+
+def _names(env: Any) -> tuple[str, ...]:
+    from navi_learner.envs.protocol import capabilities
+
+    return capabilities(env).scenes
+
+
+@dataclass(frozen=True)
+class BaselineJob:
+    """The task's baselines on one evaluation corpus."""
+
+    part: str
+    corpus: Path
+    cfg: TransferConfig
+
+    def __call__(self, device: str, say: Say) -> dict[str, Any]:
+        env = eval_env(self.corpus, self.cfg, device)
+        p = self.cfg.protocol
+        out: dict[str, Any] = {}
+        rows = []
+        for policy in baseline_policies(env, p):
+            sites = CollisionSites() if self.part == "openarena" else None
+            metrics = evaluate(env, policy, p.steps, p.seed, by_scene=sites is not None, observe=sites)
+            metrics.per_actor = {}
+            rows.append(metrics)
+            out[policy.name] = asdict(metrics)
+            if sites is not None:
+                out[policy.name]["collisions_by_surface"] = sites.classify(env, _names(env))
+        say(f"[bench transfer] baselines on {self.corpus}:\n" + comparison_table(rows))
+        return {"part": self.part, "corpus": str(self.corpus), "baselines": out}
+
+
+def eval_env(corpus: Path, cfg: TransferConfig, device: str) -> Any:
+    """An evaluation env of the job's protocol over `corpus`."""
+    p = cfg.protocol
+    return make_env(corpus, p.actors, device, p.seed, episode_steps=p.episode_steps, task=cfg.train.task)
+
+
+def _device_worker(args: tuple[str, list[Any]]) -> list[Any]:
+    """Run jobs one after another on one device (a process of its own per GPU)."""
+    device, jobs = args
+    if device.startswith("cuda:"):
+        torch.cuda.set_device(torch.device(device))
+    return [job(device, say_stderr) for job in jobs]
+
+
+def run_spread(jobs: list[Any], device: str, gpus: int) -> list[Any]:
+    """Every job's result, in order: on `device` in this process, or with gpus > 0 job k on cuda:(k % gpus),
+    one process per GPU working through its jobs in turn."""
+    if gpus <= 0:
+        return [job(device, say_stderr) for job in jobs]
+    shares = [(f"cuda:{g}", jobs[g::gpus]) for g in range(gpus)]
+    with multiprocessing.get_context("spawn").Pool(gpus) as pool:
+        done = pool.map(_device_worker, shares)
+    out: list[Any] = [None] * len(jobs)
+    for g, results in enumerate(done):
+        for k, r in enumerate(results):
+            out[g + k * gpus] = r
+    return out
+
+
+def median_rows(runs: list[dict[str, Any]], part: str, metrics: tuple[str, ...]) -> dict[str, dict[str, Any]]:
+    """Per arm: the median over its seeds of each metric on `part`, and the seeds' values."""
+    out: dict[str, dict[str, Any]] = {}
+    for arm in dict.fromkeys(r["arm"] for r in runs):
+        mine = [r["final_by_part"][part] for r in runs if r["arm"] == arm and part in r["final_by_part"]]
+        if mine:
+            out[arm] = {
+                m: {"median": statistics.median(x[m] for x in mine), "seeds": [x[m] for x in mine]}
+                for m in metrics
+            }
+    return out
+
+
+def verdict(row: dict[str, Any], baselines: dict[str, Any], task: str) -> bool:
+    """The competence bar on one part: explore, collisions <= half the reactive avoider's (<= 0.5 where it
+    has none) and coverage >= 1.5x its; point-goal, success >= 0.9, SPL >= 0.8 and fewer collisions per
+    episode than the greedy seeker."""
+    if task == "pointgoal":
+        greedy = baselines["greedy"]
+        return bool(
+            row["success_rate"] >= 0.9
+            and row["spl"] >= 0.8
+            and row["collisions_per_episode"] < greedy["collisions_per_episode"]
+        )
+    reactive = baselines["reactive"]
+    bar = max(0.5 * reactive["collisions_per_1k"], 0.5 if reactive["collisions_per_1k"] == 0 else 0.0)
+    return bool(
+        row["collisions_per_1k"] <= bar and row["coverage_per_1k"] >= 1.5 * reactive["coverage_per_1k"]
+    )
+
+
+def task_metrics(task: str) -> tuple[str, ...]:
+    """The metrics the report shows for a task."""
+    if task == "pointgoal":
+        return ("success_rate", "spl", "collisions_per_episode")
+    return ("collisions_per_1k", "coverage_per_1k")
+
+
+def summarise(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]], task: str) -> dict[str, Any]:
+    """Per part: per arm the median over seeds (and each seed) of the task's metrics, and per seed
+    whether the run clears the bar there; per OpenArena map: per arm the median collisions/1k and
+    coverage/1k (or success and SPL), beside the baselines'."""
+    metrics = task_metrics(task)
+    out: dict[str, Any] = {"parts": {}, "per_map": {}, "surfaces": {}}
+    for part, base in baselines.items():
+        rows = median_rows(runs, part, metrics)
+        for arm, arm_row in rows.items():
+            seeds = [r for r in runs if r["arm"] == arm and part in r["final_by_part"]]
+            arm_row["competent_seeds"] = sum(verdict(r["final_by_part"][part], base, task) for r in seeds)
+            arm_row["seeds_run"] = len(seeds)
+        out["parts"][part] = {
+            "arms": rows,
+            "baselines": {k: {m: v[m] for m in metrics} for k, v in base.items()},
+        }
+    if "openarena" in baselines:
+        maps = sorted(next(iter(baselines["openarena"].values()))["per_scene"])
+        for name in maps:
+            row: dict[str, Any] = {
+                k: {m: v["per_scene"][name][m] for m in metrics} for k, v in baselines["openarena"].items()
+            }
+            for arm in dict.fromkeys(r["arm"] for r in runs):
+                mine = [
+                    r["final_by_part"]["openarena"]["per_scene"][name]
+                    for r in runs
+                    if r["arm"] == arm and "openarena" in r["final_by_part"]
+                ]
+                if mine:
+                    row[arm] = {m: statistics.median(x[m] for x in mine) for m in metrics}
+            out["per_map"][name] = row
+        for arm in dict.fromkeys(r["arm"] for r in runs):
+            total = {k: 0 for k in (*SURFACES, "thin")}
+            for r in runs:
+                if r["arm"] == arm:
+                    for k in total:
+                        total[k] += r["collisions_by_surface"].get("all", {}).get(k, 0)
+            out["surfaces"][arm] = total
+        for name, b in baselines["openarena"].items():
+            out["surfaces"][name] = b.get("collisions_by_surface", {}).get("all", {})
+    return out
+
+
+def _fmt(x: Any) -> str:
+    return "–" if x is None or x != x else f"{x:.3g}" if isinstance(x, float) else str(x)
+
+
+def report_markdown(result: dict[str, Any]) -> str:
+    """report.md: per part the arms' medians against the baselines, the surfaces hit, the maps."""
+    s = result["summary"]
+    task = result["task"]
+    metrics = task_metrics(task)
+    lines = ["# navi bench transfer", "", f"{result['device']}, {result['date']}, task {task}, "
+             f"{result['config']['budget_s']:.0f} s of training per run, seeds {result['config']['seeds']}", ""]  # fmt: skip
+    for part, p in s["parts"].items():
+        lines += [f"## {part}", "", "| policy | " + " | ".join(metrics) + " | competent seeds |"]
+        lines += ["| --- |" + " --- |" * (len(metrics) + 1)]
+        for arm, row in p["arms"].items():
+            cells = [
+                f"{_fmt(row[m]['median'])} ({', '.join(_fmt(v) for v in row[m]['seeds'])})" for m in metrics
+            ]
+            lines.append(
+                f"| {arm} | " + " | ".join(cells) + f" | {row['competent_seeds']}/{row['seeds_run']} |"
+            )
+        for name, row in p["baselines"].items():
+            lines.append(f"| {name} | " + " | ".join(_fmt(row[m]) for m in metrics) + " | |")
+        lines.append("")
+    if s["surfaces"]:
+        lines += ["## Collisions on the OpenArena maps by the surface touched (all seeds)", ""]
+        lines += [
+            "| policy | " + " | ".join((*SURFACES, "thin")) + " |",
+            "| --- |" + " --- |" * (len(SURFACES) + 1),
+        ]
+        for name, row in s["surfaces"].items():
+            lines.append(f"| {name} | " + " | ".join(str(row.get(k, 0)) for k in (*SURFACES, "thin")) + " |")
+        lines.append("")
+    if s["per_map"]:
+        policies = list(next(iter(s["per_map"].values())))
+        lines += [f"## Per OpenArena map ({metrics[0]} / {metrics[1]}, median over seeds)", ""]
+        lines += ["| map | " + " | ".join(policies) + " |", "| --- |" + " --- |" * len(policies)]
+        for name, row in s["per_map"].items():
+            cells = [
+                f"{_fmt(row[k][metrics[0]])} / {_fmt(row[k][metrics[1]])}" if k in row else ""
+                for k in policies
+            ]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_transfer(result: dict[str, Any], path: Path) -> str | None:
+    """transfer.png: per OpenArena map the task's first two metrics per policy; None, or why not."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return "matplotlib is not installed: no transfer.png"
+    per_map = result["summary"]["per_map"]
+    if not per_map:
+        return "no OpenArena maps in this job: no transfer.png"
+    metrics = task_metrics(result["task"])[:2]
+    maps = list(per_map)
+    policies = list(next(iter(per_map.values())))
+    fig, axes = plt.subplots(2, 1, figsize=(max(8, len(maps) * 0.35), 8), sharex=True)
+    width = 0.8 / len(policies)
+    for ax, metric in zip(axes, metrics, strict=True):
+        for k, name in enumerate(policies):
+            values = [per_map[m].get(name, {}).get(metric, float("nan")) for m in maps]
+            ax.bar([i + k * width for i in range(len(maps))], values, width, label=name)
+        ax.set_ylabel(metric)
+    axes[-1].set_xticks([i + 0.4 - width / 2 for i in range(len(maps))], maps, rotation=90, fontsize=7)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return None
+
+
+def bench_transfer(
+    cfg: TransferConfig,
+    out: Path,
+    device: str,
+    resolution: int,
+    root: Path,
+    pk3: Path | None,
+    say: Say = print,
+) -> dict[str, Any]:
+    """The whole benchmark; writes and returns result.json's content."""
+    if not cfg.arms:
+        raise ValueError("name at least one arm")
+    if cfg.gpus > 0 and (not device.startswith("cuda") or torch.cuda.device_count() < cfg.gpus):
+        raise ValueError(f"--gpus {cfg.gpus} needs that many CUDA devices")
+    started = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    builds, finish = plan_corpora(cfg, root, resolution, pk3)
+    run_spread(builds, device, cfg.gpus)
+    corpora = finish()
+    say(f"[bench transfer] corpora ready after {time.perf_counter() - started:.0f} s")
+    parts = {part: folder for parts in corpora.unseen.values() for part, folder in parts.items()}
+    base_jobs = [BaselineJob(part, folder, cfg) for part, folder in parts.items()]
+    run_jobs = [
+        RunJob(
+            arm,
+            seed,
+            cfg,
+            corpora.train[arm.key],
+            corpora.unseen[arm.key],
+            out / "runs" / f"{arm.key}-seed{seed}",
+        )
+        for seed in cfg.seeds
+        for arm in cfg.arms
+        if arm.key in corpora.train
+    ]
+    done = run_spread([*base_jobs, *run_jobs], device, cfg.gpus)
+    baselines = {d["part"]: d["baselines"] for d in done[: len(base_jobs)]}
+    runs = list(done[len(base_jobs) :])
+    result: dict[str, Any] = {
+        "device": (torch.cuda.get_device_name() if device.startswith("cuda") else "cpu")
+        + (f" x {cfg.gpus} (one run per GPU at a time)" if cfg.gpus > 0 else ""),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "task": cfg.train.task,
+        "resolution": resolution,
+        "config": jsonable(asdict(replace(cfg, seeds=list(cfg.seeds)))),  # type: ignore[arg-type]
+        "scenes": corpora.scenes,
+        "notes": corpora.notes,
+        "baselines": baselines,
+        "runs": runs,
+        "summary": summarise(runs, baselines, cfg.train.task),
+        "wall_s": time.perf_counter() - started,
+    }
+    why_not = plot_transfer(result, out / "transfer.png")
+    if why_not:
+        result["notes"].append(why_not)
+    (out / "result.json").write_text(json.dumps(jsonable(result), indent=1))
+    (out / "report.md").write_text(report_markdown(result))
+    return result
