@@ -2,7 +2,8 @@
 
 `--nproc N` measures one process first, then N data-parallel ranks through torchrun (each rank with
 the same actors on its own device, the three columns measured on every rank at once), and reports the
-per-rank and total SPS with the scaling efficiency SPS(N) / (N x SPS(1)) of each column.
+per-rank and total SPS with the scaling efficiency SPS(N) / (N x SPS(1)) of each column, and every
+rank's timeline of a training step (collect, forward, update, sync: what it waits for the others).
 """
 
 from __future__ import annotations
@@ -55,7 +56,8 @@ def inference_sps(
     reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> float:
     """Steps/s of env + the full rollout-side engine (encoder, RND, memory, core step, heads), no learning;
-    `reduce` (a data-parallel rank) pools the RND normaliser over ranks as training does."""
+    `reduce` (a data-parallel rank: Sync.sum_lagged) pools the RND normaliser over ranks as training
+    does."""
     device = env.device
     policy = CognitiveMambaPolicy(env.obs_shape, cfg.engine).to(device)
     policy.amp = cfg.amp and device.type == "cuda"
@@ -92,7 +94,9 @@ def bench_train(
     """All three columns for one configuration; the training column skips `warmup` updates.
 
     On a rank of a data-parallel run (`dist`) every rank measures its own columns, all ranks starting
-    each column together; every rank returns {"world_size", "ranks": [each rank's columns], "total"}."""
+    each column together; every rank returns {"world_size", "ranks": [each rank's columns], "total"}.
+    Besides the columns: ms per env step of each stage (`ms_per_step`, stages exclusive of the sync
+    within them) and the step's timeline (`timeline_ms`)."""
     d = dist or Dist()
     sync = Sync(d, [], env.device) if d.active else None
     compact = compact_storage(cfg, bool(getattr(env, "compact_obs", False)))
@@ -123,7 +127,11 @@ def bench_train(
     out["env_only_sps"] = round(env_only_sps(env, env_steps))
     if sync is not None:
         sync.barrier()
-    out["env_inference_sps"] = round(inference_sps(env, cfg, env_steps, None if sync is None else sync.sum_))
+    out["env_inference_sps"] = round(
+        inference_sps(env, cfg, env_steps, None if sync is None else sync.sum_lagged)
+    )
+    if sync is not None:
+        sync.barrier()  # the normaliser's last sums waited for; every rank starts training together
     rows: list[dict[str, float]] = []
     with tempfile.TemporaryDirectory() as tmp:
         train(
@@ -139,10 +147,13 @@ def bench_train(
         k: sum(r[k] for r in measured) / len(measured)
         for k in ("sps", "ms_env", "ms_forward", "ms_learn", "ms_sync")
     }
+    ms = {k[3:]: round(mean[k], 3) for k in mean if k != "sps"}
+    step_ms = sum(1000.0 * cfg.n_actors * d.world / r["sps"] for r in measured) / len(measured)  # per row
     out.update(
         {
             "env_train_sps": round(mean["sps"] / d.world),  # this rank's actor-steps/s (its own clock)
-            "ms_per_step": {k[3:]: round(mean[k], 3) for k in mean if k != "sps"},
+            "ms_per_step": ms,
+            "timeline_ms": timeline(ms, step_ms),
         }
     )
     if device.type == "cuda":
@@ -155,11 +166,36 @@ def bench_train(
 
 COLUMNS = ("env_only_sps", "env_inference_sps", "env_train_sps")
 """The three SPS columns of `navi bench train`."""
+TIMELINE = ("collect", "forward", "update", "sync", "other", "step")
+"""A rank's training step, ms per env step: collect (the env step: physics, trace, observation, reward),
+forward (the policy's act, RND and memory), update (advantages and the PPO update), each without the
+time it waits in collectives, which is sync; other, the rest of the step's wall time (host work between
+the stages, the log line); step, the wall time of one env step of this rank's actors."""
+
+
+def timeline(ms: dict[str, float], step_ms: float) -> dict[str, float]:
+    """A rank's TIMELINE from its stage times (`ms_per_step`: env, forward, learn, sync, exclusive) and
+    the wall ms per env step of its actors."""
+    parts = {"collect": ms["env"], "forward": ms["forward"], "update": ms["learn"], "sync": ms["sync"]}
+    return {**parts, "other": round(step_ms - sum(parts.values()), 3), "step": round(step_ms, 3)}
+
+
+def timeline_table(report: dict[str, Any]) -> str:
+    """The scaling report's timelines as a table: one process, then each rank, ms per env step."""
+    head = f"{'':>8}" + "".join(f"{k:>10}" for k in TIMELINE) + f"{'train SPS':>12}"
+    lines = ["ms per env step: collect, forward and update without their waits; sync, the waits", head]
+    for name, r in [("single", report["single"]), *((f"rank {r['rank']}", r) for r in report["ranks"])]:
+        t = r["timeline_ms"]
+        lines.append(
+            f"{name:>8}" + "".join(f"{t[k]:>10.3f}" for k in TIMELINE) + f"{r['env_train_sps']:>12,}"
+        )
+    return "\n".join(lines)
 
 
 def scaling_report(nproc: int, single: dict[str, Any], ranks: dict[str, Any]) -> dict[str, Any]:
     """One process's columns and nproc ranks' (per rank and total) joined, with the scaling
-    efficiency of each column: total SPS(N) / (N x SPS(1))."""
+    efficiency of each column: total SPS(N) / (N x SPS(1)). Every entry of "ranks" (and "single") keeps
+    its timeline_ms."""
     total = ranks["total"]
     return {
         "nproc": nproc,
@@ -175,7 +211,8 @@ def scaling_report(nproc: int, single: dict[str, Any], ranks: dict[str, Any]) ->
 
 def bench_train_scaling(nproc: int, args: list[str]) -> dict[str, Any]:
     """`navi bench train ARGS` as one process, then on nproc ranks through torchrun (one job, run one
-    after the other so they do not share devices); ARGS is the command line without --nproc."""
+    after the other so they do not share devices); ARGS is the command line without --nproc. The
+    timelines' table goes to stderr."""
     with tempfile.TemporaryDirectory() as tmp:
         single_file, ranks_file = Path(tmp) / "single.json", Path(tmp) / "ranks.json"
         cmd = [sys.executable, *entry_argv(), *args, "--result-file", str(single_file)]
@@ -186,4 +223,8 @@ def bench_train_scaling(nproc: int, args: list[str]) -> dict[str, Any]:
             raise RuntimeError(
                 f"the {nproc}-rank measurement failed with exit code {code} (its error is above)"
             )
-        return scaling_report(nproc, json.loads(single_file.read_text()), json.loads(ranks_file.read_text()))
+        report = scaling_report(
+            nproc, json.loads(single_file.read_text()), json.loads(ranks_file.read_text())
+        )
+    print(timeline_table(report), file=sys.stderr, flush=True)
+    return report

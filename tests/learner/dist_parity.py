@@ -1,6 +1,8 @@
-"""The parity test of test_learner_distributed: the real `update()` on each rank's half of a fixed
-rollout. Run as a script under torchrun (gloo), it writes rank<r>.pt into the folder it is given; the
-test imports the same setup for the single-process update on the whole rollout."""
+"""The parity tests of test_learner_distributed: the real `update()` on each rank's half of a fixed
+rollout (gradients in several buckets), the bucketed gradient average against one flat all-reduce of all
+gradients (eager and compiled objective), and the one-step-late RND normaliser. Run as a script under
+torchrun (gloo), it writes rank<r>.pt into the folder it is given; the test imports the same setup for
+the single-process references."""
 
 from __future__ import annotations
 
@@ -8,10 +10,13 @@ import sys
 from pathlib import Path
 
 import torch
+import torch.distributed as tdist
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.engine.policy import CognitiveMambaPolicy
-from navi_learner.ppo.dist import Sync, setup, shutdown
+from navi_learner.engine.rnd import RND
+from navi_learner.ppo.compile import Objective, compile_graph, ppo_objective
+from navi_learner.ppo.dist import Bucket, Dist, Sync, setup, shutdown
 from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.train import update
 
@@ -19,6 +24,9 @@ ENGINE = EngineConfig.tiny()
 OBS = (3, 16, 8)
 ACTORS, ROLLOUT, CHUNK = 8, 16, 8
 CPU = torch.device("cpu")
+SMALL_BUCKET_MB = 0.02  # the tiny engine's 95 kB of gradients in 5 buckets
+BUCKET_SIZES = {"one bucket": 25.0, "a few": SMALL_BUCKET_MB, "one per parameter": 1e-6}
+LAGGED_STEPS = 5
 
 
 def parity_setup() -> tuple[CognitiveMambaPolicy, torch.optim.Optimizer, RolloutStorage, TrainConfig]:
@@ -47,6 +55,75 @@ def embeddings() -> torch.Tensor:
     return torch.randn(16, ENGINE.embed_dim, generator=torch.Generator().manual_seed(7))  # (16, D)
 
 
+def step_embeddings() -> torch.Tensor:
+    """LAGGED_STEPS env steps of 16 actors' embeddings, each step's spread different."""
+    g = torch.Generator().manual_seed(11)
+    scale = torch.linspace(0.5, 2.0, LAGGED_STEPS).reshape(-1, 1, 1)  # (K, 1, 1)
+    return torch.randn(LAGGED_STEPS, 16, ENGINE.embed_dim, generator=g) * scale  # (K, 16, D)
+
+
+def fresh_rnd() -> RND:
+    """The parity policy's RND (the same weights in every process), its normaliser not yet started."""
+    return parity_setup()[0].rnd
+
+
+def flat_average(params: list[torch.nn.Parameter], world: int) -> list[torch.Tensor]:
+    """The reference: every gradient in one flat buffer, one all-reduce, ÷ world; a copy per parameter."""
+    grads = [torch.zeros(p.numel()) if p.grad is None else p.grad.reshape(-1) for p in params]  # (numel_i,)
+    flat = torch.cat(grads)  # (P,) float32
+    tdist.all_reduce(flat)
+    flat.div_(world)
+    return [g.view_as(p) for g, p in zip(flat.split([p.numel() for p in params]), params, strict=True)]
+
+
+def record_sends(sync: Sync, first: torch.nn.Parameter) -> list[bool]:
+    """From now on, for every bucket `sync` launches: whether it went while backward still ran and had
+    not yet reached `first` (the first registered parameter, the last one backward reaches)."""
+    early: list[bool] = []
+    send = sync._send
+
+    def sending(bucket: Bucket) -> None:
+        early.append(sync.armed and first.grad is None)
+        send(bucket)
+
+    sync._send = sending  # type: ignore[method-assign]
+    return early
+
+
+def bucket_parity(d: Dist, part: RolloutStorage, compiled: bool) -> dict[str, tuple[int, int, bool]]:
+    """For each of BUCKET_SIZES: (number of buckets, how many of them were launched while backward had
+    not yet reached the first parameter, whether Sync.backward's averaged gradients equal flat_average's
+    bit for bit) on this rank's minibatch, with the eager or the compiled objective."""
+    policy, _, _, cfg = parity_setup()
+    params = [q for q in policy.parameters() if q.requires_grad]
+    objective: Objective = ppo_objective(policy, cfg, False)
+    if compiled:  # AOTAutograd's one backward graph, as on CUDA (inductor there)
+        objective = compile_graph(objective, backend="aot_eager")
+    (mb,) = part.minibatches(1, torch.Generator().manual_seed(0))
+
+    def loss() -> torch.Tensor:
+        for q in params:
+            q.grad = None
+        return objective(
+            mb.obs, mb.resets, mb.state, mb.actions, mb.logp, mb.advantages, mb.values, mb.returns
+        )[0]
+
+    loss().backward()
+    want = flat_average(params, d.world)
+    out = {}
+    for name, mb_size in BUCKET_SIZES.items():
+        sync = Sync(d, params, CPU, bucket_mb=mb_size)
+        early = record_sends(sync, params[0])
+        bad = sync.backward(loss())
+        got = [q.grad for q in params]
+        same = not bool(bad) and all(
+            g is not None and torch.equal(g, w) for g, w in zip(got, want, strict=True)
+        )
+        out[name] = (len(sync.buckets), sum(early), same)
+        sync.release()
+    return out
+
+
 def shard(buf: RolloutStorage, rank: int, world: int) -> RolloutStorage:
     """Actors [rank·N/W, (rank+1)·N/W) of a rollout as a storage of their own."""
     n = buf.n // world
@@ -73,14 +150,15 @@ def shard(buf: RolloutStorage, rank: int, world: int) -> RolloutStorage:
 
 def main(out: Path) -> None:
     """This rank: RND normaliser and advantages pooled over ranks, one clean update, then one update in
-        which rank 1's loss alone is non-finite; writes the state after the clean update, the skip counts,
-        whether the second update left the replica unchanged, this rank's normalised advantages, and the
-    state and rate after a third update with the adaptive rate."""
+    which rank 1's loss alone is non-finite; writes the state after the clean update, the skip counts,
+    whether the second update left the replica unchanged, this rank's normalised advantages, the state
+    and rate after a third update with the adaptive rate, the bucket parities, and the novelty and
+    normaliser of LAGGED_STEPS steps of a fresh RND pooled one step late."""
     torch.set_num_threads(1)
     d, _ = setup("cpu")
     try:
         policy, optimizer, buf, cfg = parity_setup()
-        sync = Sync(d, [q for q in policy.parameters() if q.requires_grad], CPU)
+        sync = Sync(d, [q for q in policy.parameters() if q.requires_grad], CPU, bucket_mb=SMALL_BUCKET_MB)
         sync.broadcast_module(policy)
         part = shard(buf, d.rank, d.world)
         policy.rnd.intrinsic(embeddings().chunk(d.world)[d.rank], sync.sum_)
@@ -99,12 +177,23 @@ def main(out: Path) -> None:
             group["lr"] = torch.tensor(float(group["lr"]))
         update(policy, optimizer, part, cfg, torch.Generator().manual_seed(d.rank), None, sync)
         adaptive = {"state": policy.state_dict(), "lr": float(optimizer.param_groups[0]["lr"])}
+        rnd = fresh_rnd()
+        novelty = [
+            rnd.intrinsic(batch.chunk(d.world)[d.rank], sync.sum_lagged) for batch in step_embeddings()
+        ]  # each (16/W,)
+        sync.settle()
         result = {
             "state": after,
             "skipped": [skipped, skipped_bad],
             "unchanged": unchanged,
             "adv": adv,
             "adaptive": adaptive,
+            "buckets": len(sync.buckets),
+            "bucket_parity": {
+                "eager": bucket_parity(d, part, False),
+                "compiled": bucket_parity(d, part, True),
+            },
+            "lagged": {"novelty": torch.stack(novelty), "normaliser": dict(rnd.named_buffers())},
         }
         torch.save(result, out / f"rank{d.rank}.pt")
         sync.barrier()

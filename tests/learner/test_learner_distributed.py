@@ -1,8 +1,10 @@
 """Synchronous data-parallel PPO (DD-PPO) on the CPU with gloo: replicas stay bit-identical and rank 0
-alone writes; one update on 2 ranks is one single-process update on the union of their batches; a
-2-rank checkpoint resumes on 1 rank and a 1-rank checkpoint on 2; a SIGKILLed rank ends the run with
-an error naming the timeout, a SIGTERMed rank stops both with one final checkpoint; `navi bench train
---nproc 2` reports per-rank, total SPS and the scaling efficiency."""
+alone writes; one update on 2 ranks is one single-process update on the union of their batches; the
+bucketed gradient all-reduce gives one flat all-reduce's averages bit for bit; the RND normaliser pooled
+one step late is one process's normaliser on the union one step late; a 2-rank checkpoint resumes on 1
+rank and a 1-rank checkpoint on 2; a SIGKILLed rank ends the run with an error naming the timeout, a
+SIGTERMed rank stops both with one final checkpoint; `navi bench train --nproc 2` reports per-rank, total
+SPS, the scaling efficiency and every rank's timeline of a step."""
 
 from __future__ import annotations
 
@@ -15,7 +17,9 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import pytest
@@ -25,8 +29,10 @@ import typer
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.envs.toy import ToyEnv
-from navi_learner.ppo.dist import Dist, setup, strip_option
+from navi_learner.ppo import timing as timing_module
+from navi_learner.ppo.dist import BUCKET_ENV, Dist, bucket_mb_from_env, bucket_plan, setup, strip_option
 from navi_learner.ppo.loss import normalize
+from navi_learner.ppo.timing import StageTimers
 from navi_learner.ppo.train import train, update
 from navi_learner.serving.checkpoint import load_checkpoint
 
@@ -216,16 +222,33 @@ def test_a_killed_rank_ends_the_run_with_an_error_naming_the_timeout(tmp_path: P
     assert "error: rank 0 of 2:" in err and "NAVI_DIST_TIMEOUT_S=20 s" in err, err[-3000:]
 
 
-def test_one_update_on_two_ranks_equals_one_update_on_the_union(tmp_path: Path) -> None:
-    script = Path(__file__).with_name("dist_parity.py")
-    cmd = [*TORCHRUN, str(script), str(tmp_path)]
-    out = subprocess.run(cmd, env=navi_env(), capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-3000:]
-    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1)]
-    spec = importlib.util.spec_from_file_location("dist_parity", script)
+PARITY = Path(__file__).with_name("dist_parity.py")
+
+
+def parity_module() -> ModuleType:
+    """dist_parity.py imported: the setup the ranks ran, for the single-process references."""
+    spec = importlib.util.spec_from_file_location("dist_parity", PARITY)
     assert spec is not None and spec.loader is not None
     parity = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(parity)
+    return parity
+
+
+@pytest.fixture(scope="module")
+def parity_ranks(tmp_path_factory: pytest.TempPathFactory) -> list[dict[str, Any]]:
+    """dist_parity.py on 2 gloo ranks: what each rank wrote."""
+    folder = tmp_path_factory.mktemp("parity")
+    out = subprocess.run(
+        [*TORCHRUN, str(PARITY), str(folder)], env=navi_env(), capture_output=True, text=True, timeout=180
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    return [torch.load(folder / f"rank{r}.pt", weights_only=True) for r in (0, 1)]
+
+
+def test_one_update_on_two_ranks_equals_one_update_on_the_union(parity_ranks: list[dict[str, Any]]) -> None:
+    ranks = parity_ranks
+    parity = parity_module()
+    assert ranks[0]["buckets"] == ranks[1]["buckets"] > 1  # the gradients travel in several buckets
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -251,6 +274,113 @@ def test_one_update_on_two_ranks_equals_one_update_on_the_union(tmp_path: Path) 
         assert torch.equal(adaptive[1]["state"][k], v), k
 
 
+def test_bucketed_gradients_equal_one_flat_all_reduce_and_go_while_backward_runs(
+    parity_ranks: list[dict[str, Any]],
+) -> None:
+    """Sync.backward against one flat all-reduce of every gradient, both ÷ world: the same averages bit
+    for bit in one bucket, a few, and one per parameter, with the eager and the compiled objective. The
+    eager backward launches every bucket but the last before it reaches the first parameter; the compiled
+    backward (one graph) hands every gradient over at its end, so its buckets all go after it."""
+    for r in parity_ranks:
+        for kind in ("eager", "compiled"):
+            got = r["bucket_parity"][kind]
+            assert set(got) == {"one bucket", "a few", "one per parameter"}
+            for name, (buckets, early, same) in got.items():
+                assert same, (kind, name)
+                assert early == (buckets - 1 if kind == "eager" else 0), (kind, name, buckets, early)
+            assert got["one bucket"][0] == 1 and got["one per parameter"][0] == 42  # the tiny engine's
+            assert 1 < got["a few"][0] < 42
+
+
+def test_bucket_plan_covers_every_parameter_once_in_reverse_order(monkeypatch: pytest.MonkeyPatch) -> None:
+    sizes = [10, 300, 95, 5, 1000, 7]  # float32 elements
+    plan = bucket_plan(sizes, cap_bytes=400 * 4)
+    assert plan == [[5, 4], [3, 2, 1], [0]]  # closes once it holds the cap or more; the rest last
+    assert sorted(i for b in plan for i in b) == list(range(len(sizes)))
+    assert bucket_plan(sizes, cap_bytes=10**9) == [[5, 4, 3, 2, 1, 0]]
+    assert bucket_plan([], cap_bytes=4) == [[]]  # the flag's bucket
+    monkeypatch.setenv(BUCKET_ENV, "0.5")
+    assert bucket_mb_from_env() == 0.5
+    for bad in ("big", "0", "-1"):
+        monkeypatch.setenv(BUCKET_ENV, bad)
+        with pytest.raises(ValueError, match=BUCKET_ENV):
+            bucket_mb_from_env()
+
+
+class HandClock:
+    """A host clock that moves only when told: `perf_counter` for the timing module."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+def test_the_waits_within_a_stage_count_as_sync_alone(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rank's timeline: forward and learn leave out the sync within them, so the four stages and the
+    sync outside any stage add up to the time timed, each part once."""
+    clock = HandClock()
+    monkeypatch.setattr(timing_module, "time", clock)
+    timers = StageTimers(sync=False)
+    with timers("forward"):
+        clock.now += 0.004
+        with timers("sync"):
+            clock.now += 0.003
+        clock.now += 0.001
+    with timers("learn"):
+        with timers("sync"):
+            clock.now += 0.010
+        clock.now += 0.020
+    with timers("sync"):  # between stages (the stop flags)
+        clock.now += 0.002
+    ms = timers.read(steps=1)
+    assert ms == pytest.approx({"ms_env": 0.0, "ms_forward": 5.0, "ms_learn": 20.0, "ms_sync": 15.0})
+    assert sum(ms.values()) == pytest.approx(1000.0 * clock.now)
+    with pytest.raises(RuntimeError), timers("learn"), timers("sync"):
+        raise RuntimeError("a failed collective")
+    assert timers.open == []  # it left both stages: the next one opened is within none
+
+
+def one_call_late() -> Callable[[torch.Tensor], torch.Tensor]:
+    """One process's sums handed back one call late: the first call's at once, and again at the second."""
+    calls: list[torch.Tensor] = []
+
+    def reduce(t: torch.Tensor) -> torch.Tensor:
+        out = calls[-1] if calls else t
+        calls.append(t)
+        return out
+
+    return reduce
+
+
+def test_the_normaliser_pooled_one_step_late_is_the_unions_one_step_late(
+    parity_ranks: list[dict[str, Any]],
+) -> None:
+    """5 env steps of a fresh RND on 2 ranks through Sync.sum_lagged: each rank's novelty is that of one
+    process on both ranks' actors whose normaliser folds in the previous step's moments; the normaliser
+    ends the same on both ranks, bit for bit. The first step is the same-step normaliser's; the lag shows
+    from the third."""
+    parity = parity_module()
+    steps = parity.step_embeddings()  # (K, 16, D)
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        late, same_step, reduce = parity.fresh_rnd(), parity.fresh_rnd(), one_call_late()
+        want = torch.stack([late.intrinsic(batch, reduce) for batch in steps])  # (K, 16)
+        plain = torch.stack([same_step.intrinsic(batch) for batch in steps])  # (K, 16)
+    finally:
+        torch.set_num_threads(before)
+    lagged = [r["lagged"] for r in parity_ranks]
+    got = torch.cat([r["novelty"] for r in lagged], dim=1)  # (K, 16): rank 0's actors, then rank 1's
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5)
+    for name, value in lagged[0]["normaliser"].items():
+        assert torch.equal(lagged[1]["normaliser"][name], value), name  # identical on both ranks
+        torch.testing.assert_close(value, dict(late.named_buffers())[name], atol=1e-7, rtol=1e-5)
+    torch.testing.assert_close(got[0], plain[0], atol=1e-6, rtol=1e-5)  # step 0 waits for its own sums
+    assert not torch.allclose(got[2:], plain[2:], atol=1e-3)  # later steps: the previous step's moments
+
+
 def test_bench_train_nproc_reports_ranks_totals_and_scaling(tmp_path: Path) -> None:
     args = ["bench", "train", *TRAIN_ARGS, "--updates", "1", "--nproc", "2", "--json"]
     out = run_navi(args, tmp_path, 240)
@@ -264,11 +394,22 @@ def test_bench_train_nproc_reports_ranks_totals_and_scaling(tmp_path: Path) -> N
         expected = report["total"][col] / (2 * report["single"][col])
         assert report["scaling_efficiency"][col.removesuffix("_sps")] == pytest.approx(expected, abs=1e-3)
     assert report["single"]["actors"] == ACTORS and all(r["actors"] == ACTORS for r in report["ranks"])
-    # time in collectives: none in one process; on each rank some, and less than forward and learn together
-    assert report["single"]["ms_per_step"]["sync"] == 0.0
-    for r in report["ranks"]:
-        ms = r["ms_per_step"]
-        assert 0.0 < ms["sync"] < ms["forward"] + ms["learn"]
+    # every rank's timeline: its stages without their waits, the waits, the rest; they make up its step
+    assert report["single"]["ms_per_step"]["sync"] == report["single"]["timeline_ms"]["sync"] == 0.0
+    table = out.stderr[out.stderr.index("ms per env step: collect") :].splitlines()
+    for name, r in [("single", report["single"]), *((f"rank {r['rank']}", r) for r in report["ranks"])]:
+        ms, line = r["timeline_ms"], r["ms_per_step"]
+        assert [ms[k] for k in ("collect", "forward", "update", "sync")] == [
+            line[k] for k in ("env", "forward", "learn", "sync")
+        ]
+        assert min(ms[k] for k in ("collect", "forward", "update", "sync")) >= 0.0
+        parts = ms["collect"] + ms["forward"] + ms["update"] + ms["sync"] + ms["other"]
+        assert parts == pytest.approx(ms["step"], abs=5e-3)
+        assert ms["step"] >= 1000.0 * ACTORS / r["env_train_sps"] * (1 - 2e-3)  # mean step ≥ 1 / mean SPS
+        (row,) = [x[8:].split() for x in table if x.startswith(f"{name:>8}")]  # the name, right-aligned
+        assert [float(v) for v in row[:6]] == pytest.approx([ms[k] for k in ms], abs=1e-3)
+        assert row[6] == f"{r['env_train_sps']:,}"
+    assert all(r["timeline_ms"]["sync"] > 0.0 for r in report["ranks"])  # each rank waits in collectives
 
 
 def test_one_gpu_per_rank_is_checked_before_joining(monkeypatch: pytest.MonkeyPatch) -> None:

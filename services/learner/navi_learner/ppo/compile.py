@@ -107,7 +107,10 @@ def make_objective(
     """The PPO update's minibatch objective for a run: eager unless cfg.compile and cfg.compile_update ask
     for it compiled on CUDA, its backward with it: one graph with mamba2; the gru's sequence pass reads
     where episodes start on the host, which splits its graph there. Data-parallel runs normalise the
-    advantages over the ranks before the objective (a collective the graph cannot hold)."""
+    advantages over the ranks before the objective (a collective the graph cannot hold) and average the
+    gradients through hooks on the parameters while the update calls backward (ppo.dist.Sync.backward):
+    the compiled backward, one graph (a few with gru), hands the hooks every gradient at its end, so the
+    gradient buckets are all-reduced after it rather than while it runs."""
     fn = ppo_objective(policy, cfg, cfg.ppo.norm_adv and not distributed)
     if cfg.compile and cfg.compile_update and device.type == "cuda":
         return cast(Objective, compile_graph(fn, fullgraph=cfg.engine.temporal_core != "gru"))

@@ -6,16 +6,39 @@ Launched by torchrun (`torchrun --standalone --nproc-per-node N -m navi train ..
 copy on its own device (cuda:LOCAL_RANK, or the CPU). What crosses ranks, and when:
 - start: the run id and folder, then every parameter and buffer of rank 0 (broadcast; after a resume
   too), so all replicas start identical;
-- every env step: the RND error's sum, sum of squares and count (3 numbers), so the novelty normaliser
-  is the one running estimate a single process would keep over all actors;
-- every minibatch: the advantages' sum, sum of squares and count (global normalisation), then ONE flat
-  buffer holding every gradient and a non-finite-loss flag (a sum: the skip decision is the same on
-  every rank);
+- every env step: the RND error's sum, sum of squares and count (3 numbers), all-reduced without
+  waiting: launched at step t, waited for at step t + 1, whose normaliser update folds them in
+  (Sync.sum_lagged). The novelty normaliser is then the running estimate one process would keep over
+  all actors, one step late, and the same on every rank: every rank folds the same pooled sums in at the
+  same step. A run's first step waits for its own sums (the estimate starts from the first batch); the
+  second folds them in once more, which leaves the estimate where it is (within rounding). Sums kept per
+  rank and pooled once per rollout would instead let the ranks' normalisers drift apart within a rollout,
+  or turn the normaliser's per-step moving average into a per-rollout one; one step late keeps its rule
+  and identical replicas, and no step waits for the slowest rank's collective of the same step;
+- every minibatch: the advantages' sum, sum of squares and count (global normalisation); then every
+  gradient, in buckets as DistributedDataParallel packs them: the parameters in reverse registration
+  order (about the order backward produces their gradients), a bucket closing at NAVI_DIST_BUCKET_MB MiB
+  (default 25). A hook on every parameter (register_post_accumulate_grad_hook) counts its gradient in
+  during backward, and a bucket is all-reduced without waiting as soon as all its gradients are in and
+  every bucket before it is launched (the same order on every rank). The last bucket also carries the
+  non-finite-loss flag (a sum: the skip decision is the same on every rank). Before the norm clip every
+  bucket is waited for in order and unpacked (÷ world size) into the gradients, so a bucket's unpack
+  overlaps the later buckets' transfers. The eager backward launches a bucket while backward still
+  computes the gradients of the next ones. The compiled objective (ppo.compile) runs its backward as one
+  graph whose gradients reach the parameters together at its end: its buckets are then launched back to
+  back and overlap one another's packing and unpacking only. A parameter backward does not reach sends
+  zeros and keeps no gradient. Each element is summed as one flat all-reduce of all gradients sums it:
+  on 2 ranks the averaged gradients are bit for bit the same (tested on gloo);
 - every update: the stop flags (max: a signal on any rank, a time limit, a monitor) and the mean
   extrinsic reward;
 - every log row and checkpoint: the episode statistics (sums).
 With world size 1 there is no process group and none of these calls are made: the training loop calls
-Solo, Sync's single-process twin, whose every call leaves its values as they are.
+Solo, Sync's single-process twin, whose every call leaves its values as they are (no hooks, the plain
+backward).
+
+With training's StageTimers every wait for a collective is timed as the stage "sync" (a synchronous
+collective as a whole, an asynchronous one at its wait), and the stage it lies within leaves that time
+out (ppo.timing).
 
 Collectives fail after NAVI_DIST_TIMEOUT_S seconds (default 120): gloo raises, and the error becomes a
 DistError naming the timeout; NCCL's watchdog tears the process down (TORCH_NCCL_ASYNC_ERROR_HANDLING=1,
@@ -25,6 +48,7 @@ the end of a run (the only file a rank other than 0 writes; for tests of replica
 
 from __future__ import annotations
 
+import functools
 import gc
 import hashlib
 import json
@@ -39,7 +63,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 from types import FrameType
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import torch
 import torch.distributed as tdist
@@ -52,6 +76,9 @@ TIMEOUT_ENV = "NAVI_DIST_TIMEOUT_S"
 DEBUG_DIR_ENV = "NAVI_DIST_DEBUG_DIR"
 """Folder where every rank writes rank<r>.json (replica hashes) at the end of a run."""
 DEFAULT_TIMEOUT_S = 120.0
+BUCKET_ENV = "NAVI_DIST_BUCKET_MB"
+"""MiB of gradients per all-reduce bucket (a bucket closes once it holds this much or more)."""
+DEFAULT_BUCKET_MB = 25.0
 
 T = TypeVar("T")
 
@@ -95,6 +122,36 @@ def timeout_from_env() -> float:
     if value <= 0:
         raise ValueError(f"{TIMEOUT_ENV} must be positive, got {value}")
     return value
+
+
+def bucket_mb_from_env() -> float:
+    """NAVI_DIST_BUCKET_MB as MiB (default 25)."""
+    raw = os.environ.get(BUCKET_ENV, "").strip()
+    try:
+        value = float(raw) if raw else DEFAULT_BUCKET_MB
+    except ValueError as err:
+        raise ValueError(f"{BUCKET_ENV}={raw!r} is not a number of MiB") from err
+    if value <= 0:
+        raise ValueError(f"{BUCKET_ENV} must be positive, got {value}")
+    return value
+
+
+def bucket_plan(sizes: list[int], cap_bytes: int) -> list[list[int]]:
+    """The gradient buckets of float32 parameters with `sizes` elements: parameter indices per bucket,
+    in reverse registration order, a bucket closing once it holds `cap_bytes` or more. Every index is in
+    exactly one bucket; there is always one bucket at least (the flag's)."""
+    buckets: list[list[int]] = []
+    current: list[int] = []
+    held = 0
+    for i in reversed(range(len(sizes))):
+        current.append(i)
+        held += 4 * sizes[i]
+        if held >= cap_bytes:
+            buckets.append(current)
+            current, held = [], 0
+    if current or not buckets:
+        buckets.append(current)
+    return buckets
 
 
 def rank_device(device: str, local_rank: int) -> str:
@@ -158,9 +215,9 @@ def collective(d: Dist, what: str, call: Callable[[], T]) -> T:
 
 class Solo:
     """The collectives of a single-process run, Sync's twin: each leaves its values as they are, so the
-    training loop reads the same for one rank and for N. `reduce` is None: statistics are taken over
-    this process's batch directly (RND normaliser, episode statistics), and `pools_advantages` is
-    False: the minibatch objective normalises its own advantages."""
+    training loop reads the same for one rank and for N. `reduce` and `normaliser_reduce` are None:
+    statistics are taken over this process's batch directly (RND normaliser, episode statistics), and
+    `pools_advantages` is False: the minibatch objective normalises its own advantages."""
 
     active = False
     pools_advantages = False
@@ -171,6 +228,11 @@ class Solo:
     @property
     def reduce(self) -> Callable[[torch.Tensor], torch.Tensor] | None:
         """What sums a tensor over ranks in place, for statistics that pool over ranks: none here."""
+        return None
+
+    @property
+    def normaliser_reduce(self) -> Callable[[torch.Tensor], torch.Tensor] | None:
+        """What pools the RND normaliser's sums over ranks at every env step: none here."""
         return None
 
     def sum_(self, t: torch.Tensor) -> torch.Tensor:
@@ -184,8 +246,10 @@ class Solo:
         """`values` themselves (the mean over one rank)."""
         return values
 
-    def average_grads(self, loss: torch.Tensor) -> torch.Tensor:
-        """() bool: this process's loss is non-finite (the gradients are this process's)."""
+    def backward(self, loss: torch.Tensor) -> torch.Tensor:
+        """loss.backward(); returns () bool: this process's loss is non-finite (the gradients are this
+        process's)."""
+        loss.backward()
         return ~torch.isfinite(loss)
 
     def normalize(self, x: torch.Tensor) -> torch.Tensor:
@@ -208,10 +272,26 @@ class Solo:
         return [obj]
 
 
+class Bucket:
+    """Gradients all-reduced together: one flat buffer, allocated once, with a view per parameter; the
+    last bucket of a run holds the non-finite-loss flag after its gradients."""
+
+    def __init__(self, params: list[nn.Parameter], device: torch.device, flag: bool) -> None:
+        self.params = params
+        sizes = [p.numel() for p in params]
+        self.size = sum(sizes)
+        self.flat = torch.zeros(self.size + int(flag), device=device)  # (n [+ 1],) float32 grads [, flag]
+        self.views = list(self.flat[: self.size].split(sizes)) if sizes else []  # each (numel_i,) float32
+        self.ready = 0  # gradients counted in during this backward
+        self.work: tdist.Work | None = None  # its all-reduce in flight
+
+
 class Sync:
-    """The collectives of one data-parallel run on `device`; the gradient buffer is allocated once.
-    With `timers` (training's StageTimers) every all-reduce is timed as the stage "sync". A
-    single-process run uses its twin Solo, whose every call leaves the values as they are."""
+    """The collectives of one data-parallel run on `device`. The gradient buckets (`bucket_mb` MiB each,
+    default NAVI_DIST_BUCKET_MB) are allocated once, with a hook on every parameter of `params`; they
+    act only inside `backward`. With `timers` (training's StageTimers) every wait for a collective is
+    timed as the stage "sync". A single-process run uses its twin Solo, whose every call leaves the
+    values as they are."""
 
     active = True
     pools_advantages = True
@@ -222,32 +302,85 @@ class Sync:
         params: list[nn.Parameter],
         device: torch.device,
         timers: Callable[[str], AbstractContextManager[None]] | None = None,
+        bucket_mb: float | None = None,
     ) -> None:
         if not d.active:
             raise ValueError("Sync needs a process group (world size > 1)")
         if any(p.dtype != torch.float32 for p in params):
-            raise ValueError("the flat gradient buffer holds float32 parameters only")
+            raise ValueError("the gradient buckets hold float32 parameters only")
+        mb = bucket_mb_from_env() if bucket_mb is None else bucket_mb
+        if mb <= 0:
+            raise ValueError(f"bucket_mb must be positive, got {mb}")
         self.d, self.params, self.device, self.timers = d, params, device, timers
-        sizes = [p.numel() for p in params]
-        self.flat = torch.zeros(sum(sizes) + 1, device=device)  # (P + 1,) float32 gradients, then the flag
-        self.views = list(self.flat[:-1].split(sizes))  # each (numel_i,) float32, a view into flat
+        plan = bucket_plan([p.numel() for p in params], int(mb * 2**20))
+        self.buckets = [
+            Bucket([params[i] for i in idx], device, k == len(plan) - 1) for k, idx in enumerate(plan)
+        ]
+        self.flag = self.buckets[-1].flat[-1:]  # (1,) float32 view: ranks whose loss is non-finite
+        self.armed = False  # hooks act only inside backward()
+        self.next = 0  # the next bucket to launch
+        self.hooks = [
+            p.register_post_accumulate_grad_hook(functools.partial(self._ready, k))
+            for k, bucket in enumerate(self.buckets)
+            for p in bucket.params
+        ]
+        self.lagged: tuple[tdist.Work | None, torch.Tensor] | None = None  # the normaliser's sums
+
+    def _timed(self) -> AbstractContextManager[None]:
+        return self.timers("sync") if self.timers is not None else nullcontext()
 
     def _all_reduce(self, what: str, t: torch.Tensor, op: Any = tdist.ReduceOp.SUM) -> torch.Tensor:
-        with self.timers("sync") if self.timers is not None else nullcontext():
+        with self._timed():
             collective(self.d, what, lambda: tdist.all_reduce(t, op=op))
         return t
+
+    def _launch(self, what: str, t: torch.Tensor) -> tdist.Work:
+        return cast(tdist.Work, collective(self.d, what, lambda: tdist.all_reduce(t, async_op=True)))
+
+    def _wait(self, what: str, work: tdist.Work) -> None:
+        with self._timed():
+            collective(self.d, what, work.wait)
 
     @property
     def reduce(self) -> Callable[[torch.Tensor], torch.Tensor] | None:
         """What sums a tensor over ranks in place (sum_), for statistics that pool over ranks."""
         return self.sum_
 
+    @property
+    def normaliser_reduce(self) -> Callable[[torch.Tensor], torch.Tensor] | None:
+        """What pools the RND normaliser's sums over ranks at every env step: sum_lagged."""
+        return self.sum_lagged
+
     def sum_(self, t: torch.Tensor) -> torch.Tensor:
         """Sum t over ranks, in place; returns t."""
         return self._all_reduce("all-reduce", t)
 
+    def sum_lagged(self, t: torch.Tensor) -> torch.Tensor:
+        """Launch the sum of t over ranks (in place, not waited for) and return the sums of the previous
+        call, waited for now: one call late, the same on every rank. The run's first call waits for its
+        own sums and returns them (so does the second). Every rank makes the same calls in the same order
+        (the RND normaliser, once per env step); t must not change until the next call."""
+        work = self._launch("normaliser all-reduce", t)
+        if self.lagged is None:
+            self._wait("normaliser all-reduce", work)
+            self.lagged = (None, t)
+            return t
+        previous_work, previous = self.lagged
+        if previous_work is not None:
+            self._wait("normaliser all-reduce", previous_work)
+        self.lagged = (work, t)
+        return previous
+
+    def settle(self) -> None:
+        """Wait for the normaliser's sums in flight, if any (sum_lagged still returns them next)."""
+        if self.lagged is not None and self.lagged[0] is not None:
+            self._wait("normaliser all-reduce", self.lagged[0])
+            self.lagged = (None, self.lagged[1])
+
     def barrier(self) -> None:
-        """Wait for every rank (an all-reduce of one number: the same on gloo and NCCL)."""
+        """Wait for every rank (an all-reduce of one number: the same on gloo and NCCL), once nothing of
+        this rank is in flight."""
+        self.settle()
         self._all_reduce("barrier", torch.zeros(1, device=self.device))  # (1,) float32
 
     def mean(self, values: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -258,22 +391,60 @@ class Sync:
         stacked = self.sum_(torch.stack([values[k].detach().float() for k in names])) / self.d.world  # (K,)
         return dict(zip(names, stacked.unbind(), strict=True))
 
-    def average_grads(self, loss: torch.Tensor) -> torch.Tensor:
-        """One all-reduce of every gradient and of a non-finite-loss flag, gradients divided by the world
-        size in place; returns () bool: some rank's loss was non-finite (the same on every rank)."""
-        # multi-tensor copies (a few kernels for all parameters, not one per parameter and direction)
-        have = [(view, p.grad) for view, p in zip(self.views, self.params, strict=True) if p.grad is not None]
-        missing = [view for view, p in zip(self.views, self.params, strict=True) if p.grad is None]
+    def _ready(self, k: int, param: torch.Tensor) -> None:
+        """Post-accumulate-grad hook of a parameter of bucket k: count it in; launch what is complete."""
+        if not self.armed:
+            return
+        self.buckets[k].ready += 1
+        while self.next < len(self.buckets):
+            bucket = self.buckets[self.next]
+            if bucket.ready < len(bucket.params):
+                return
+            self._send(bucket)
+            self.next += 1
+
+    def _send(self, bucket: Bucket) -> None:
+        """Pack a bucket's gradients (zeros where a parameter has none) and launch its all-reduce."""
+        # multi-tensor copies (a few kernels per bucket, not one per parameter)
+        have = [(v, p.grad) for v, p in zip(bucket.views, bucket.params, strict=True) if p.grad is not None]
+        missing = [v for v, p in zip(bucket.views, bucket.params, strict=True) if p.grad is None]
         if missing:
             torch._foreach_zero_(missing)
         if have:
             torch._foreach_copy_([v for v, _ in have], [g.reshape(-1) for _, g in have])
-        self.flat[-1:].copy_((~torch.isfinite(loss.detach())).float().reshape(1))
-        self._all_reduce("gradient all-reduce", self.flat)
-        self.flat[:-1].div_(self.d.world)
+        bucket.work = self._launch("gradient all-reduce", bucket.flat)
+
+    def backward(self, loss: torch.Tensor) -> torch.Tensor:
+        """loss.backward() with every gradient averaged over ranks: the buckets are all-reduced as their
+        gradients come in (the last one carrying the non-finite-loss flag), then waited for in order and
+        unpacked, ÷ world size, into the gradients. Returns () bool: some rank's loss was non-finite (the
+        same on every rank)."""
+        self.flag.copy_((~torch.isfinite(loss.detach())).float().reshape(1))
+        for bucket in self.buckets:
+            bucket.ready = 0
+        self.next = 0
+        self.armed = True
+        try:
+            loss.backward()
+        finally:
+            self.armed = False
+        while self.next < len(self.buckets):  # buckets with a parameter backward did not reach
+            self._send(self.buckets[self.next])
+            self.next += 1
+        for bucket in self.buckets:  # in launch order: an unpack overlaps the later transfers
+            self._receive(bucket)
+        return self.flag[0] > 0  # () bool
+
+    def _receive(self, bucket: Bucket) -> None:
+        """Wait for a bucket's all-reduce and unpack its sums, ÷ world size, into the gradients."""
+        if bucket.work is not None:
+            self._wait("gradient all-reduce", bucket.work)
+            bucket.work = None
+        bucket.flat[: bucket.size].div_(self.d.world)
+        pairs = zip(bucket.views, bucket.params, strict=True)
+        have = [(v, p.grad) for v, p in pairs if p.grad is not None]
         if have:
             torch._foreach_copy_([g for _, g in have], [v.view_as(g) for v, g in have])
-        return self.flat[-1] > 0  # () bool
 
     def normalize(self, x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
         """x normalised over the union of every rank's x: zero mean, unit population std (ppo.normalize
@@ -313,6 +484,12 @@ class Sync:
         out: list[Any] = [None] * self.d.world
         collective(self.d, "gather", lambda: tdist.all_gather_object(out, obj))
         return out
+
+    def release(self) -> None:
+        """Remove the gradient hooks (the parameters outlive the run)."""
+        for hook in self.hooks:
+            hook.remove()
+        self.hooks.clear()
 
 
 Collectives = Solo | Sync

@@ -12,14 +12,17 @@ import torch
 STAGES = ("env", "forward", "learn")
 """The stages a step's time is split into (they do not overlap)."""
 TIMED = (*STAGES, "sync")
-"""What StageTimers reports: the stages, and "sync", the time a data-parallel run spends in its collectives
-(ppo.dist.Sync): mostly the rollout's per-step normaliser sum and each minibatch's normalisation and
-gradient all-reduces, which lie within forward and learn, plus a few per update and per log line. Timed by
-CUDA events, a collective's time is its wait for the other ranks plus its transfer."""
+"""What StageTimers reports: the stages, and "sync", the time a data-parallel run waits for its collectives
+(ppo.dist.Sync): mostly the rollout's per-step normaliser sums and each minibatch's normalisation and
+gradient buckets, which lie within forward and learn, plus a few per update and per log line. A stage
+leaves out the time of the stages opened within it, so forward and learn do not count their sync and the
+four never overlap: per rank, a timeline of the step. Timed by CUDA events, a wait is the time the
+device's stream stalls on the collective: the other ranks' arrival plus the transfer not yet done."""
 
 
 class StageTimers:
-    """Time per stage, read as ms per env step once per log line.
+    """Time per stage, read as ms per env step once per log line. A stage opened within another (sync
+    within forward or learn) counts for itself alone: the outer one leaves its time out.
 
     Without `sync` (training's default) a stage's time is the host's wall time between its boundaries; on
     CUDA that is mostly launch time, since kernels run on after the host moves on. With `sync` on CUDA
@@ -30,7 +33,9 @@ class StageTimers:
     def __init__(self, sync: bool) -> None:
         self.sync = sync
         self.seconds = dict.fromkeys(TIMED, 0.0)
-        self.spans: list[tuple[str, torch.cuda.Event, torch.cuda.Event]] = []  # recorded, not yet read
+        self.open: list[str] = []  # the stages entered and not yet left, innermost last
+        # recorded, not yet read: (stage, the stage it lies within or "", start, end)
+        self.spans: list[tuple[str, str, torch.cuda.Event, torch.cuda.Event]] = []
         self.pool: list[torch.cuda.Event] = []  # events already read, recorded again (allocated once)
 
     def _event(self) -> torch.cuda.Event:
@@ -38,23 +43,33 @@ class StageTimers:
         event.record()
         return event
 
+    def _add(self, stage: str, outer: str, seconds: float) -> None:
+        self.seconds[stage] += seconds
+        if outer:
+            self.seconds[outer] -= seconds
+
     @contextmanager
     def __call__(self, stage: str) -> Iterator[None]:
-        if self.sync:
-            start = self._event()
-            yield
-            self.spans.append((stage, start, self._event()))
-            return
-        t0 = time.perf_counter()
-        yield
-        self.seconds[stage] += time.perf_counter() - t0
+        outer = self.open[-1] if self.open else ""
+        self.open.append(stage)
+        try:
+            if self.sync:
+                start = self._event()
+                yield
+                self.spans.append((stage, outer, start, self._event()))
+            else:
+                t0 = time.perf_counter()
+                yield
+                self._add(stage, outer, time.perf_counter() - t0)
+        finally:
+            self.open.pop()
 
     def read(self, steps: int) -> dict[str, float]:
         """ms per env step (all actors) per stage since the last read, then clear."""
         if self.spans:
-            self.spans[-1][2].synchronize()
-            for stage, start, end in self.spans:
-                self.seconds[stage] += start.elapsed_time(end) / 1000.0
+            self.spans[-1][3].synchronize()
+            for stage, outer, start, end in self.spans:
+                self._add(stage, outer, start.elapsed_time(end) / 1000.0)
                 self.pool += (start, end)
             self.spans.clear()
         out = {f"ms_{k}": 1000.0 * v / max(steps, 1) for k, v in self.seconds.items()}

@@ -82,12 +82,13 @@ def collect(
 ) -> tuple[tuple[torch.Tensor, torch.Tensor, CoreState], torch.Tensor]:
     """Fill the storage with one rollout; returns the new (obs, resets, state) carry and the mean
     extrinsic reward per actor-step (a device scalar). With `sync` a Sync (several ranks) the RND
-    normaliser follows every rank's actors (3 numbers all-reduced per step). With `check_storage` (a
+    normaliser follows every rank's actors (3 numbers all-reduced per step, folded in one step later:
+    Sync.sum_lagged). With `check_storage` (a
     run's first rollout) the stored form of step 1's observation is compared with what the policy saw
     (one host read). `forward` is the rollout's policy step (default: the eager `rollout_forward`;
     `make_forward` compiles it)."""
     sync = sync or Solo(env.device)
-    forward = forward or rollout_forward(policy, memory, reduce=sync.reduce)
+    forward = forward or rollout_forward(policy, memory, reduce=sync.normaliser_reduce)
     obs, resets, state = carry
     ext_sum = torch.zeros((), device=env.device)  # () float32
     buf.begin()
@@ -164,9 +165,9 @@ def update(
     otherwise one host read per minibatch decides. Returns mean metrics (device) and the skip count.
 
     With `sync` a Sync (a data-parallel run, equal minibatches on every rank) the advantages are normalised
-    over the union of the ranks' minibatches and the gradients averaged over ranks before clipping (one
-    all-reduce of a flat buffer that carries the non-finite-loss flags too): a step on W ranks is a
-    single-process step on the union, and every rank takes the same skip decision.
+    over the union of the ranks' minibatches and the gradients averaged over ranks before clipping (bucketed
+    all-reduces launched during backward, the last one carrying the non-finite-loss flags too): a step on W
+    ranks is a single-process step on the union, and every rank takes the same skip decision.
 
     `objective` (make_objective; default the eager one) computes each minibatch's loss and metrics."""
     p = cfg.ppo
@@ -189,8 +190,7 @@ def update(
                 kl = sync.mean({"kl": metrics["approx_kl"]})["kl"]  # () over all ranks
                 adapt_lr(optimizer, kl, p.target_kl, p.lr_min, p.lr_max)
             optimizer.zero_grad(set_to_none=True)
-            total.backward()
-            some_loss_bad = sync.average_grads(total)  # () bool, the same on every rank
+            some_loss_bad = sync.backward(total)  # () bool, the same on every rank
             grad_norm = torch.nn.utils.clip_grad_norm_(params, p.max_grad_norm)
             ok = ~some_loss_bad & torch.isfinite(grad_norm)  # () bool
             if on_device:  # no host read: a fused optimizer leaves its state alone where found_inf is 1
