@@ -93,12 +93,14 @@ def survey_scene(
     space = free_space(corpus, scene, cell, radius)
     sync()
     t1 = time.perf_counter()
-    labels = components(space.free)
+    labels = components(space.free, space.edges)
     sync()
     t2 = time.perf_counter()
     spawns = spawns.to(corpus.device)
     start = space.voxel(spawns[:1])  # (1, 3)
-    field = geodesic(space.free, start, cell) if bool(space.free[tuple(start[0].tolist())]) else None
+    field = (
+        geodesic(space.free, start, cell, space.edges) if bool(space.free[tuple(start[0].tolist())]) else None
+    )
     sync()
     t3 = time.perf_counter()
     reach = [reachable_cells(space, labels, p) for p in spawns[:8]]
@@ -146,7 +148,8 @@ def survey_scene(
         if table is not None
         else 0.0,
         "goal_bytes": table.nbytes() if table is not None else 0,
-        "grid_bytes": space.free.numel() * (1 + 4 + 8 + 4),  # free, clearance, labels, one geodesic field
+        "grid_bytes": space.free.numel()
+        * (1 + 4 + 8 + 4 + 13),  # free, clearance, labels, one geodesic field, edges
     }
 
 

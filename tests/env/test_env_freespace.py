@@ -1,11 +1,13 @@
 """Free space, its connected parts and true path lengths: the torch passes against breadth-first search
-and Dijkstra on random grids, the 26-neighbourhood metric in open space, a wall with a doorway, and the
-lattice sampled from a scene's distance field."""
+and Dijkstra on random grids (with and without random edge masks), the 26-neighbourhood metric in open
+space, a wall with a doorway, the lattice sampled from a scene's distance field, and its edge test: a
+wall thinner than the cell cuts the edges across it and paths go round it."""
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -14,20 +16,26 @@ from typer.testing import CliRunner
 
 from navi.cli import build_app
 from navi_bench.survey import flight_reward
+from navi_compiler.dag.build import build_gmdag
+from navi_compiler.gmdag import Gmdag
 from navi_env.config import EnvConfig, RewardConfig
 from navi_env.space.freespace import (
+    EDGE_OFFSETS,
     Flight,
     FreeSpace,
     components,
     components_ref,
+    edge_clearance_ref,
     free_space,
     geodesic,
     geodesic_many,
     geodesic_ref,
     greedy_coverage,
+    open_edges,
     surface_distance,
     surface_distance_ref,
 )
+from navi_env.tracer.analytic_scenes import AnalyticScene, Box, Room
 from navi_env.tracer.scene import load_corpus
 
 from .test_env_env import room_gmdag
@@ -36,6 +44,13 @@ from .test_env_env import room_gmdag
 def random_free(seed: int, shape: tuple[int, int, int] = (9, 7, 5), share: float = 0.55) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     return torch.rand(shape, generator=g) < share  # (X, Y, Z) bool
+
+
+def random_edges(free: torch.Tensor, seed: int, keep: float = 0.6) -> torch.Tensor:
+    """A random share `keep` of the edges between free neighbours (O, X, Y, Z) bool: one entry per pair of
+    neighbours, so both directions agree."""
+    g = torch.Generator().manual_seed(seed)
+    return open_edges(free) & (torch.rand(len(EDGE_OFFSETS), *free.shape, generator=g) < keep)
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -72,6 +87,70 @@ def test_many_fields_at_once_are_the_single_fields(seed: int) -> None:
         geodesic_many(free, (~free).nonzero()[:1], 0.5)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_components_through_edges_match_breadth_first_search(seed: int) -> None:
+    """Random edge masks on random grids: the torch labels are the search's, and cutting edges only ever
+    splits parts (every part through the edges lies inside one part of the full neighbourhood)."""
+    free = random_free(seed, share=0.5)
+    edges = random_edges(free, 400 + seed, keep=0.35)
+    labels = components(free, edges)
+    assert torch.equal(labels, components_ref(free, edges))
+    whole = components(free)
+    assert labels.unique().numel() > whole.unique().numel()  # the cuts split some part
+    for part in labels[labels >= 0].unique():
+        assert whole[labels == part].unique().numel() == 1
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_geodesic_through_edges_matches_dijkstra(seed: int) -> None:
+    free = random_free(seed)
+    edges = random_edges(free, 500 + seed)
+    g = torch.Generator().manual_seed(100 + seed)
+    candidates = free.nonzero()  # (F, 3)
+    sources = candidates[torch.randperm(candidates.shape[0], generator=g)[:2]]  # (2, 3)
+    fast, ref = geodesic(free, sources, 0.5, edges), geodesic_ref(free, sources, 0.5, edges)
+    assert torch.equal(torch.isinf(fast), torch.isinf(ref)) and bool(torch.isinf(fast[~free]).all())
+    finite = torch.isfinite(ref)
+    assert torch.allclose(fast[finite], ref[finite], rtol=1e-5, atol=1e-5)
+    assert bool(finite.sum() > sources.shape[0])
+    whole = geodesic(free, sources, 0.5)
+    assert bool((fast >= whole).all()) and bool((fast > whole).any())  # fewer edges: never shorter
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_many_fields_through_edges_are_the_single_fields(seed: int) -> None:
+    free = random_free(seed)
+    edges = random_edges(free, 600 + seed)
+    g = torch.Generator().manual_seed(200 + seed)
+    candidates = free.nonzero()  # (F, 3)
+    sources = candidates[torch.randperm(candidates.shape[0], generator=g)[:5]]  # (5, 3)
+    many = geodesic_many(free, sources, 0.5, edges)  # (5, X, Y, Z)
+    for i in range(5):
+        single = geodesic(free, sources[i : i + 1], 0.5, edges)
+        assert torch.equal(many[i], single)
+        ref = geodesic_ref(free, sources[i : i + 1], 0.5, edges)
+        assert torch.equal(torch.isinf(single), torch.isinf(ref))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_open_edges_give_the_full_neighbourhood(seed: int) -> None:
+    """Every edge between free neighbours passable is the lattice without the edge test: the same labels,
+    path lengths (bit for bit) and planner flight; in a grid free throughout, one edge per neighbour pair."""
+    free = random_free(seed)
+    edges = open_edges(free)
+    assert torch.equal(components(free, edges), components(free))
+    sources = free.nonzero()[:3]  # (3, 3)
+    assert torch.equal(geodesic_many(free, sources, 0.5, edges), geodesic_many(free, sources, 0.5))
+    full = torch.ones(5, 4, 3, dtype=torch.bool)
+    pairs = sum(math.prod(n - abs(d) for n, d in zip(full.shape, o, strict=True)) for o in EDGE_OFFSETS)
+    assert int(open_edges(full).sum()) == pairs
+    space = FreeSpace((0.0, 0.0, 0.0), 0.5, 0.3, free, torch.full(free.shape, 2.0))
+    start = space.centre_of(sources[:1])[0]  # (3,)
+    assert greedy_coverage(space, start, 3.0, lambda c: 1.0, 5.0, 2.0) == greedy_coverage(
+        replace(space, edges=edges), start, 3.0, lambda c: 1.0, 5.0, 2.0
+    )
+
+
 def test_geodesic_in_open_space_is_the_26_neighbour_metric() -> None:
     """With nothing in the way the path length is sqrt3 c + sqrt2 (b - c) + (a - b) cells, a >= b >= c the
     sorted offsets."""
@@ -101,7 +180,8 @@ def test_a_wall_with_a_doorway_lengthens_the_path_and_a_closed_one_cuts_it() -> 
 
 def test_free_space_of_a_room_is_its_inside_less_the_radius() -> None:
     """The analytic room spans (1, 1, 1)-(15, 15, 7): voxel centres at least the radius from its walls are
-    free, the rest not, and every free voxel is one part."""
+    free, the rest not, and every free voxel is one part. Nothing stands between free centres, so every
+    edge between free neighbours is passable."""
     corpus = load_corpus([room_gmdag()], "cpu")
     space = free_space(corpus, 0, cell=0.5, radius=0.3)
     every = torch.ones_like(space.free).nonzero()  # (V, 3) every voxel, in flat order
@@ -115,6 +195,7 @@ def test_free_space_of_a_room_is_its_inside_less_the_radius() -> None:
         (space.clearance <= inside + 0.05).all()
     )  # the field is exact near walls, a lower bound beyond
     assert components(space.free).unique().numel() == 2  # blocked, and one room
+    assert space.edges is not None and torch.equal(space.edges, open_edges(space.free))
     assert torch.equal(
         space.voxel(torch.tensor([[8.0, 8.0, 4.0], [-5.0, 99.0, 4.2]])),
         torch.tensor([[14, 14, 6], [0, 27, 6]]),
@@ -179,7 +260,7 @@ def test_bench_freespace_reports_every_scene_with_a_sound_bound(small_corpus: Pa
         assert row["coverage_bound_per_1k"] == pytest.approx(
             1000.0 * min(row["reachable_cells_median"], speed / 2) / 500, abs=0.11
         )
-        assert row["farthest_path_m"] > 1.0 and row["grid_bytes"] == 17 * math.prod(row["grid"])
+        assert row["farthest_path_m"] > 1.0 and row["grid_bytes"] == 30 * math.prod(row["grid"])
         assert 0.0 < row["planner_coverage_per_1k"] <= row["coverage_bound_per_1k"]
         assert 5.0 * 0.2 <= row["planner_speed_m_s"] <= 5.0  # between the limiter's floor and full speed
         assert row["goals"] == 4 and row["goal_pairs_per_spawn"] > 0 and row["cell_m"] == 0.5
@@ -208,6 +289,19 @@ def test_the_planner_flies_a_corridor_at_the_speed_its_clearance_allows() -> Non
         line((1, 1, 40), 9.0), torch.tensor([0.1, 0.1, 0.1]), 1.05, lambda c: 1.0, 5.0, 2.0
     )
     assert shaft.cells == 3 and shaft.meters == pytest.approx(2.0)  # 4 climbs of 0.25 s
+
+
+def test_the_planner_flies_only_through_passable_edges() -> None:
+    """A corridor cut between voxels 9 and 10: the planner with the map enters the 5 cells before the cut
+    (flying 4 m, to voxel 8, the first of the fifth cell) and stops, where the full neighbourhood lets it
+    fly on."""
+    space = line((40, 1, 1), 9.0)
+    edges = open_edges(space.free)
+    edges[EDGE_OFFSETS.index((1, 0, 0)), 9, 0, 0] = False
+    start = torch.tensor([0.1, 0.1, 0.1])
+    cut = greedy_coverage(replace(space, edges=edges), start, 60.0, lambda c: 1.0, 5.0, 2.0)
+    assert cut.cells == 5 and cut.meters == pytest.approx(4.0)
+    assert greedy_coverage(space, start, 60.0, lambda c: 1.0, 5.0, 2.0).cells == 20
 
 
 def test_the_planner_stops_when_every_cell_is_entered_and_never_beats_the_bound() -> None:
@@ -307,3 +401,92 @@ def test_flight_reward_pays_the_env_terms_per_step(clearance: float) -> None:
     bonus = 10 * r.exploration_weight if clearance >= r.exploration_min_clearance else 0.0
     expected = r.existential_tax - r.proximity_weight * near - (1.0 - r.shaping_gamma) * phi + bonus / 100
     assert flight_reward(flight, 100, cfg) == pytest.approx(expected, abs=1e-9)
+
+
+THIN = 0.1  # meters: the wall's thickness, far below the 1.5 m cell
+WALL_CELL = 1.5
+ROOM_LO, ROOM_HI = (1.0, 1.0, 1.0), (15.0, 15.0, 5.0)
+
+
+def thin_wall_gmdag(wall_x: float, door: float | None) -> Gmdag:
+    """A room (ROOM_LO-ROOM_HI) split across x = wall_x by a solid plate THIN meters thick, open from
+    y = `door` to the far wall (None: closed), on a 0.5 m distance-field lattice over a 16 m cube."""
+    top = ROOM_HI[1] + 0.5 if door is None else door
+    scene = AnalyticScene(
+        (Room(ROOM_LO, ROOM_HI), Box((wall_x - THIN / 2, 0.5, 0.5), (wall_x + THIN / 2, top, 5.5))),
+        resolution=32,
+        voxel_size=0.5,
+    )
+    return build_gmdag(scene.lattice(), origin=(0.0, 0.0, 0.0), voxel_size=0.5, bounds=(ROOM_LO, ROOM_HI))
+
+
+BEFORE, AFTER = (4, 1, 0), (5, 1, 0)  # the voxels centred 0.75 m either side of x = 8.5, at y = 3.25
+
+
+@pytest.mark.parametrize("wall_x", [8.5, 8.6])  # on a plane of the field's lattice, and between two
+def test_a_thin_wall_cuts_the_edges_across_it(wall_x: float) -> None:
+    """At 1.5 m cells the centres either side of a 0.1 m wall are free neighbours, so the lattice alone
+    joins the two halves of the room; the edge test cuts every edge across the wall, and the halves are
+    two parts."""
+    corpus = load_corpus([thin_wall_gmdag(wall_x, None)], "cpu")
+    space = free_space(corpus, 0, WALL_CELL, 0.3)
+    assert space.edges is not None
+    assert bool(space.free[BEFORE]) and bool(space.free[AFTER])
+    x = space.centre_of(torch.tensor([BEFORE, AFTER]))[:, 0]  # (2,) either side of the wall
+    assert float(x[0]) < wall_x - THIN / 2 and float(x[1]) > wall_x + THIN / 2
+    across = EDGE_OFFSETS.index((1, 0, 0))
+    assert bool(open_edges(space.free)[across][BEFORE]) and not bool(space.edges[across][BEFORE])
+    whole = components(space.free)
+    assert int(whole[BEFORE]) == int(whole[AFTER])  # without the edge test: through the wall
+    labels = components(space.free, space.edges)
+    assert torch.equal(labels, components_ref(space.free, space.edges))
+    centres = space.centre_of(space.free.nonzero())  # (F, 3)
+    side = centres[:, 0] > wall_x  # (F,) bool
+    part = labels[space.free]  # (F,) in nonzero order
+    assert part[~side].unique().numel() == 1 and part[side].unique().numel() == 1
+    assert int(labels[BEFORE]) != int(labels[AFTER])
+
+
+@pytest.mark.parametrize("wall_x", [8.5, 8.6])
+def test_a_path_past_a_thin_wall_goes_through_its_doorway(wall_x: float) -> None:
+    """With a doorway from y = 11 m the path between the centres either side of the wall is no shorter
+    than the shortest one that crosses the wall's plane in the doorway (straight to the doorway's edge
+    and on), where the lattice without the edge test reads the 1.5 m straight through."""
+    door = 11.0
+    corpus = load_corpus([thin_wall_gmdag(wall_x, door)], "cpu")
+    space = free_space(corpus, 0, WALL_CELL, 0.3)
+    a, b = space.centre_of(torch.tensor([BEFORE, AFTER])).double()  # (3,), (3,)
+    plane = torch.tensor([wall_x, door, float(a[2])], dtype=torch.float64)  # where the shortest path crosses
+    bound = float((plane - a).norm() + (b - plane).norm())
+    field = geodesic(space.free, torch.tensor([BEFORE]), WALL_CELL, space.edges)
+    assert bound <= float(field[AFTER]) < math.inf
+    assert float(field[AFTER]) == pytest.approx(
+        float(geodesic_ref(space.free, torch.tensor([BEFORE]), WALL_CELL, space.edges)[AFTER]), rel=1e-6
+    )
+    assert float(geodesic(space.free, torch.tensor([BEFORE]), WALL_CELL)[AFTER]) == pytest.approx(WALL_CELL)
+    many = geodesic_many(space.free, torch.tensor([BEFORE, AFTER]), WALL_CELL, space.edges)  # (2, X, Y, Z)
+    assert torch.equal(many[0], field) and float(many[1][BEFORE]) == pytest.approx(float(field[AFTER]))
+    labels = components(space.free, space.edges)
+    assert int(labels[BEFORE]) == int(labels[AFTER]) and labels.unique().numel() == 2
+
+
+@pytest.mark.parametrize("door", [None, 11.0])
+def test_edges_agree_with_the_field_sampled_densely_along_them(door: float | None) -> None:
+    """Against the distance field sampled at 65 points along every edge: a passable edge keeps half the
+    radius from every surface all along (it never crosses one), and a cut one comes within the radius
+    of one (up to the samples' spacing); the cut edges here are the wall's."""
+    radius = 0.3
+    corpus = load_corpus([thin_wall_gmdag(8.6, door)], "cpu")
+    space = free_space(corpus, 0, WALL_CELL, radius)
+    assert space.edges is not None
+    least = edge_clearance_ref(corpus, 0, space, samples=64)  # (O, X, Y, Z)
+    cut = open_edges(space.free) & ~space.edges  # (O, X, Y, Z)
+    spacing = WALL_CELL * math.sqrt(3.0) / 64
+    assert bool((least[space.edges] >= radius / 2).all())
+    assert bool((least[cut] < radius + spacing / 2).all()) and bool(cut.any())
+    assert bool(torch.isinf(least[~open_edges(space.free)]).all())
+    every = torch.ones_like(space.free).nonzero()  # (V, 3)
+    x = space.centre_of(every)[:, 0].reshape(space.free.shape)  # (X, Y, Z) voxel centres' x
+    for o, offset in enumerate(EDGE_OFFSETS):  # each cut edge joins the two sides of the wall
+        far = x + offset[0] * WALL_CELL  # (X, Y, Z) the neighbour's x
+        assert bool(((x[cut[o]] < 8.6) != (far[cut[o]] < 8.6)).all())

@@ -1,7 +1,11 @@
 """Point-goal tables: the pairing of spawns and goals against Dijkstra, path lengths read between voxel
-centres, a goal behind a wall reached the long way round, seeded draws, and the room scene."""
+centres, a goal behind a wall reached the long way round, seeded draws, the room scene (no edge cut,
+the same table as the lattice without the edge test), and goals kept on the spawns' side of a closed wall
+thinner than the cell."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import pytest
 import torch
@@ -11,6 +15,7 @@ from navi_env.space.goal_tables import goal_table, goal_table_ref
 from navi_env.tracer.scene import load_corpus
 
 from .test_env_env import room_gmdag
+from .test_env_freespace import WALL_CELL, thin_wall_gmdag
 
 CELL = 0.5
 
@@ -73,3 +78,32 @@ def test_goals_of_the_room_scene() -> None:
     d = table.distance(torch.arange(8), spawns[torch.zeros(8, dtype=torch.long)])  # (8,) from spawn 0
     straight = (table.positions - spawns[0]).norm(dim=1)  # (8,)
     assert bool((d >= straight - 1e-4).all()) and bool((d <= straight * 1.1 + 0.5).all())  # open room
+
+
+def test_the_room_s_table_is_the_one_without_the_edge_test() -> None:
+    """Nothing stands between the room's free voxel centres: its table (goals, fields, pairs) is the one
+    of the same lattice with every edge between free neighbours passable."""
+    corpus = load_corpus([room_gmdag()], "cpu")
+    space = free_space(corpus, 0)
+    spawns = torch.tensor([[8.0, 8.0, 4.0], [3.0, 3.0, 2.0]])
+    table = goal_table(space, spawns, count=8, seed=3)
+    plain = goal_table(replace(space, edges=None), spawns, count=8, seed=3)
+    assert torch.equal(table.goals, plain.goals) and torch.equal(table.pairs, plain.pairs)
+    assert torch.equal(table.fields, plain.fields)
+
+
+def test_goals_stay_on_the_spawns_side_of_a_closed_thin_wall() -> None:
+    """A 0.1 m wall across a room at 1.5 m cells: through the edges every goal lies on the spawns' side
+    and pairs as Dijkstra says, where the lattice without the edge test draws goals across the wall."""
+    wall_x = 8.6
+    corpus = load_corpus([thin_wall_gmdag(wall_x, None)], "cpu")
+    space = free_space(corpus, 0, WALL_CELL, 0.3)
+    spawns = torch.tensor([[3.25, 3.25, 1.75], [6.25, 9.25, 3.25]])  # world meters, left of the wall
+    table = goal_table(space, spawns, count=8, near=1.0, far=30.0, seed=0)
+    assert bool((table.positions[:, 0] < wall_x).all())
+    assert torch.equal(table.pairs, goal_table_ref(table, spawns, 1.0, 30.0))
+    across = space.free.nonzero()  # (F, 3) the free voxels ...
+    across = across[space.centre_of(across)[:, 0] > wall_x]  # (F', 3) ... right of the wall
+    assert bool(torch.isinf(table.fields[:, across[:, 0], across[:, 1], across[:, 2]]).all())
+    plain = goal_table(replace(space, edges=None), spawns, count=8, near=1.0, far=30.0, seed=0)
+    assert bool((plain.positions[:, 0] > wall_x).any())

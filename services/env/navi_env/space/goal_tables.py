@@ -1,7 +1,9 @@
 """Point-goal episodes of a scene: goals that can be reached from its spawns, and true path lengths to them.
 
 A GoalTable holds G goal voxels of the scene's free space (navi_env.space.freespace), each with its
-geodesic field (the path length in meters from every voxel to the goal through free voxels), and which
+geodesic field (the path length in meters from every voxel to the goal through free voxels and the
+space's passable edges: steps between neighbouring voxel centres whose straight segment the tracer found
+clear of every surface, so a path never goes through a wall, however thin against the cell), and which
 spawns pair with which goals: same connected part, and a path length within [near, far] (default 5 to
 30 m). An episode starts at a spawn and draws one of its goals; `distance` reads the path length from
 any world point (between voxel centres: the best of the 8 surrounding centres plus the straight hop to
@@ -73,7 +75,7 @@ def goal_table(
     the module docstring); raises when no spawn can reach any candidate within [near, far]."""
     if not 0.0 <= near < far:
         raise ValueError(f"need 0 <= near < far, got {near}, {far}")
-    labels = components(space.free)  # (X, Y, Z)
+    labels = components(space.free, space.edges)  # (X, Y, Z)
     start = space.voxel(spawns.to(space.free.device))  # (K, 3)
     spawn_parts = labels[start[:, 0], start[:, 1], start[:, 2]]  # (K,)
     candidates = torch.isin(labels, spawn_parts[spawn_parts >= 0]) & (space.clearance >= goal_clearance)
@@ -88,7 +90,7 @@ def goal_table(
         if len(goals) == count:
             break
         batch = candidates[first : first + count]  # (B, 3)
-        field = geodesic_many(space.free, batch, space.cell)  # (B, X, Y, Z)
+        field = geodesic_many(space.free, batch, space.cell, space.edges)  # (B, X, Y, Z)
         reach = field[:, start[:, 0], start[:, 1], start[:, 2]]  # (B, K) path length from each spawn's voxel
         paired = (reach >= near) & (reach <= far)  # (B, K) bool
         for b in paired.any(dim=1).nonzero()[:, 0].tolist():
@@ -106,6 +108,6 @@ def goal_table_ref(table: GoalTable, spawns: torch.Tensor, near: float, far: flo
     start = table.space.voxel(spawns.cpu()).tolist()  # K x [i, j, k]
     columns = []
     for goal in table.goals.cpu():
-        field = geodesic_ref(table.space.free, goal[None], table.space.cell)  # (X, Y, Z)
+        field = geodesic_ref(table.space.free, goal[None], table.space.cell, table.space.edges)  # (X, Y, Z)
         columns.append([near <= float(field[tuple(s)]) <= far for s in start])
     return torch.tensor(columns, dtype=torch.bool).T  # (K, G)
