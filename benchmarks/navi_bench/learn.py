@@ -26,7 +26,6 @@ import pickle
 import statistics
 import sys
 import time
-import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -34,6 +33,7 @@ from typing import Any, NamedTuple
 
 import torch
 
+from navi_env.corpus.openarena import openarena_maps, split_openarena
 from navi_learner.config import (
     TEMPORAL_CORES,
     TemporalCoreName,
@@ -58,10 +58,6 @@ Say = Callable[[str], None]
 def say_stderr(line: str) -> None:
     """Progress lines of a run (its evaluations) on stderr, so that stdout carries results only."""
     print(line, file=sys.stderr, flush=True)
-
-
-HELD_OUT_EVERY = 5
-"""Every fifth OpenArena map (sorted by name, from the first) is held out of training."""
 
 
 @dataclass(frozen=True)
@@ -106,18 +102,6 @@ class LearnConfig:
     """Scripted moving obstacles per actor in every env of the job (EnvConfig.obstacles)."""
     squad: int = 0
     """Squads of this many actors that see and collide with each other, in every env (0: off)."""
-
-
-def openarena_maps(pk3: Path) -> list[str]:
-    """Members maps/*.bsp of the package, sorted."""
-    with zipfile.ZipFile(pk3) as z:
-        return sorted(n for n in z.namelist() if n.lower().endswith(".bsp"))
-
-
-def split_openarena(maps: list[str]) -> tuple[list[str], list[str]]:
-    """(train, held out): every HELD_OUT_EVERY-th map from the first is held out."""
-    held = maps[::HELD_OUT_EVERY]
-    return [m for m in maps if m not in held], held
 
 
 def prepare_splits(

@@ -34,7 +34,8 @@ from typing import Any
 
 import torch
 
-from navi_bench.learn import Say, openarena_maps, say_stderr, split_openarena
+from navi_bench.learn import Say, say_stderr
+from navi_env.corpus.openarena import openarena_maps, split_openarena
 from navi_learner.config import TrainConfig, learning_recipe, learning_size
 from navi_learner.envs.factory import corpus_summary, make_env
 from navi_learner.envs.protocol import StepLike
@@ -156,7 +157,7 @@ def plan_corpora(
     unseen: dict[str, dict[str, Path]] = {}
     have_maps = pk3 is not None and pk3.is_file()
     arms = [a for a in cfg.arms if have_maps or not a.real]
-    if len(arms) < len(cfg.arms):
+    if not have_maps:
         notes.append(f"OpenArena maps not found at {pk3}: the openarena arm and parts are left out")
     chunks: list[Path] = []
     maps: list[str] = []

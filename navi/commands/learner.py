@@ -487,11 +487,21 @@ def run_cmd(
     device: DeviceOpt = "auto",
     seed: SeedOpt = 0,
     task: TaskOpt = "explore",
+    real_maps: Annotated[
+        bool,
+        typer.Option(
+            "--real-maps/--no-real-maps",
+            help="Where the OpenArena maps are on the machine ($NAVI_OPENARENA_PK3, or where "
+            "tests/data/fetch_openarena.sh puts them), also judge the drone on their held-out fifth.",
+        ),
+    ] = True,
 ) -> None:
     """The main job: build the corpora, train (CUDA: until competent on unseen scenes or the budget; CPU:
     fine-tune the shipped reference checkpoint), promote, evaluate against random and reactive on unseen scenes
-    (--task pointgoal: train point-goal episodes from scratch, compare with random, greedy and oracle)."""
+    (--task pointgoal: train point-goal episodes from scratch, compare with random, greedy and oracle); where
+    the OpenArena maps are present, also on real maps never seen."""
     from navi_env.config import TASKS
+    from navi_env.corpus.openarena import default_pk3
     from navi_learner.evaluation.main_job import REFERENCE, MainJobConfig, MainJobError, main_job
 
     dev = pick_device(device)
@@ -505,6 +515,7 @@ def run_cmd(
         **asdict(settings.config()),
         reference=REFERENCE,
         task=task,
+        openarena=default_pk3() if real_maps else None,
     )
     try:
         report = main_job(job)

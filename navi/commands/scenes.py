@@ -34,12 +34,23 @@ def generate(
             "See `docs/SCENES.md` for the list.",
         ),
     ] = None,
+    semantics: Annotated[
+        str,
+        typer.Option(
+            help="What the face classes name: object (floor, wall, ceiling and each solid's kind) or "
+            "surface (floor, wall, ceiling by the face's normal and patch, as Quake 3 maps are classed)."
+        ),
+    ] = "object",
     json_out: Annotated[
         bool, typer.Option("--json", help="Print one JSON summary object on stdout.")
     ] = False,
 ) -> None:
     """Write COUNT varied procedural scenes (.obj + .scene.json sidecar) into OUT."""
-    from navi_compiler.ingest.procedural import FAMILIES, generate_corpus
+    from navi_compiler.ingest.procedural import FAMILIES, SEMANTICS, generate_corpus
+
+    if semantics not in {s.value for s in SEMANTICS}:
+        known = ", ".join(s.value for s in SEMANTICS)
+        raise typer.BadParameter(f"unknown semantics {semantics!r}; known: {known}", param_hint="--semantics")
 
     chosen = _parse_families(families)
     if chosen is not None:
@@ -54,7 +65,7 @@ def generate(
         if show:
             typer.echo(f"\r[{done}/{total}] {path.name:<40}", err=True, nl=done == total)
 
-    paths = generate_corpus(out, count, seed, families=chosen, progress=progress)
+    paths = generate_corpus(out, count, seed, families=chosen, progress=progress, semantics=semantics)
     elapsed = time.perf_counter() - started
     family_names = sorted({p.stem.split("_")[0] for p in paths})
     summary = {
@@ -62,6 +73,7 @@ def generate(
         "count": len(paths),
         "seed": seed,
         "families": family_names,
+        "semantics": semantics,
         "files": [str(p) for p in paths],
         "seconds": round(elapsed, 3),
     }

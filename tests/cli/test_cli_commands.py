@@ -94,7 +94,7 @@ def test_navi_run_fine_tunes_promotes_and_reports_the_unseen_comparison(
     train, unseen = corpora
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(EvalProtocol, "for_device", classmethod(lambda cls, device: SMALL))
-    args = ["run", "--corpus", str(train), "--unseen", str(unseen), "--device", "cpu"]
+    args = ["run", "--corpus", str(train), "--unseen", str(unseen), "--device", "cpu", "--no-real-maps"]
     result = runner.invoke(build_app(), [*args, "--cpu-steps", str(CPU_STEPS)])
     assert result.exit_code == 0, result.output[-3000:]
     reference_step = load_checkpoint(REFERENCE).meta.step_id
@@ -159,7 +159,7 @@ def test_navi_run_point_goal_trains_from_scratch_and_compares_with_the_seekers(
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(EvalProtocol, "for_device", classmethod(lambda cls, device: SMALL))
     args = ["run", "--corpus", str(train), "--unseen", str(unseen), "--device", "cpu", "--task", "pointgoal"]
-    result = runner.invoke(build_app(), [*args, "--cpu-steps", str(CPU_STEPS)])
+    result = runner.invoke(build_app(), [*args, "--cpu-steps", str(CPU_STEPS), "--no-real-maps"])
     assert result.exit_code == 0, result.output[-3000:]
     lines = result.stdout.splitlines()
     assert lines[0].startswith(

@@ -11,8 +11,9 @@ import typer
 from typer.testing import CliRunner
 
 from navi.commands import scenes
-from navi_compiler.ingest import procedural
-from navi_compiler.ingest import load_scene
+from navi_compiler.ingest import load_scene, procedural
+from navi_compiler.ingest.bsp import CLASS_NAMES as SURFACE_CLASS_NAMES
+from navi_compiler.ingest.bsp import HORIZONTAL_NZ
 from navi_compiler.ingest.procedural import (
     CLASS_NAMES,
     DRONE_RADIUS,
@@ -35,8 +36,6 @@ from navi_compiler.ingest.procedural import (
     solid_bounds,
     solid_distance,
 )
-from navi_compiler.ingest.bsp import CLASS_NAMES as SURFACE_CLASS_NAMES
-from navi_compiler.ingest.bsp import HORIZONTAL_NZ
 
 SEEDS = (0, 1, 2)
 OPEN = {Family.FOREST, Family.YARD, Family.PLATFORMS}
@@ -250,3 +249,11 @@ def test_scenes_generate_command(tmp_path: Path) -> None:
     assert result.exit_code == 0 and "caves, maze" in result.stdout
     bad = runner.invoke(app, ["scenes", "generate", "--out", str(tmp_path), "--families", "castle"])
     assert bad.exit_code == 2 and "castle" in bad.output
+    surface = tmp_path / "surface"
+    args = ["scenes", "generate", "--out", str(surface), "--families", "arena", "--count", "1", "--semantics"]
+    result = runner.invoke(app, [*args, "surface", "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["semantics"] == "surface"
+    assert load_scene(surface / "arena_0000.obj").class_names == SURFACE_CLASS_NAMES
+    bad = runner.invoke(app, [*args, "texture"])
+    assert bad.exit_code == 2 and "texture" in bad.output

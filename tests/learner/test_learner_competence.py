@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 import torch
 
-from navi_bench.learn import LearnConfig, bench_learn, run_devices, split_openarena
+from navi_bench.learn import LearnConfig, bench_learn, run_devices
 from navi_env.corpus.folder import build_default_corpus
+from navi_env.corpus.openarena import split_openarena
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe
 from navi_learner.envs.factory import make_env, parse_reward_overrides
 from navi_learner.envs.protocol import StepLike

@@ -10,6 +10,8 @@ paired over the same spawns, not only on the point estimates.
 from __future__ import annotations
 
 import json
+import os
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -18,6 +20,7 @@ import torch
 from navi_bench.learn import LearnConfig
 from navi_bench.learn import train_config as bench_train_config
 from navi_env.corpus.folder import build_default_corpus
+from navi_env.corpus.openarena import openarena_maps, split_openarena
 from navi_learner.evaluation.competence import EvalProtocol
 from navi_learner.evaluation.evaluate import EvalMetrics, beats_supported, competent_supported
 from navi_learner.evaluation.main_job import (
@@ -27,6 +30,7 @@ from navi_learner.evaluation.main_job import (
     UNSEEN_SEED,
     MainJobConfig,
     cuda_config,
+    judge,
     main_job,
 )
 from navi_learner.serving.checkpoint import load_checkpoint
@@ -136,3 +140,60 @@ def test_main_job_point_goal_cpu_path_trains_from_scratch_and_compares_with_the_
     assert f"fewer collisions per episode than greedy): {'yes' if competent else 'no'}." in report.read_text()
     made = load_checkpoint(job.models_dir / "latest.pt")
     assert made.meta.parent_checkpoint is None and made.meta.config["task"] == "pointgoal"
+
+
+OPENARENA_PK3 = Path(
+    os.environ.get(
+        "NAVI_OPENARENA_PK3", Path(__file__).resolve().parents[2] / "artifacts/data/openarena/pak1-maps.pk3"
+    )
+)
+
+
+@pytest.mark.data
+@pytest.mark.skipif(
+    not OPENARENA_PK3.is_file(),
+    reason=f"OpenArena maps pk3 not found at {OPENARENA_PK3} (run tests/data/fetch_openarena.sh or set NAVI_OPENARENA_PK3)",
+)
+def test_main_job_judges_the_drone_on_held_out_real_maps_in_a_section_of_their_own(
+    unseen: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """With the OpenArena package present the job also flies the trained drone and the baselines on held-out
+    maps (here the first of them) and labels that verdict as real maps; the procedural verdict stays as it is."""
+    monkeypatch.chdir(tmp_path)
+    train = tmp_path / "train"
+    build_default_corpus(train, resolution=CORPUS_RESOLUTION, count=1, seed=0)
+    small = EvalProtocol(actors=8, steps=120, episode_steps=60)
+    job = MainJobConfig(
+        train,
+        unseen,
+        tmp_path / "models",
+        "cpu",
+        cpu_steps=64,
+        protocol=small,
+        openarena=OPENARENA_PK3,
+        real_maps=1,
+    )
+    report = main_job(job)
+    out = capsys.readouterr().out
+    result = json.loads((report.parent / "evaluation.json").read_text())
+    real = result["real_maps"]
+    held = split_openarena(openarena_maps(OPENARENA_PK3))[1][0]
+    assert [
+        s["name"] for s in json.loads((Path(real["corpus"]) / "manifest.json").read_text())["scenes"]
+    ] == [Path(held).stem]
+    rows = [EvalMetrics(**r) for r in real["results"]]
+    assert [r.policy for r in rows][1:] == ["random", "reactive"] and rows[0].policy.startswith("trained (")
+    assert all(r.steps == 120 and r.actors == 8 for r in rows)
+    assert rows != [EvalMetrics(**r) for r in result["results"]]  # other scenes, other flights
+    verdict, beats, competence = judge("explore", rows)
+    assert real["beats"] == beats and real["competent"] is competence
+    text = report.read_text()
+    assert (
+        "## Real maps never seen: the held-out OpenArena maps" in text and f"On real maps: {verdict}" in text
+    )
+    assert f"[navi run] on real maps never seen ({real['corpus']}): {verdict}" in out
+    # without the package the job says where to get it and judges on procedural scenes alone
+    missing = replace(job, openarena=tmp_path / "absent.pk3", models_dir=tmp_path / "models2")
+    report = main_job(missing)
+    assert "no verdict on real maps" in capsys.readouterr().out
+    assert "real_maps" not in json.loads((report.parent / "evaluation.json").read_text())

@@ -13,6 +13,10 @@ it for the CPU budget on the default corpus, then evaluate the same way.
 With task "pointgoal" the job trains point-goal episodes from scratch (no point-goal reference checkpoint
 ships): on CUDA until the point-goal bar (docs/TASKS.md) or the budget, on a CPU for the CPU budget
 (which shows the job end to end, not a competent drone); then it compares with random, greedy and oracle.
+
+Where the OpenArena maps are on the machine (navi_env.corpus.openarena), the job also flies the trained
+drone and the baselines on the held-out fifth of them, maps no drone Navi trains has seen, and reports
+that verdict in a section of its own, labelled real maps.
 """
 
 from __future__ import annotations
@@ -87,6 +91,49 @@ class MainJobConfig(RunBudget):
     """explore, or pointgoal (trained from scratch on either path)."""
     protocol: EvalProtocol | None = None
     """The unseen evaluation; None: EvalProtocol.for_device (a smaller one only where a test says why)."""
+    openarena: Path | None = None
+    """The OpenArena package; where it exists, the job also judges the drone on its held-out maps."""
+    real_maps: int = 0
+    """How many of the held-out maps that verdict flies (0: all ten)."""
+
+
+def real_map_corpus(job: MainJobConfig, device: torch.device) -> Path | None:
+    """The corpus of the held-out OpenArena maps at CORPUS_RESOLUTION beside the unseen corpus (built when
+    missing), or None without the package (and a line that says where to get it)."""
+    if job.openarena is None:
+        return None
+    if not job.openarena.is_file():
+        print(
+            f"[navi run] no OpenArena maps at {job.openarena} (tests/data/fetch_openarena.sh fetches them): "
+            "no verdict on real maps",
+            flush=True,
+        )
+        return None
+    from navi_env.corpus.folder import build_corpus
+    from navi_env.corpus.openarena import openarena_maps, split_openarena
+
+    held = split_openarena(openarena_maps(job.openarena))[1][: job.real_maps or None]
+    folder = job.unseen.parent / f"openarena-held-out-{len(held)}-{CORPUS_RESOLUTION}"
+    if not (folder / "manifest.json").is_file():
+        print(
+            f"[navi run] building {len(held)} held-out OpenArena maps ({CORPUS_RESOLUTION}^3) into {folder}",
+            flush=True,
+        )
+        build_corpus(
+            [f"{job.openarena}:{m}" for m in held],
+            folder,
+            CORPUS_RESOLUTION,
+            device,
+            progress=lambda line: print(f"[navi run] {line}", flush=True),
+        )
+    return folder
+
+
+def task_baselines(env: object, task: str, seed: int) -> list[EvalPolicy]:
+    """random and reactive (explore) or random, greedy and oracle (point-goal), for `env`."""
+    if task == "pointgoal":
+        return [RandomPolicy(seed), goal_seeker_for_env("greedy", env), goal_seeker_for_env("oracle", env)]
+    return [RandomPolicy(seed), reactive_for_env(env)]
 
 
 def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int = 16) -> None:
@@ -233,30 +280,31 @@ def main_job(job: MainJobConfig) -> Path:
     )
     trained = CheckpointPolicy(result.final_checkpoint, dev)
     trained.name = f"trained ({result.run_id})"
-    baselines: list[EvalPolicy] = [RandomPolicy(protocol.seed)]
-    if job.task == "pointgoal":
-        baselines += [goal_seeker_for_env("greedy", unseen_env), goal_seeker_for_env("oracle", unseen_env)]
-    else:
-        baselines.append(reactive_for_env(unseen_env))
+    baselines = task_baselines(unseen_env, job.task, protocol.seed)
     rows = [
         evaluate(unseen_env, p, protocol.steps, protocol.seed, progress=True) for p in (trained, *baselines)
     ]
+    real: tuple[Path, list[EvalMetrics]] | None = None
+    real_corpus = real_map_corpus(job, dev)
+    if real_corpus is not None:
+        real_env = make_env(
+            real_corpus, protocol.actors, job.device, protocol.seed, episode_steps=protocol.episode_steps,
+            task=job.task,
+        )  # fmt: skip
+        policies = (trained, *task_baselines(real_env, job.task, protocol.seed))
+        real = (
+            real_corpus,
+            [evaluate(real_env, p, protocol.steps, protocol.seed, progress=True) for p in policies],
+        )
     return write_evaluation(
-        result.run_dir / "reports", job, protocol, rows, monitor, "cuda" if cuda else "cpu"
+        result.run_dir / "reports", job, protocol, rows, monitor, "cuda" if cuda else "cpu", real
     )
 
 
-def write_evaluation(
-    reports: Path,
-    job: MainJobConfig,
-    protocol: EvalProtocol,
-    rows: list[EvalMetrics],
-    monitor: CompetenceMonitor | None,
-    path_taken: str,
-) -> Path:
-    """evaluation.md / .json (and on CUDA the learning curves) in the run's reports folder. `rows`: the
+def judge(task: str, rows: list[EvalMetrics]) -> tuple[str, dict[str, bool], bool]:
+    """The verdict line, which baselines the trained drone beats, and whether it is competent. `rows`: the
     trained policy, then random and reactive (explore) or random, greedy and oracle (point-goal)."""
-    if job.task == "pointgoal":
+    if task == "pointgoal":
         trained, rand, greedy, oracle = rows
         competence = goal_competent(trained, greedy)
         beats = {
@@ -271,30 +319,45 @@ def write_evaluation(
             f"Trained {versus} (a higher success rate, no more collisions per episode). Competent (success >= 0.9, "
             f"SPL >= 0.75, fewer collisions per episode than greedy): {'yes' if competence else 'no'}."
         )
-    else:
-        trained, rand, reactive = rows
-        paired = {
-            name: paired_intervals(trained, other)
-            for name, other in (("random", rand), ("reactive", reactive))
-        }
-        beats = {"random": beats_supported(trained, rand), "reactive": beats_supported(trained, reactive)}
-        bar = collision_bar(reactive)
-        ratio = paired["reactive"]["coverage_ratio"]
-        competence = competent_supported(trained, reactive)
-        versus = "; ".join(
-            f"vs {name}: {'beats it' if beats[name] else 'does not beat it'} (coverage ratio "
-            f"[{paired[name]['coverage_ratio'][0]:.2f}, {paired[name]['coverage_ratio'][1]:.2f}], extra collisions "
-            f"per 1k [{paired[name]['collision_difference'][0]:.2f}, {paired[name]['collision_difference'][1]:.2f}])"
-            for name in ("random", "reactive")
-        )
-        verdict = (
-            f"Trained {versus}. The verdicts use 95% intervals, paired over the same actors and spawns: beating "
-            f"a pilot needs the coverage ratio's interval above 1 and at most {COLLISION_FLOOR_PER_1K} extra "
-            f"collisions per 1k at its top. Competent (collisions within {bar:.3g} per 1k, half the reactive's or "
-            f"{COLLISION_FLOOR_PER_1K} where it has none, and 1.5x its coverage, both across the interval: "
-            f"collisions [{trained.ci['collisions_per_1k'][0]:.3g}, {trained.ci['collisions_per_1k'][1]:.3g}], "
-            f"coverage ratio [{ratio[0]:.2f}, {ratio[1]:.2f}]): {'yes' if competence else 'no'}."
-        )
+        return verdict, beats, competence
+    trained, rand, reactive = rows
+    paired = {
+        name: paired_intervals(trained, other) for name, other in (("random", rand), ("reactive", reactive))
+    }
+    beats = {"random": beats_supported(trained, rand), "reactive": beats_supported(trained, reactive)}
+    bar = collision_bar(reactive)
+    ratio = paired["reactive"]["coverage_ratio"]
+    competence = competent_supported(trained, reactive)
+    versus = "; ".join(
+        f"vs {name}: {'beats it' if beats[name] else 'does not beat it'} (coverage ratio "
+        f"[{paired[name]['coverage_ratio'][0]:.2f}, {paired[name]['coverage_ratio'][1]:.2f}], extra collisions "
+        f"per 1k [{paired[name]['collision_difference'][0]:.2f}, {paired[name]['collision_difference'][1]:.2f}])"
+        for name in ("random", "reactive")
+    )
+    verdict = (
+        f"Trained {versus}. The verdicts use 95% intervals, paired over the same actors and spawns: beating "
+        f"a pilot needs the coverage ratio's interval above 1 and at most {COLLISION_FLOOR_PER_1K} extra "
+        f"collisions per 1k at its top. Competent (collisions within {bar:.3g} per 1k, half the reactive's or "
+        f"{COLLISION_FLOOR_PER_1K} where it has none, and 1.5x its coverage, both across the interval: "
+        f"collisions [{trained.ci['collisions_per_1k'][0]:.3g}, {trained.ci['collisions_per_1k'][1]:.3g}], "
+        f"coverage ratio [{ratio[0]:.2f}, {ratio[1]:.2f}]): {'yes' if competence else 'no'}."
+    )
+    return verdict, beats, competence
+
+
+def write_evaluation(
+    reports: Path,
+    job: MainJobConfig,
+    protocol: EvalProtocol,
+    rows: list[EvalMetrics],
+    monitor: CompetenceMonitor | None,
+    path_taken: str,
+    real: tuple[Path, list[EvalMetrics]] | None = None,
+) -> Path:
+    """evaluation.md / .json (and on CUDA the learning curves) in the run's reports folder. `rows`: the
+    trained policy, then random and reactive (explore) or random, greedy and oracle (point-goal); `real`:
+    the held-out OpenArena corpus and the same policies' rows there, reported in a section of its own."""
+    verdict, beats, competence = judge(job.task, rows)
     table = comparison_table(rows)
     text = (
         f"# navi run: evaluation on unseen scenes ({path_taken} path, task {job.task})\n\n"
@@ -309,6 +372,24 @@ def write_evaluation(
         "beats": beats,
         "competent": competence,
     }
+    real_lines: list[str] = []
+    if real is not None:
+        corpus, real_rows = real
+        real_verdict, real_beats, real_competence = judge(job.task, real_rows)
+        real_table = comparison_table(real_rows)
+        text += (
+            f"\n## Real maps never seen: the held-out OpenArena maps\n\n"
+            f"The same protocol on {corpus}: the fifth of the OpenArena maps that no training split holds "
+            f"(navi_env.corpus.openarena), Quake 3 arenas unlike the procedural scenes.\n\n"
+            f"{real_table}\n\nOn real maps: {real_verdict}\n"
+        )
+        payload["real_maps"] = {
+            "corpus": str(corpus),
+            "results": [asdict(r) for r in real_rows],
+            "beats": real_beats,
+            "competent": real_competence,
+        }
+        real_lines = [real_table, f"[navi run] on real maps never seen ({corpus}): {real_verdict}"]
     if monitor is not None:
         payload["learning"] = monitor.to_json()
         why_not = plot_curves({"trained": monitor.curve}, monitor.baselines, reports / "learning_curves.png")
@@ -322,5 +403,7 @@ def write_evaluation(
     atomic_write(reports / "evaluation.json", lambda f: f.write(blob))
     print(table, flush=True)
     print(f"[navi run] {verdict}", flush=True)
+    for line in real_lines:
+        print(line, flush=True)
     print(f"[navi run] evaluation: {reports / 'evaluation.md'}", flush=True)
     return reports / "evaluation.md"

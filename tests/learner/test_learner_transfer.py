@@ -1,0 +1,132 @@
+"""`navi bench transfer`: arms parse or are refused, collisions are classed by the surface touched, and a
+tiny job runs end to end on a CPU with every part, baseline and summary in its result."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from navi_bench.transfer import (
+    SURFACES,
+    Arm,
+    CollisionSites,
+    TransferConfig,
+    bench_transfer,
+    parse_arm,
+    verdict,
+)
+from navi_compiler.dag.build import build_gmdag
+from navi_env.tracer.analytic_scenes import AnalyticScene, Box, Room
+from navi_env.tracer.scene import load_corpus
+from navi_learner.config import TrainConfig, learning_recipe
+from navi_learner.evaluation.competence import EvalProtocol
+
+
+def test_arms_parse_and_bad_ones_are_refused() -> None:
+    assert parse_arm("openarena") == Arm("openarena", real=True)
+    assert parse_arm("procedural") == Arm("procedural", real=False, semantics="object", families=())
+    arm = parse_arm("procedural:surface:arena+maze")
+    assert (arm.semantics, arm.families, arm.key) == (
+        "surface",
+        ("arena", "maze"),
+        "procedural-surface-arena+maze",
+    )
+    for bad, why in (
+        ("quake", "expected openarena or procedural"),
+        ("procedural:texture", "semantics must be one of"),
+        ("procedural:object:castle", "unknown families castle"),
+        ("openarena:surface", "expected openarena or procedural"),
+    ):
+        with pytest.raises(ValueError, match=why):
+            parse_arm(bad)
+
+
+def test_collisions_are_classed_by_the_surface_touched_and_what_lies_behind_it() -> None:
+    """A room with a 0.2 m plate across it: contacts above the floor, below the ceiling, beside the 1 m
+    thick room wall and beside the plate are floor, ceiling, wall and wall + thin."""
+    room = Room((1.0, 1.0, 1.0), (5.4, 5.4, 4.0))
+    plate = Box((3.1, 1.0, 1.0), (3.3, 4.0, 4.0))
+    scene = AnalyticScene((room, plate), resolution=64, voxel_size=0.1)
+    gmdag = build_gmdag(scene.lattice(), origin=(0.0, 0.0, 0.0), voxel_size=0.1, bounds=(room.lo, room.hi))
+    env = SimpleNamespace(corpus=load_corpus([gmdag], "cpu"))
+    points = torch.tensor(
+        [[2.0, 2.0, 1.2], [2.0, 2.0, 3.8], [1.2, 2.0, 2.5], [2.9, 2.0, 2.5], [2.0, 5.0, 2.5]]
+    )  # (5, 3) floor, ceiling, room wall, plate, room wall
+    hit = torch.tensor([True, True, True, True, False])  # (5,) the last is no contact
+    sites = CollisionSites()
+    sites(
+        SimpleNamespace(
+            info={"collision": hit, "scene_id": torch.zeros(5, dtype=torch.long), "position": points}
+        )
+    )
+    rows = sites.classify(env, ("room",))
+    assert rows["room"] == rows["all"] == {"floor": 1, "ceiling": 1, "wall": 2, "slope": 0, "thin": 1}
+    assert set(rows["all"]) == {*SURFACES, "thin"}
+    assert CollisionSites().classify(env, ("room",))["all"] == dict.fromkeys((*SURFACES, "thin"), 0)
+
+
+def test_the_bar_on_real_maps() -> None:
+    reactive = {"collisions_per_1k": 8.0, "coverage_per_1k": 200.0}
+    assert verdict({"collisions_per_1k": 4.0, "coverage_per_1k": 300.0}, {"reactive": reactive}, "explore")
+    assert not verdict(
+        {"collisions_per_1k": 4.1, "coverage_per_1k": 300.0}, {"reactive": reactive}, "explore"
+    )
+    assert not verdict(
+        {"collisions_per_1k": 1.0, "coverage_per_1k": 299.0}, {"reactive": reactive}, "explore"
+    )
+    safe = {"collisions_per_1k": 0.0, "coverage_per_1k": 200.0}  # no collisions: 0.5 per 1k allowed
+    assert verdict({"collisions_per_1k": 0.5, "coverage_per_1k": 300.0}, {"reactive": safe}, "explore")
+    greedy = {"greedy": {"collisions_per_episode": 2.0}}
+    row = {"success_rate": 0.9, "spl": 0.8, "collisions_per_episode": 1.9}
+    assert verdict(row, greedy, "pointgoal")
+    assert not verdict(row | {"spl": 0.79}, greedy, "pointgoal")
+    assert not verdict(row | {"collisions_per_episode": 2.0}, greedy, "pointgoal")
+
+
+def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
+    """Two procedural arms (one family each, object and surface semantics), one seed, no OpenArena package:
+    the job says so, builds each arm's corpora, flies the baselines and each final checkpoint on the unseen
+    procedural scenes, and its summary and report hold exactly those runs."""
+    train: TrainConfig = learning_recipe(TrainConfig(n_actors=4, rollout_length=16))
+    cfg = TransferConfig(
+        arms=(parse_arm("procedural:object:maze"), parse_arm("procedural:surface:maze")),
+        seeds=(3,),
+        budget_s=2.0,
+        train=train,
+        protocol=EvalProtocol(actors=4, steps=40, episode_steps=20),
+        procedural_train=1,
+        procedural_unseen=2,
+    )
+    out = tmp_path / "out"
+    result = bench_transfer(
+        cfg, out, "cpu", 32, tmp_path / "corpora", tmp_path / "absent.pk3", say=lambda _: None
+    )
+    saved = json.loads((out / "result.json").read_text())
+    assert any("OpenArena maps not found" in note for note in saved["notes"])
+    assert saved["scenes"] == {
+        "train/procedural-object-maze": ["maze_0000"],
+        "train/procedural-surface-maze": ["maze_0000"],
+    }
+    assert set(saved["baselines"]) == {"procedural"} and set(saved["baselines"]["procedural"]) == {
+        "random",
+        "reactive",
+    }
+    assert [(r["arm"], r["seed"]) for r in saved["runs"]] == [
+        ("procedural:object:maze", 3),
+        ("procedural:surface:maze", 3),
+    ]
+    for run in saved["runs"]:
+        assert set(run["final_by_part"]) == {"procedural"} and run["steps"] > 0 and run["train_s"] >= 2.0
+        part = run["final_by_part"]["procedural"]
+        assert part["actors"] == 4 and part["steps"] == 40
+        arm = result["summary"]["parts"]["procedural"]["arms"][run["arm"]]
+        assert arm["collisions_per_1k"]["seeds"] == [part["collisions_per_1k"]]
+        base = saved["baselines"]["procedural"]
+        assert arm["competent_seeds"] == int(verdict(part, base, "explore")) and arm["seeds_run"] == 1
+    report = (out / "report.md").read_text()
+    assert "| procedural:surface:maze |" in report and "| reactive |" in report
+    assert result["summary"]["per_map"] == {} and not (out / "transfer.png").exists()
