@@ -10,7 +10,7 @@ Standard library only: it runs before anything of Navi's is installed.
    constraint, so nothing can replace or upgrade that torch: pip fails instead.
 4. The core: every workspace package in editable mode (builds the C++ extensions) and the dev tools.
    A failure here fails set-up.
-5. The optional extras (Gymnasium, TorchRL, skrl adapters; plots; TensorBoard), each group on its own:
+5. The optional extras (Gymnasium, TorchRL, skrl, rsl_rl adapters; plots; TensorBoard), each group on its own:
    one that cannot resolve against the pinned torch is named in one line and skipped.
 """
 
@@ -29,7 +29,7 @@ CORE = ["shared/contracts", "shared/mesh", "services/compiler", "services/env", 
         "services/auditor", "benchmarks", "."]  # fmt: skip
 # (package folder, extra) pairs installed after the core, each in its own pip call.
 OPTIONAL = [("services/env", "gym"), ("services/env", "torchrl"), ("services/env", "skrl"),
-            ("services/learner", "plots"), ("services/learner", "tensorboard")]  # fmt: skip
+            ("services/env", "rsl_rl"), ("services/learner", "plots"), ("services/learner", "tensorboard")]  # fmt: skip
 
 
 def log(message: str) -> None:

@@ -60,7 +60,7 @@ def step_functions(env: SdfDagEnv, actions: torch.Tensor) -> dict[str, Callable[
         if find_spec("skrl") is not None:
             from navi_env.ecosystem.skrl import SkrlEnv
 
-            skrl_env = SkrlEnv(NaviVectorEnv(env))
+            skrl_env = SkrlEnv(NaviVectorEnv(env), view=None)
             skrl_env.reset()
             variants["skrl"] = lambda: skrl_env.step(actions)
     if find_spec("torchrl") is not None:

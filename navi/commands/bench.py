@@ -1,4 +1,4 @@
-"""`navi bench compile|trace|env|wrappers|train|learn|transfer`: each measures one stage (or learning itself) and prints its
+"""`navi bench compile|trace|env|wrappers|train|learn|transfer|trainers`: each measures one stage (or learning itself) and prints its
 result; `--json` prints one JSON object and `--record DIR` appends it to DIR/DATE-GPU.jsonl
 (docs/PERFORMANCE.md). Targets are benchmarks, never timed tests."""
 
@@ -691,6 +691,52 @@ def bench_transfer_cmd(
     else:
         typer.echo((folder / "report.md").read_text())
         typer.echo(f"results: {folder}")
+
+
+@app.command(name="trainers")
+def bench_trainers_cmd(
+    corpus: Annotated[Path, typer.Option("--corpus", help="The train corpus folder.")],
+    unseen: Annotated[
+        Path, typer.Option("--unseen", help="The unseen corpus folder the trainers are judged on.")
+    ],
+    actors: Annotated[int, typer.Option("--actors", min=1, help="Drones every trainer trains on.")] = 2048,
+    budget: Annotated[
+        float, typer.Option("--budget-s", min=1.0, help="Training seconds per trainer at most.")
+    ] = 600.0,
+    eval_every: Annotated[
+        float,
+        typer.Option("--eval-every-s", min=1.0, help="Training seconds between two unseen evaluations."),
+    ] = 30.0,
+    trainers: Annotated[
+        str, typer.Option("--trainers", help="Comma-separated: navi, rsl_rl, skrl, torchrl.")
+    ] = "navi,rsl_rl,skrl,torchrl",
+    seed: Annotated[int, typer.Option("--seed", help="Seed of every trainer and env.")] = 0,
+    device: EnvDeviceOpt = "cuda",
+    work_dir: Annotated[Path, typer.Option("--work-dir", help="Where Navi's own run folder goes.")] = Path(
+        "artifacts/bench/trainers"
+    ),
+    as_json: JsonOutOpt = False,
+    record: RecordOpt = None,
+) -> None:
+    """Train Navi's PPO and the stock trainers (rsl_rl, skrl, TorchRL; examples/) on the same drones and
+    scenes, each until it beats the reactive avoider on the unseen corpus or the budget, with the env-steps/s
+    each reaches (docs/ENVIRONMENT.md, "Trainers compared")."""
+    from navi_bench.trainers import TRAINERS, bench_trainers
+
+    chosen = [t.strip() for t in trainers.split(",") if t.strip()]
+    unknown = sorted(set(chosen) - set(TRAINERS))
+    if unknown or not chosen:
+        raise fail(f"--trainers takes {', '.join(TRAINERS)}; got {trainers!r}")
+    try:
+        result = bench_trainers(
+            corpus, unseen, work_dir, pick_device(device), actors=actors, budget_s=budget,
+            eval_every_s=eval_every, trainers=chosen, seed=seed,
+        )  # fmt: skip
+    except (ValueError, RuntimeError) as err:
+        raise fail(str(err)) from err
+    if record is not None:
+        record_result(result, "trainers", device, record)
+    typer.echo(json.dumps(result) if as_json else "\n".join(f"{k}: {v}" for k, v in result.items()))
 
 
 BENCH_TRAIN_OPTIONS = (

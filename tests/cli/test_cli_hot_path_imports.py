@@ -8,7 +8,13 @@ import sys
 
 SERVICE_ONLY = ("pydantic", "pydantic_settings", "zenoh", "fastapi", "uvicorn", "zarr", "prometheus_client",
                 "trimesh", "msgpack", "typer")  # fmt: skip
-RL_LIBRARIES = ("gymnasium", "torchrl", "tensordict", "skrl")  # navi_env.ecosystem's optional extras
+RL_LIBRARIES = (
+    "gymnasium",
+    "torchrl",
+    "tensordict",
+    "skrl",
+    "rsl_rl",
+)  # navi_env.ecosystem's optional extras
 HOT_PATH = (
     "navi_compiler.compile", "navi_compiler.gmdag", "navi_compiler.ingest", "navi_compiler.ingest.procedural",
     "navi_env.sim.env", "navi_env.tracer.trace", "navi_env.corpus.folder", "navi_env.space.qualify",

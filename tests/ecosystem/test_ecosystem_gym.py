@@ -40,6 +40,7 @@ def test_make_vec_gives_a_torch_vector_env_with_declared_spaces(corpus: Path) ->
     assert env.metadata["autoreset_mode"] is AutoresetMode.SAME_STEP
     assert env.single_observation_space.shape == (3, 16, 4) and env.observation_space.shape == (N, 3, 16, 4)
     assert env.single_action_space.shape == (4,) and env.action_space.shape == (N, 4)
+    assert isinstance(env.single_action_space, gym.spaces.Box)
     assert np.all(env.single_action_space.low == -1.0) and np.all(env.single_action_space.high == 1.0)
     obs, _ = env.reset(seed=0)
     assert isinstance(obs, torch.Tensor) and obs.dtype == torch.float32 and obs.device.type == "cpu"
@@ -205,6 +206,7 @@ def test_render_shows_the_drone_view_and_where_the_drones_are(corpus: Path) -> N
 
 def test_point_goal_id_gives_goal_episodes_through_the_same_adapters(corpus: Path) -> None:
     env = gym.make_vec("Navi/PointGoal-v0", num_envs=N, corpus=corpus, device="cpu", config=SMALL_VIEW)
+    assert isinstance(env.unwrapped, NaviVectorEnv)
     raw = env.unwrapped.env  # the SdfDagEnv under the adapter
     assert raw.config.task == "pointgoal" and raw.config.max_steps_per_episode == 500
     obs, _ = env.reset(seed=0)

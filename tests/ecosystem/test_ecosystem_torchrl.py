@@ -1,6 +1,7 @@
 """The TorchRL adapter: specs that TorchRL's own checker accepts, the batched env's values under the
 same seed and actions, TorchRL's autoreset convention (final view in "next", next episode's first
-observation after the partial reset) and rollouts whose steps stay intact."""
+observation after the partial reset) and rollouts whose steps stay intact, on the env's own view and on
+the pooled view an MLP reads."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from tensordict import TensorDict
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import check_env_specs
 
-from navi_env.ecosystem.batch import make_batched_env
+from navi_env.ecosystem.batch import MLP_VIEW, make_batched_env, pool_view
 from navi_env.ecosystem.torchrl import FLAGS, VALUES, make_torchrl_env
 from navi_env.sim.rewards import TERMS
 
@@ -117,3 +118,28 @@ def test_maybe_reset_gives_what_the_generic_partial_reset_gives(corpus: Path) ->
         assert (data_fast["next"] == kept).all()
         merged += int(kept["done"].any() and not kept["done"].all())
     assert merged >= 10
+
+
+def test_pooled_view_keeps_specs_and_conventions(corpus: Path) -> None:
+    """With view=MLP_VIEW over a 32 x 8 env: specs TorchRL accepts, the pooled view of the env's
+    observation, the pooled final view in "next" where an episode ended, and the pooled first view of
+    the next episode after the partial reset."""
+    wide = replace(SHORT, azimuth_bins=32, elevation_bins=8)
+    env = make_torchrl_env(N, corpus, config=wide, seed=9, view=MLP_VIEW)
+    check_env_specs(env, seed=3)
+    assert env.observation_spec["observation"].shape == (N, 3, *MLP_VIEW)
+    raw = make_batched_env(corpus, N, "cpu", wide)
+    env.set_seed(9)
+    td = env.reset()
+    assert torch.equal(td["observation"], pool_view(raw.reset(seed=9), MLP_VIEW))
+    ended_total = 0
+    for actions in random_actions(26, seed=3):
+        before = td["observation"].clone()  # (N, 3, 16, 4)
+        data, td = env.step_and_maybe_reset(td.set("action", actions))
+        out = raw.step(actions)
+        now = pool_view(out.obs, MLP_VIEW)  # (N, 3, 16, 4)
+        keep = ~out.truncated[:, None, None, None]
+        assert torch.equal(data["next", "observation"], torch.where(keep, now, before))
+        assert torch.equal(td["observation"], now)
+        ended_total += int(out.truncated.sum())
+    assert ended_total >= N

@@ -1,7 +1,8 @@
 """TorchRL over the batched env: NaviTorchRLEnv is an EnvBase with batch size (N,) on the env's device,
 TensorDict in and out, with specs that pass torchrl.envs.utils.check_env_specs.
 
-Keys: "observation" (N, 3, Az, El) float32, "action" (N, 4) float32 in [-1, 1], ("next", "reward")
+Keys: "observation" (N, 3, Az, El) float32 (with view=(Az', El') the pooled view an MLP reads, (N, 3,
+Az', El'): navi_env.ecosystem.batch.pool_view), "action" (N, 4) float32 in [-1, 1], ("next", "reward")
 (N, 1) float32, ("next", "done" | "terminated" | "truncated") (N, 1) bool, and with info=True (the
 default) "info" (collision, obstacle_collision, drone_collision, novel_cell, starved: (N,) bool;
 clearance, speed: (N,) float32) and "reward_terms" (term name -> (N,) float32, summing to the reward).
@@ -34,7 +35,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from navi_env.config import EnvConfig
-from navi_env.ecosystem.batch import ACTION_DIM, make_batched_env, obs_bounds
+from navi_env.ecosystem.batch import ACTION_DIM, make_batched_env, obs_bounds, pool_view, view_of
 from navi_env.ecosystem.rows import copy_rows
 from navi_env.sim.env import SdfDagEnv
 
@@ -45,16 +46,20 @@ VALUES: tuple[str, ...] = ("clearance", "speed")
 
 
 class NaviTorchRLEnv(EnvBase):
-    """N drones of one SdfDagEnv as a TorchRL environment (see the module docstring)."""
+    """N drones of one SdfDagEnv as a TorchRL environment (see the module docstring); `view` (Az', El')
+    hands out the pooled view instead of the env's own (None: the env's own, the image a CNN reads)."""
 
-    def __init__(self, env: SdfDagEnv, info: bool = True, seed: int = 0) -> None:
+    def __init__(
+        self, env: SdfDagEnv, info: bool = True, seed: int = 0, view: tuple[int, int] | None = None
+    ) -> None:
         n, dev = env.n_actors, env.device
         super().__init__(device=dev, batch_size=torch.Size([n]))
         self.env = env
         self.info = info
         self.next_seed = seed
-        low, high = obs_bounds(env)  # (3, Az, El) each
-        shape = (n, *env.obs_shape)
+        self.view = view_of(env, view)
+        low, high = obs_bounds(env, self.view)  # (3, Az', El') each
+        shape = (n, *low.shape)
         observation = Composite(
             observation=Bounded(
                 low=low.expand(shape).to(dev), high=high.expand(shape).to(dev), shape=shape, device=dev
@@ -79,6 +84,11 @@ class NaviTorchRLEnv(EnvBase):
             device=dev,
         )
 
+    def seen(self, obs: torch.Tensor) -> torch.Tensor:
+        """A new tensor of what the adapter hands out for the env's obs (N, 3, Az, El): a copy, or the
+        pooled view (N, 3, Az', El')."""
+        return obs.clone() if self.view is None else pool_view(obs, self.view)
+
     def _extras(self, zero: bool) -> dict[str, Any]:
         """ "info" and "reward_terms" entries: new tensors of the last step's values, or zeros."""
         if not self.info:
@@ -97,19 +107,20 @@ class NaviTorchRLEnv(EnvBase):
         n = self.env.n_actors
         partial = tensordict is not None and "_reset" in tensordict
         if partial:  # reset() with a "_reset" mask (step_and_maybe_reset goes through maybe_reset)
-            obs = self.env.obs.clone()  # (N, 3, Az, El): the env already began the ended actors' episodes
+            # the env already began the ended actors' episodes
+            obs = self.seen(self.env.obs)  # (N, 3, Az', El')
         else:
-            obs = self.env.reset(seed=self.next_seed).clone()  # (N, 3, Az, El)
+            obs = self.seen(self.env.reset(seed=self.next_seed))  # (N, 3, Az', El')
             self.next_seed += 1
         flags = torch.zeros(n, 1, dtype=torch.bool, device=self.device)  # (N, 1)
         out = {"observation": obs, "done": flags, "terminated": flags.clone(), "truncated": flags.clone()}
         return TensorDict(out | self._extras(zero=True), batch_size=self.batch_size, device=self.device)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        before = tensordict.get("observation")  # (N, 3, Az, El) the view the actions were chosen on
+        before = tensordict.get("observation")  # (N, 3, Az', El') the view the actions were chosen on
         out = self.env.step(tensordict.get("action"))
         ended = out.done | out.truncated  # (N,) bool
-        obs = out.obs.clone()  # (N, 3, Az, El) a new tensor: TorchRL keeps it until it stacks a batch
+        obs = self.seen(out.obs)  # (N, 3, Az', El') a new tensor: TorchRL keeps it until it stacks a batch
         copy_rows(obs, before, ended)  # the final view where ended (only those rows read, no host sync)
         result = {
             "observation": obs,
@@ -130,7 +141,8 @@ class NaviTorchRLEnv(EnvBase):
         done = tensordict.get("done")  # (N, 1) bool
         if not bool(done.any()):  # TorchRL's own check reads the flags on the host here too
             return tensordict
-        tensordict.set("observation", self.env.obs.clone())  # (N, 3, Az, El) the next episode's first view
+        first = self.seen(self.env.obs)  # (N, 3, Az', El') the next episode's first view
+        tensordict.set("observation", first)
         for key in ("done", "terminated", "truncated"):
             tensordict.set(key, torch.zeros_like(done))  # (N, 1): nobody is done after the reset
         ended = done[:, 0]  # (N,) bool
@@ -157,7 +169,9 @@ def make_torchrl_env(
     max_episode_steps: int = 0,
     info: bool = True,
     seed: int = 0,
+    view: tuple[int, int] | None = None,
 ) -> NaviTorchRLEnv:
-    """NaviTorchRLEnv over a corpus folder (arguments of navi_env.ecosystem.batch.make_batched_env)."""
+    """NaviTorchRLEnv over a corpus folder (arguments of navi_env.ecosystem.batch.make_batched_env, then
+    NaviTorchRLEnv's)."""
     batched = make_batched_env(corpus, num_envs, device, config, obstacles, squad, max_episode_steps, seed)
-    return NaviTorchRLEnv(batched, info=info, seed=seed)
+    return NaviTorchRLEnv(batched, info=info, seed=seed, view=view)
