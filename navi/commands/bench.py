@@ -34,6 +34,7 @@ from navi.commands.compiler import (
 from navi.commands.learner import COMMAND_DEVICE, EngineOpt, ObstaclesOpt, SquadOpt, build_env, train_config
 from navi.commands.options import Settings, config_options
 from navi_env.config import EnvConfig
+from navi_env.corpus.openarena import DEFAULT_PK3
 from navi_learner.config import TrainConfig, learning_recipe
 
 GmdagOpt = Annotated[Path | None, typer.Option(help="One .gmdag scene.")]
@@ -47,6 +48,10 @@ ThreadsOpt = Annotated[
     int, typer.Option(help="CPU threads for torch and the CPU tracer (0: torch's default).", min=0)
 ]
 JsonOutOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
+ResolutionOpt = Annotated[int, typer.Option("--resolution", help="Cells per cube edge of every scene.")]
+OpenArenaOpt = Annotated[
+    Path, typer.Option("--openarena", help="openarena-081-maps pak1-maps.pk3 (left out when missing).")
+]
 
 app = typer.Typer(
     help="Benchmarks; each prints its result (--json: one JSON object; --record DIR: appended to "
@@ -490,17 +495,12 @@ def bench_learn_cmd(
             "--actors per rank; rank 0 evaluates and its clock times the run.",
         ),
     ] = 1,
-    resolution: Annotated[
-        int, typer.Option("--resolution", help="Cells per cube edge of every scene.")
-    ] = 512,
+    resolution: ResolutionOpt = 512,
     corpus_root: Annotated[
         Path,
         typer.Option("--corpus-root", help="Where the split corpora are built (reused when present)."),
     ] = Path("artifacts/corpus/bench-learn"),
-    openarena: Annotated[
-        Path,
-        typer.Option("--openarena", help="openarena-081-maps pak1-maps.pk3 (left out when missing)."),
-    ] = Path("artifacts/data/openarena/pak1-maps.pk3"),
+    openarena: OpenArenaOpt = DEFAULT_PK3,
     out: Annotated[
         Path | None, typer.Option("--out", help="Result folder (default artifacts/bench/learn/<time>).")
     ] = None,
@@ -636,17 +636,12 @@ def bench_transfer_cmd(
         int,
         typer.Option("--openarena-maps", min=0, help="Only the first N OpenArena maps by name (0: all 50)."),
     ] = 0,
-    resolution: Annotated[
-        int, typer.Option("--resolution", help="Cells per cube edge of every scene.")
-    ] = 512,
+    resolution: ResolutionOpt = 512,
     corpus_root: Annotated[
         Path,
         typer.Option("--corpus-root", help="Where the corpora are built (reused when present)."),
     ] = Path("artifacts/corpus/bench-transfer"),
-    openarena: Annotated[
-        Path,
-        typer.Option("--openarena", help="openarena-081-maps pak1-maps.pk3 (left out when missing)."),
-    ] = Path("artifacts/data/openarena/pak1-maps.pk3"),
+    openarena: OpenArenaOpt = DEFAULT_PK3,
     out: Annotated[
         Path | None, typer.Option("--out", help="Result folder (default artifacts/bench/transfer/<time>).")
     ] = None,
