@@ -23,7 +23,7 @@ CONTEXT = {"device", "seed", "task", "total_steps"}
 """Settings that commands which train nothing (evaluation, serving an env, benchmarks of a stage) take for
 themselves: their device, their seed, the task they fly and how many steps they run."""
 
-TRAINING_COMMANDS = {"train", "bench learn", "bench train", "serve learner", "bc", "run"}
+TRAINING_COMMANDS = {"train", "bench learn", "bench transfer", "bench train", "serve learner", "bc", "run"}
 
 OTHER_CONFIGS = {("bc", "lr")}
 """Options of another config that share a field's name: `navi bc --lr` is BCConfig.lr (behavioural cloning)."""
