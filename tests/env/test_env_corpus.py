@@ -186,6 +186,25 @@ def test_mesh_sources_compile_into_a_corpus(tmp_path: Path) -> None:
     assert all(s.resolution == 32 for s in manifest.scenes)
 
 
+@pytest.mark.parametrize("semantics", ["object", "surface"])
+def test_arenas_and_platforms_compile_qualify_and_repeat_per_seed(tmp_path: Path, semantics: str) -> None:
+    """The slab families at 128^3: every scene compiles and qualifies with spawns, the same seed builds the
+    same files, and a surface-classed scene names only Quake 3's classes."""
+    from navi_compiler.ingest.bsp import CLASS_NAMES as SURFACE_CLASS_NAMES
+    from navi_env.corpus.folder import build_default_corpus
+
+    families = ["arena", "platforms"]
+    a = build_default_corpus(tmp_path / "a", 128, 2, 7, families=families, semantics=semantics)
+    b = build_default_corpus(tmp_path / "b", 128, 2, 7, families=families, semantics=semantics)
+    assert [s.name for s in a.scenes] == ["arena_0000", "platforms_0001"] and not a.rejected
+    for sa, sb in zip(a.scenes, b.scenes, strict=True):
+        assert len(sa.spawns()) >= 4
+        assert (tmp_path / "a" / sa.file).read_bytes() == (tmp_path / "b" / sb.file).read_bytes()
+    corpus, _ = load_corpus_folder(tmp_path / "a", torch.device("cpu"))
+    for info in corpus.infos:
+        assert (info.class_names == SURFACE_CLASS_NAMES) == (semantics == "surface")
+
+
 def test_scenes_declare_moving_obstacles_through_sidecar_and_manifest(tmp_path: Path) -> None:
     """A mesh's sidecar "obstacles" reaches the manifest and the env: that scene gets its declared count
     and speeds, a scene that declares nothing keeps the env's default (none)."""
