@@ -277,30 +277,12 @@ def settle(
     the smallest start value plus 26-neighbour path length through `free` (X, Y, Z) bool voxels (inf
     outside them), or through every voxel where `free` is None; with `edges` (O, X, Y, Z) bool a value
     passes between neighbours only through a passable edge."""
-    if edges is not None:
-        return _settle_through(dist, cell, free, edges)
     x, y, z = dist.shape[1:]
-    steps = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]  # offset, its length
-    inf = torch.tensor(math.inf, device=dist.device)
-    while True:
-        padded = F.pad(dist[:, None], (1, 1, 1, 1, 1, 1), value=math.inf)[:, 0]  # (G, X+2, Y+2, Z+2)
-        best = dist
-        for (di, dj, dk), length in steps:
-            near = padded[:, 1 + di : 1 + di + x, 1 + dj : 1 + dj + y, 1 + dk : 1 + dk + z]  # (G, X, Y, Z)
-            best = torch.minimum(best, near + length)
-        nxt = best if free is None else torch.where(free[None], best, inf)  # (G, X, Y, Z)
-        if torch.equal(nxt, dist):
-            return dist
-        dist = nxt
-
-
-def _settle_through(
-    dist: torch.Tensor, cell: float, free: torch.Tensor | None, edges: torch.Tensor
-) -> torch.Tensor:
-    """`settle` through passable edges: each neighbour's value plus the cost of its edge (inf when cut)."""
-    x, y, z = dist.shape[1:]
-    lengths = [cell * math.sqrt(sum(abs(c) for c in o)) for o in EDGE_OFFSETS]
-    costs = edge_costs(edges, lengths)  # 26 x (offset, (X, Y, Z) float32 length or inf)
+    costs: list[tuple[tuple[int, int, int], float | torch.Tensor]]  # offset, its length (inf where cut)
+    if edges is None:
+        costs = [(o, cell * math.sqrt(sum(abs(c) for c in o))) for o in OFFSETS]
+    else:
+        costs = list(edge_costs(edges, [cell * math.sqrt(sum(abs(c) for c in o)) for o in EDGE_OFFSETS]))
     inf = torch.tensor(math.inf, device=dist.device)
     while True:
         padded = F.pad(dist[:, None], (1, 1, 1, 1, 1, 1), value=math.inf)[:, 0]  # (G, X+2, Y+2, Z+2)
