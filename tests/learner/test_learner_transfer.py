@@ -17,6 +17,8 @@ from navi_bench.transfer import (
     TransferConfig,
     bench_transfer,
     parse_arm,
+    report_markdown,
+    summarise,
     verdict,
 )
 from navi_compiler.dag.build import build_gmdag
@@ -130,3 +132,56 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     report = (out / "report.md").read_text()
     assert "| procedural:surface:maze |" in report and "| reactive |" in report
     assert result["summary"]["per_map"] == {} and not (out / "transfer.png").exists()
+
+
+def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
+    """The summary and report of a point-goal job, from result rows: medians over seeds, the bar per seed
+    against greedy, per-map success / SPL beside the seekers', and the surfaces touched."""
+    keys = ("success_rate", "spl", "collisions_per_episode")
+
+    def row(s: float, spl: float, c: float, maps: dict[str, tuple[float, float, float]]) -> dict[str, object]:
+        return dict(zip(keys, (s, spl, c), strict=True)) | {
+            "per_scene": {m: dict(zip(keys, v, strict=True)) for m, v in maps.items()}
+        }
+
+    maps = {"dm1": (1.0, 0.9, 0.0), "dm2": (0.8, 0.7, 1.0)}
+    base = {
+        "random": row(0.0, 0.0, 4.0, dict.fromkeys(maps, (0.0, 0.0, 4.0))),
+        "greedy": row(0.88, 0.84, 4.4, dict.fromkeys(maps, (0.88, 0.84, 4.4))),
+        "oracle": row(0.92, 0.86, 0.1, dict.fromkeys(maps, (0.92, 0.86, 0.1))),
+    }
+    base["greedy"]["collisions_by_surface"] = {
+        "all": {"floor": 0, "ceiling": 0, "wall": 3, "slope": 1, "thin": 2}
+    }
+    runs = [
+        {
+            "arm": "procedural",
+            "seed": seed,
+            "final_by_part": {"openarena": row(s, spl, c, maps)},
+            "collisions_by_surface": {"all": {"floor": 1, "ceiling": 0, "wall": 2, "slope": 0, "thin": seed}},
+        }
+        for seed, (s, spl, c) in enumerate(((0.95, 0.85, 0.3), (0.9, 0.79, 0.2), (0.7, 0.6, 5.0)))
+    ]
+    summary = summarise(runs, {"openarena": base}, "pointgoal")
+    arm = summary["parts"]["openarena"]["arms"]["procedural"]
+    assert arm["success_rate"] == {"median": 0.9, "seeds": [0.95, 0.9, 0.7]} and arm["spl"]["median"] == 0.79
+    assert arm["competent_seeds"] == 1 and arm["seeds_run"] == 3  # seed 1 misses SPL 0.8, seed 2 everything
+    assert summary["per_map"]["dm2"]["procedural"] == {
+        "success_rate": 0.8,
+        "spl": 0.7,
+        "collisions_per_episode": 1.0,
+    }
+    assert summary["per_map"]["dm1"]["greedy"]["spl"] == 0.84
+    assert summary["surfaces"]["procedural"] == {"floor": 3, "ceiling": 0, "wall": 6, "slope": 0, "thin": 3}
+    assert summary["surfaces"]["greedy"]["wall"] == 3
+    text = report_markdown(
+        {
+            "summary": summary,
+            "task": "pointgoal",
+            "device": "cpu",
+            "date": "today",
+            "config": {"budget_s": 60.0, "seeds": [0, 1, 2]},
+        }
+    )
+    assert "| procedural | 0.9 (0.95, 0.9, 0.7) | 0.79 (0.85, 0.79, 0.6) | 0.3 (0.3, 0.2, 5) | 1/3 |" in text
+    assert "| dm2 | 0 / 0 | 0.88 / 0.84 | 0.92 / 0.86 | 0.8 / 0.7 |" in text
