@@ -40,7 +40,7 @@ from navi_learner.config import TrainConfig, learning_recipe, learning_size
 from navi_learner.envs.factory import corpus_summary, make_env
 from navi_learner.envs.protocol import StepLike
 from navi_learner.evaluation.competence import EvalProtocol, baseline_policies
-from navi_learner.evaluation.evaluate import comparison_table, evaluate, jsonable
+from navi_learner.evaluation.evaluate import COLLISION_FLOOR_PER_1K, comparison_table, evaluate, jsonable
 
 PROCEDURAL_TRAIN = 16
 """Procedural train scenes per arm (the main job's corpus size on CUDA)."""
@@ -415,7 +415,8 @@ def verdict(row: dict[str, Any], baselines: dict[str, Any], task: str) -> bool:
             and row["collisions_per_episode"] < greedy["collisions_per_episode"]
         )
     reactive = baselines["reactive"]
-    bar = max(0.5 * reactive["collisions_per_1k"], 0.5 if reactive["collisions_per_1k"] == 0 else 0.0)
+    r = reactive["collisions_per_1k"]
+    bar = 0.5 * r if r > 0 else COLLISION_FLOOR_PER_1K  # evaluate.collision_bar, on result rows
     return bool(
         row["collisions_per_1k"] <= bar and row["coverage_per_1k"] >= 1.5 * reactive["coverage_per_1k"]
     )

@@ -36,8 +36,7 @@ from navi_learner.config import (
     learning_size,
 )
 from navi_learner.envs.factory import EnvUnavailable, corpus_summary, make_env
-from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, goal_seeker_for_env, reactive_for_env
-from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol, plot_curves
+from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol, baseline_policies, plot_curves
 from navi_learner.evaluation.evaluate import (
     COLLISION_FLOOR_PER_1K,
     CheckpointPolicy,
@@ -127,13 +126,6 @@ def real_map_corpus(job: MainJobConfig, device: torch.device) -> Path | None:
             progress=lambda line: print(f"[navi run] {line}", flush=True),
         )
     return folder
-
-
-def task_baselines(env: object, task: str, seed: int) -> list[EvalPolicy]:
-    """random and reactive (explore) or random, greedy and oracle (point-goal), for `env`."""
-    if task == "pointgoal":
-        return [RandomPolicy(seed), goal_seeker_for_env("greedy", env), goal_seeker_for_env("oracle", env)]
-    return [RandomPolicy(seed), reactive_for_env(env)]
 
 
 def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int = 16) -> None:
@@ -280,7 +272,7 @@ def main_job(job: MainJobConfig) -> Path:
     )
     trained = CheckpointPolicy(result.final_checkpoint, dev)
     trained.name = f"trained ({result.run_id})"
-    baselines = task_baselines(unseen_env, job.task, protocol.seed)
+    baselines = baseline_policies(unseen_env, protocol)
     rows = [
         evaluate(unseen_env, p, protocol.steps, protocol.seed, progress=True) for p in (trained, *baselines)
     ]
@@ -291,7 +283,7 @@ def main_job(job: MainJobConfig) -> Path:
             real_corpus, protocol.actors, job.device, protocol.seed, episode_steps=protocol.episode_steps,
             task=job.task,
         )  # fmt: skip
-        policies = (trained, *task_baselines(real_env, job.task, protocol.seed))
+        policies = (trained, *baseline_policies(real_env, protocol))
         real = (
             real_corpus,
             [evaluate(real_env, p, protocol.steps, protocol.seed, progress=True) for p in policies],
