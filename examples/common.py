@@ -106,9 +106,15 @@ def against_baselines(
 
 
 def parser(doc: str | None, steps: int) -> argparse.ArgumentParser:
-    """The examples' command line: --corpus, --actors, --steps, --device, --full-view, --seed."""
+    """The examples' command line: --corpus, --unseen, --actors, --steps, --device, --full-view, --seed."""
     p = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--corpus", required=True, help="a corpus folder (navi corpus build)")
+    p.add_argument("--corpus", required=True, help="a corpus folder (navi corpus build) to train on")
+    p.add_argument(
+        "--unseen",
+        default=None,
+        help="a corpus folder of scenes the drone never trained on, where the verdict is flown "
+        "(default: the training corpus)",
+    )
     p.add_argument("--actors", type=int, default=64, help="drones flown together")
     p.add_argument("--steps", type=int, default=steps, help="training budget: steps of every drone")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
@@ -132,7 +138,8 @@ def main(
     argv: list[str] | None = None,
 ) -> Verdict:
     """An example's command (`argv`, default sys.argv): build its Learner from the command line (and its
-    own boolean `flags`, (option, help) pairs passed to `make` by name), train it, print the verdict."""
+    own boolean `flags`, (option, help) pairs passed to `make` by name), train it, print the verdict on
+    the --unseen corpus (the training corpus without it)."""
     p = parser(doc, steps)
     for option, text in flags:
         p.add_argument(option, action="store_true", help=text)
@@ -142,4 +149,4 @@ def main(
     extra = {name: getattr(args, name) for name in extra}
     learner = make(args.corpus, args.actors, config, args.device, args.seed, **extra)
     learner.learn(args.steps)
-    return against_baselines(args.corpus, learner.policy(), config, args.device)
+    return against_baselines(args.unseen or args.corpus, learner.policy(), config, args.device)

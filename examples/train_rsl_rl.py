@@ -2,9 +2,11 @@
 the reactive avoider.
 
 navi scenes generate --out scenes/ --count 4 --families rooms,hall
+navi scenes generate --out unseen/ --count 4 --families rooms,hall --seed 1
 navi corpus build scenes/ --out corpus/ --resolution 64
+navi corpus build unseen/ --out unseen-corpus/ --resolution 64
 python examples/train_rsl_rl.py --corpus corpus/ --actors 64 --steps 3072
-python examples/train_rsl_rl.py --corpus corpus/ --actors 2048 --steps 10000 --device cuda --full-view
+python examples/train_rsl_rl.py --corpus corpus/ --unseen unseen-corpus/ --actors 2048 --steps 2048 --device cuda --full-view
 python examples/train_rsl_rl.py --corpus corpus/ --actors 64 --steps 3072 --recurrent
 
 rsl_rl's PPO with its own defaults (5 epochs of 4 minibatches per rollout, the learning rate adapted to

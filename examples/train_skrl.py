@@ -1,9 +1,11 @@
 """Train a drone on Navi scenes with skrl's PPO, then compare it with random flight and the reactive avoider.
 
 navi scenes generate --out scenes/ --count 4 --families rooms,hall
+navi scenes generate --out unseen/ --count 4 --families rooms,hall --seed 1
 navi corpus build scenes/ --out corpus/ --resolution 64
+navi corpus build unseen/ --out unseen-corpus/ --resolution 64
 python examples/train_skrl.py --corpus corpus/ --actors 64 --steps 3072
-python examples/train_skrl.py --corpus corpus/ --actors 2048 --steps 10000 --device cuda --full-view
+python examples/train_skrl.py --corpus corpus/ --unseen unseen-corpus/ --actors 2048 --steps 2048 --device cuda --full-view
 
 skrl's PPO as Isaac Lab configures it: an ELU MLP with a Gaussian head (the env clamps actions to
 [-1, 1]), observations and returns standardised by skrl's RunningStandardScaler, the learning rate

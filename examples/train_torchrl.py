@@ -2,9 +2,11 @@
 and the reactive avoider.
 
 navi scenes generate --out scenes/ --count 4 --families rooms,hall
+navi scenes generate --out unseen/ --count 4 --families rooms,hall --seed 1
 navi corpus build scenes/ --out corpus/ --resolution 64
+navi corpus build unseen/ --out unseen-corpus/ --resolution 64
 python examples/train_torchrl.py --corpus corpus/ --actors 64 --steps 3072
-python examples/train_torchrl.py --corpus corpus/ --actors 2048 --steps 10000 --device cuda --full-view
+python examples/train_torchrl.py --corpus corpus/ --unseen unseen-corpus/ --actors 2048 --steps 2048 --device cuda --full-view
 
 A Collector over NaviTorchRLEnv's pooled 16 x 4 view (view=MLP_VIEW: 192 inputs whatever the traced
 resolution), a TanhNormal actor and a critic (Tanh MLPs), GAE, ClipPPOLoss and a replay buffer of one

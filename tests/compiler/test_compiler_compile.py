@@ -4,9 +4,11 @@ leaks detected, classes assigned."""
 from __future__ import annotations
 
 import logging
+from typing import Literal
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from navi_compiler.compile import compile_scene
@@ -216,3 +218,39 @@ def test_placement_centres_the_scene_in_a_power_of_two_cube() -> None:
     assert np.allclose(np.array(p.origin) + side / 2, (lo + hi) / 2)
     with pytest.raises(ValueError, match="no extent"):
         place(lo, lo, 32, padding=2)
+
+
+@pytest.mark.parametrize("engine", ["ref", "cpp"])
+def test_a_barrier_with_free_space_on_both_sides_is_seen_by_the_rays(engine: Literal["ref", "cpp"]) -> None:
+    """A barrier pane inside a closed room, open above so the fill reaches both of its sides (a sky pane
+    between two areas): the drone cannot pass it, so the field must cross zero there and a ray toward
+    it stops at the pane, as it does at a drawn thin wall."""
+    from navi_env.tracer.scene import load_scene
+    from navi_env.tracer.trace import sample_distance, trace
+
+    room = _room(4.0, 0.2, hole=False)
+    # an undrawn pane at x = 0.5 from the floor to z = 0.8: 1.2 m of free air above it joins both sides
+    pane = trimesh.Trimesh(
+        vertices=[[0.5, -2.0, -2.0], [0.5, 2.0, -2.0], [0.5, 2.0, 0.8], [0.5, -2.0, 0.8]],
+        faces=[[0, 1, 2], [0, 2, 3]],
+    )
+    scene = _mesh_scene(room, [3] * 6, seeds=[[-1.0, 0.0, 0.0], [1.2, 0.0, 0.0]], barrier=[pane])
+    g, stats = compile_scene(scene, resolution=64, engine=engine)
+    assert not stats.leaked
+    corpus = load_scene(g)
+    # rays along +x at heights below the pane's top, from 1.0 m in front of it
+    z = torch.linspace(-1.5, 0.5, 9)  # (B,)
+    origins = torch.stack([torch.full_like(z, -0.5), torch.zeros_like(z), z], 1).contiguous()  # (B, 3)
+    ids = torch.zeros(len(z), dtype=torch.int32)  # (B,)
+    depth = torch.empty(len(z), 1)  # (B, 1)
+    direction = torch.tensor([[1.0, 0.0, 0.0]])  # (1, 3)
+    trace(corpus, ids, origins, direction, out_depth=depth, horizon=20.0)
+    assert torch.allclose(depth[:, 0], torch.ones(len(z)), atol=1.5 * g.voxel_size), depth[:, 0]
+    # and the field itself crosses zero through the pane (it read a positive ridge before)
+    line = torch.stack([torch.linspace(0.3, 0.7, 41), torch.zeros(41), torch.full((41,), -0.5)], 1)  # (41, 3)
+    field = sample_distance(corpus, torch.zeros(41, dtype=torch.int32), line.contiguous())  # (41,)
+    assert float(field.min()) < 0.0, field
+    # above the pane the air is open: a ray at z = 1.2 reaches the far wall at x = 1.9
+    high = torch.empty(1, 1)
+    trace(corpus, ids[:1], torch.tensor([[-0.5, 0.0, 1.2]]), direction, out_depth=high, horizon=20.0)
+    assert abs(float(high) - 2.4) < 1.5 * g.voxel_size, float(high)

@@ -147,7 +147,7 @@ inline void signs(int64_t resolution, const float* drawn_dist, const int32_t* dr
           out[i] = (mine && !other && off) ? 1 : -1;
         } else if (bar_dist[i] <= kWall) {
           probes(p, bar, bar_tri[i], resolution, reached, &mine, &other, &off);
-          out[i] = (mine && off) ? 1 : -1;
+          out[i] = (mine && !other && off) ? 1 : -1;
         } else {
           out[i] = reached[i] ? 1 : -1;
         }

@@ -11,9 +11,11 @@
 - A wall point p takes its sign from probes: with q the closest point on its nearest drawn triangle
   (nearest barrier triangle when only a barrier makes it a wall) and u = |p - q|, the lattice points
   nearest q + PROBE * (p - q) / u ("mine") and q - PROBE * (p - q) / u ("other") are looked up.
-  Drawn walls: + when mine is reached and other is not (the free side of a one-sided surface);
-  - otherwise (inside solid, or a thin two-sided wall: free on both sides, so the tracer sees a sign
-  change). Barrier-only walls: + when mine is reached. u == 0 gives -.
+  + when mine is reached and other is not (the free side of a one-sided surface); - otherwise (inside
+  solid, or a thin two-sided wall: free on both sides, so the tracer sees a sign change). Barriers take
+  the same rule as drawn walls: a barrier the drone cannot pass with free space on both sides (a sky
+  pane between two rooms, a thin solid nodraw brush) is seen by the rays as the wall it is. u == 0
+  gives -.
 """
 
 from __future__ import annotations
@@ -132,6 +134,6 @@ def signs(drawn: Nearest, barrier: Nearest, tri: Triangles, bar: Triangles, fill
         out[drawn_wall] = np.where(mine & ~other & off, 1, -1)
     pts = np.argwhere(barrier_wall)  # (P, 3)
     if len(pts):
-        mine, _, off = _probes(pts.astype(np.float64), bar, barrier.triangle[barrier_wall], filled.reached)
-        out[barrier_wall] = np.where(mine & off, 1, -1)
+        mine, other, off = _probes(pts.astype(np.float64), bar, barrier.triangle[barrier_wall], filled.reached)
+        out[barrier_wall] = np.where(mine & ~other & off, 1, -1)
     return out

@@ -373,16 +373,12 @@ def signs(
     drawn_wall = drawn <= WALL  # (n, n, n) bool
     barrier_wall = (barrier <= WALL) & ~drawn_wall  # (n, n, n) bool
     out = torch.where(filled.reached, 1, -1).to(torch.int8)  # (n, n, n) int8
-    for mask, t, nearest, both in (
-        (drawn_wall, tri, drawn_near, True),
-        (barrier_wall, bar, barrier_near, False),
-    ):
+    for mask, t, nearest in ((drawn_wall, tri, drawn_near), (barrier_wall, bar, barrier_near)):
         pts = torch.nonzero(mask)  # (P, 3) int64
         if len(pts) == 0:
             continue
         mine, other, off = _probes(pts.double(), t, nearest[mask].long(), filled.reached)
-        good = mine & ~other & off if both else mine & off  # (P,)
-        out[mask] = torch.where(good, 1, -1).to(torch.int8)
+        out[mask] = torch.where(mine & ~other & off, 1, -1).to(torch.int8)
     return out
 
 
