@@ -1,13 +1,19 @@
 """Train a drone on Navi scenes with rsl_rl's PPO (OnPolicyRunner), then compare it with random flight and
 the reactive avoider.
 
+On a CPU, four rooms and halls at 64³:
 navi scenes generate --out scenes/ --count 4 --families rooms,hall
-navi scenes generate --out unseen/ --count 4 --families rooms,hall --seed 1
 navi corpus build scenes/ --out corpus/ --resolution 64
-navi corpus build unseen/ --out unseen-corpus/ --resolution 64
 python examples/train_rsl_rl.py --corpus corpus/ --actors 64 --steps 3072
-python examples/train_rsl_rl.py --corpus corpus/ --unseen unseen-corpus/ --actors 2048 --steps 2048 --device cuda --full-view
 python examples/train_rsl_rl.py --corpus corpus/ --actors 64 --steps 3072 --recurrent
+
+On a GPU, twenty scenes of every family at 256³, judged on ten others it never saw (the trainers table's
+split, docs/ENVIRONMENT.md):
+navi scenes generate --out scenes-gpu/ --count 20
+navi scenes generate --out unseen-gpu/ --count 10 --seed 7
+navi corpus build scenes-gpu/ --out corpus-gpu/ --resolution 256 --device cuda
+navi corpus build unseen-gpu/ --out unseen-corpus-gpu/ --resolution 256 --device cuda
+python examples/train_rsl_rl.py --corpus corpus-gpu/ --unseen unseen-corpus-gpu/ --actors 2048 --steps 4096 --device cuda --full-view
 
 rsl_rl's PPO with its own defaults (5 epochs of 4 minibatches per rollout, the learning rate adapted to
 a KL target of 0.01, entropy bonus 0.01, time-outs bootstrapped from the value) and rollouts of 32 steps;

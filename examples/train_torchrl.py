@@ -1,12 +1,18 @@
 """Train a drone on Navi scenes with TorchRL's PPO (ClipPPOLoss, GAE), then compare it with random flight
 and the reactive avoider.
 
+On a CPU, four rooms and halls at 64³:
 navi scenes generate --out scenes/ --count 4 --families rooms,hall
-navi scenes generate --out unseen/ --count 4 --families rooms,hall --seed 1
 navi corpus build scenes/ --out corpus/ --resolution 64
-navi corpus build unseen/ --out unseen-corpus/ --resolution 64
 python examples/train_torchrl.py --corpus corpus/ --actors 64 --steps 3072
-python examples/train_torchrl.py --corpus corpus/ --unseen unseen-corpus/ --actors 2048 --steps 2048 --device cuda --full-view
+
+On a GPU, twenty scenes of every family at 256³, judged on ten others it never saw (the trainers table's
+split, docs/ENVIRONMENT.md):
+navi scenes generate --out scenes-gpu/ --count 20
+navi scenes generate --out unseen-gpu/ --count 10 --seed 7
+navi corpus build scenes-gpu/ --out corpus-gpu/ --resolution 256 --device cuda
+navi corpus build unseen-gpu/ --out unseen-corpus-gpu/ --resolution 256 --device cuda
+python examples/train_torchrl.py --corpus corpus-gpu/ --unseen unseen-corpus-gpu/ --actors 2048 --steps 4096 --device cuda --full-view
 
 A Collector over NaviTorchRLEnv's pooled 16 x 4 view (view=MLP_VIEW: 192 inputs whatever the traced
 resolution), a TanhNormal actor and a critic (Tanh MLPs), GAE, ClipPPOLoss and a replay buffer of one

@@ -22,6 +22,7 @@ user runs.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import importlib
 import math
@@ -272,12 +273,15 @@ def bench_trainers(
     for trainer in trainers:
         curve = Curve(unseen_env, p, reactive, say, trainer)
         started = time.perf_counter()
-        if trainer == "navi":
-            run = run_navi(
-                train, curve, cfg, actors, device, seed, budget_s, eval_every_s, navi_core, work_dir
-            )
-        else:
-            run = run_stock(trainer, train, curve, cfg, actors, device, seed, budget_s, eval_every_s)
+        # what a library prints while it trains (rsl_rl's runner prints its models and every iteration)
+        # goes to stderr: stdout stays the benchmark's own, one JSON object under --json
+        with contextlib.redirect_stdout(sys.stderr):
+            if trainer == "navi":
+                run = run_navi(
+                    train, curve, cfg, actors, device, seed, budget_s, eval_every_s, navi_core, work_dir
+                )
+            else:
+                run = run_stock(trainer, train, curve, cfg, actors, device, seed, budget_s, eval_every_s)
         results[trainer] = run | {
             "env_steps_per_s": run["env_steps"] / run["train_s"] if run["train_s"] > 0 else math.nan,
             "beat_reactive": curve.beaten,

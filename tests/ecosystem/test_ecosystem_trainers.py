@@ -20,13 +20,19 @@ pytestmark = pytest.mark.usefixtures("single_thread")
 BUDGET_S, EVERY_S = 3.0, 1.5
 
 
-def test_bench_trainers_rows_agree_with_their_curves(corpus: Path, tmp_path: Path) -> None:
+def test_bench_trainers_rows_agree_with_their_curves(
+    corpus: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     protocol = EvalProtocol(actors=8, steps=60, episode_steps=30, seed=3)
     lines: list[str] = []
     out = bench_trainers(
         corpus, corpus, tmp_path, device="cpu", config=SMALL_VIEW, actors=8, budget_s=BUDGET_S,
         eval_every_s=EVERY_S, protocol=protocol, navi_core="gru", say=lines.append,
     )  # fmt: skip
+    # the libraries print while they train (rsl_rl's runner does); none of it reaches stdout, which
+    # `navi bench trainers --json` keeps for its one JSON object
+    printed = capsys.readouterr()
+    assert printed.out == "" and "Actor Model" in printed.err
     assert json.loads(json.dumps(out)) == out  # plain JSON values throughout
     assert list(out["trainers"]) == list(TRAINERS) and out["settings"]["view"] == [16, 4]
     reactive = EvalMetrics(**out["baselines"]["reactive"])
