@@ -13,7 +13,7 @@ navi scenes generate --out scenes-gpu/ --count 20
 navi scenes generate --out unseen-gpu/ --count 10 --seed 7
 navi corpus build scenes-gpu/ --out corpus-gpu/ --resolution 256 --device cuda
 navi corpus build unseen-gpu/ --out unseen-corpus-gpu/ --resolution 256 --device cuda
-python examples/train_rsl_rl.py --corpus corpus-gpu/ --unseen unseen-corpus-gpu/ --actors 2048 --steps 4096 --device cuda --full-view
+python examples/train_rsl_rl.py --corpus corpus-gpu/ --unseen unseen-corpus-gpu/ --actors 2048 --steps 8192 --device cuda --full-view
 
 rsl_rl's PPO with its own defaults (5 epochs of 4 minibatches per rollout, the learning rate adapted to
 a KL target of 0.01, entropy bonus 0.01, time-outs bootstrapped from the value) and rollouts of 32 steps;

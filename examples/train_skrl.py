@@ -11,7 +11,7 @@ navi scenes generate --out scenes-gpu/ --count 20
 navi scenes generate --out unseen-gpu/ --count 10 --seed 7
 navi corpus build scenes-gpu/ --out corpus-gpu/ --resolution 256 --device cuda
 navi corpus build unseen-gpu/ --out unseen-corpus-gpu/ --resolution 256 --device cuda
-python examples/train_skrl.py --corpus corpus-gpu/ --unseen unseen-corpus-gpu/ --actors 2048 --steps 4096 --device cuda --full-view
+python examples/train_skrl.py --corpus corpus-gpu/ --unseen unseen-corpus-gpu/ --actors 2048 --steps 8192 --device cuda --full-view
 
 skrl's PPO as Isaac Lab configures it: an ELU MLP with a Gaussian head (the env clamps actions to
 [-1, 1]), observations and returns standardised by skrl's RunningStandardScaler, the learning rate

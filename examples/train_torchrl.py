@@ -12,7 +12,7 @@ navi scenes generate --out scenes-gpu/ --count 20
 navi scenes generate --out unseen-gpu/ --count 10 --seed 7
 navi corpus build scenes-gpu/ --out corpus-gpu/ --resolution 256 --device cuda
 navi corpus build unseen-gpu/ --out unseen-corpus-gpu/ --resolution 256 --device cuda
-python examples/train_torchrl.py --corpus corpus-gpu/ --unseen unseen-corpus-gpu/ --actors 2048 --steps 4096 --device cuda --full-view
+python examples/train_torchrl.py --corpus corpus-gpu/ --unseen unseen-corpus-gpu/ --actors 2048 --steps 8192 --device cuda --full-view
 
 A Collector over NaviTorchRLEnv's pooled 16 x 4 view (view=MLP_VIEW: 192 inputs whatever the traced
 resolution), a TanhNormal actor and a critic (Tanh MLPs), GAE, ClipPPOLoss and a replay buffer of one

@@ -256,6 +256,22 @@ def test_sky_by_flag_or_name_and_nodraw_solids_become_barriers(tiny_bsp: Path) -
     }  # sky by flag, sky by name, nodraw solid; not trigger/water/decal/fog
 
 
+def test_name_words_are_whole_parts_less_their_end_digits() -> None:
+    names = [
+        "textures/gothic_block/blocks17slime",  # a brick texture: solid and drawn, not a slime volume
+        "textures/liquids/slime1_2000",  # slime by name, whatever the flags say
+        "env/sky1/sky001_bk",  # sky by name (no sky flag)
+        "textures/common/trigger",
+        "textures/test/waterstain",
+        "textures/test/2lava",
+    ]
+    shaders = np.array([(n.encode(), 0, SOLID) for n in names], dtype=q3.SHADER_DTYPE)  # (6,)
+    rules = q3.shader_rules(shaders)
+    assert rules.drawn.tolist() == [True, False, False, False, True, False]
+    assert rules.blocking.tolist() == [True, False, True, False, True, False]
+    assert rules.barrier.tolist() == [False, False, True, False, False, False]
+
+
 def test_solid_world_brush_becomes_a_closed_barrier_box(tiny_bsp: Path) -> None:
     scene = load_scene(tiny_bsp, scale=1.0)
     tris = scene.vertices[scene.barrier_faces]  # (Fb, 3, 3)

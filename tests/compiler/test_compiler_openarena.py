@@ -40,3 +40,26 @@ def test_oa_dm1_compiles_from_its_spawns() -> None:
     ref, _ = compile_scene(scene, resolution=64, engine="ref")
     cpp, _ = compile_scene(scene, resolution=64, engine="cpp")
     assert encode_gmdag(ref) == encode_gmdag(cpp)
+
+
+def test_oa_dm7_is_sealed_by_its_slime_stained_brick_walls() -> None:
+    """oa_dm7's fog pit is closed at its foot by world brushes of `gothic_block/blocks17slime`, a solid
+    brick texture whose name holds "slime" only glued to "blocks17": the brushes stay solid barriers
+    and the fill from the spawns stays inside the map."""
+    scene = load_scene(PK3, map_name="oa_dm7")
+    tris = scene.vertices[scene.barrier_faces] / 0.0254  # (Fb, 3, 3) map units
+    x, y, z = tris[..., 0], tris[..., 1], tris[..., 2]  # (Fb, 3) each
+    foot = (
+        np.isclose(z, -448.0).all(axis=1)
+        & (x >= 320.0 - 1e-6).all(axis=1)
+        & np.isclose(x, 352.0).any(axis=1)
+        & (y >= -736.0 - 1e-6).all(axis=1)
+        & (y <= -608.0 + 1e-6).all(axis=1)
+    )  # (Fb,) the underside of the brick brush beside the pit's floor
+    assert foot.any()
+    for resolution in (64, 128):
+        g, stats = compile_scene(scene, resolution=resolution)
+        assert not stats.leaked and g.flags == FLAG_INSIDE_SEEDS and stats.seeds_used == len(scene.seeds)
+        dense = dense_lattice(g)  # (R+1, R+1, R+1)
+        corners = dense[[0, -1]][:, [0, -1]][:, :, [0, -1]]
+        assert (corners < 0).all()  # outside the map is solid

@@ -146,8 +146,10 @@ EXCLUDED_CONTENTS = (
     | CONTENTS_ORIGIN
     | CONTENTS_TRIGGER
 )
-# Shader-name fallbacks: a word of the name (split on '/', '_', '-', '.', digits) that marks a
-# surface as sky, or as not drawn. Some sky shaders carry no flags in the BSP.
+# Shader-name fallbacks: a word of the name that marks a surface as sky, or as not drawn. Some sky
+# shaders carry no flags in the BSP. A word is a part of the name between '/', '_', '-', '.' or
+# whitespace, less the digits at its ends (a variant number: `sky1`, `slime1`); digits inside a part
+# do not split it (`blocks17slime` is a brick texture, solid in the BSP, not a slime volume).
 SKY_WORDS = frozenset({"sky", "skies", "skybox", "skyportal"})
 # Not drawn but solid to the fill unless also passable (e.g. caulk / nodraw solids).
 HIDDEN_WORDS = frozenset({"nodraw", "caulk"})
@@ -174,7 +176,8 @@ PASSABLE_WORDS = frozenset(
     }
 )
 EXCLUDED_WORDS = HIDDEN_WORDS | PASSABLE_WORDS
-_WORD_SPLIT = re.compile(r"[/_\-.\d\s]+")
+_WORD_SPLIT = re.compile(r"[/_\-.\s]+")
+_DIGITS = "0123456789"
 
 CLASS_NAMES = ("unknown", "floor", "wall", "ceiling", "patch")
 CLASS_FLOOR = 1
@@ -395,7 +398,8 @@ def spawn_origins(entities: list[dict[str, str]]) -> np.ndarray:
 
 
 def _name_words(name: bytes) -> set[str]:
-    return {w for w in _WORD_SPLIT.split(name.decode("latin-1").lower()) if w}
+    """The words of a shader name: its parts between separators, leading and trailing digits dropped."""
+    return {w.strip(_DIGITS) for w in _WORD_SPLIT.split(name.decode("latin-1").lower())} - {""}
 
 
 @dataclass(frozen=True)
