@@ -35,6 +35,7 @@ from typing import Any
 import torch
 
 from navi_bench.learn import Say, say_stderr
+from navi_env.config import EnvConfig
 from navi_env.corpus.openarena import openarena_maps, split_openarena
 from navi_learner.config import TrainConfig, learning_recipe, learning_size
 from navi_learner.envs.factory import corpus_summary, make_env
@@ -142,11 +143,32 @@ class BuildJob:
             build_corpus(self.args["sources"], self.out, self.args["resolution"], device)
 
 
+def pointgoal_scenes(folder: Path, device: str) -> tuple[list[str], list[str]]:
+    """The scenes of a corpus folder where point-goal episodes can be posed (some spawn has a goal within
+    the env's goal distances, EnvConfig().goal), and a note for each scene where none can."""
+    from navi_env.corpus.folder import load_corpus_folder
+    from navi_env.sim.goals import scene_table
+
+    corpus, manifest = load_corpus_folder(folder, device)
+    spawns, env = manifest.spawn_tensors(), EnvConfig(task="pointgoal")
+    keep: list[str] = []
+    notes: list[str] = []
+    for s, entry in enumerate(manifest.scenes):
+        try:
+            scene_table(corpus, s, spawns[s], env.goal, env.drone_radius)
+        except ValueError as err:
+            notes.append(f"point-goal episodes cannot be posed on {entry.name} ({err}): it is left out")
+            continue
+        keep.append(entry.name)
+    return keep, notes
+
+
 def plan_corpora(
-    cfg: TransferConfig, root: Path, resolution: int, pk3: Path | None
+    cfg: TransferConfig, root: Path, resolution: int, pk3: Path | None, device: str = "cpu"
 ) -> tuple[list[BuildJob], Callable[[], Corpora]]:
     """The build jobs of the job's corpora under `root` and a function that, once they are built, merges
-    the OpenArena parts and returns the Corpora."""
+    the OpenArena parts and returns the Corpora. For point-goal episodes the OpenArena parts keep only the
+    maps where a goal can be posed (pointgoal_scenes on `device`); each map left out is noted."""
     from navi_compiler.ingest.procedural import FAMILIES
     from navi_env.corpus.folder import merge_corpora, read_manifest, subset_corpus
 
@@ -200,16 +222,30 @@ def plan_corpora(
             if not (merged / "manifest.json").is_file():
                 merge_corpora(chunks, merged)
             by_name = {s.name: s for s in read_manifest(merged).scenes}
+            if cfg.train.task == "pointgoal":
+                posable, left_out = pointgoal_scenes(merged, device)
+                notes.extend(left_out)
+                by_name = {name: by_name[name] for name in posable}
+                if len(posable) < len(maps):
+                    tag = f"{len(maps)}maps-pointgoal{len(posable)}"
+                    merged_all = merged
+                    merged = root / f"openarena-{tag}-all-{resolution}"
+                    if not (merged / "manifest.json").is_file():
+                        subset_corpus(merged_all, posable, merged)
+                else:
+                    tag = f"{len(maps)}maps"
+            else:
+                tag = f"{len(maps)}maps"
             for part, chosen in (("train", train_maps), ("held-out", held)):
-                folder = root / f"openarena-{len(maps)}maps-{part}-{resolution}"
+                folder = root / f"openarena-{tag}-{part}-{resolution}"
                 keep = [names[m] for m in chosen if names[m] in by_name]
                 if not (folder / "manifest.json").is_file():
                     subset_corpus(merged, keep, folder)
                 real[part] = folder
             real["all"] = merged
             train["openarena"] = real["train"]
-            scenes["openarena/train"] = [names[m] for m in train_maps]
-            scenes["openarena/held-out"] = [names[m] for m in held]
+            scenes["openarena/train"] = [names[m] for m in train_maps if names[m] in by_name]
+            scenes["openarena/held-out"] = [names[m] for m in held if names[m] in by_name]
         for arm in arms:
             parts = {"procedural": root / f"procedural-{arm.semantics}-unseen-{unseen_count}-{resolution}"}
             if real:
@@ -564,7 +600,7 @@ def bench_transfer(
         raise ValueError(f"--gpus {cfg.gpus} needs that many CUDA devices")
     started = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    builds, finish = plan_corpora(cfg, root, resolution, pk3)
+    builds, finish = plan_corpora(cfg, root, resolution, pk3, device)
     run_spread(builds, device, cfg.gpus)
     corpora = finish()
     say(f"[bench transfer] corpora ready after {time.perf_counter() - started:.0f} s")

@@ -17,6 +17,7 @@ from navi_bench.transfer import (
     TransferConfig,
     bench_transfer,
     parse_arm,
+    pointgoal_scenes,
     report_markdown,
     summarise,
     verdict,
@@ -185,3 +186,30 @@ def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
     )
     assert "| procedural | 0.9 (0.95, 0.9, 0.7) | 0.79 (0.85, 0.79, 0.6) | 0.3 (0.3, 0.2, 5) | 1/3 |" in text
     assert "| dm2 | 0 / 0 | 0.88 / 0.84 | 0.92 / 0.86 | 0.8 / 0.7 |" in text
+
+
+def test_point_goal_parts_leave_out_the_maps_where_no_goal_can_be_posed(tmp_path: Path) -> None:
+    """A closet 3 m across has no goal 5-30 m from any spawn: the point-goal parts keep the maze beside it
+    and say why the closet is left out, instead of failing the whole job when its env is built."""
+    import numpy as np
+    import trimesh
+
+    from navi_compiler.ingest.procedural import write_scene_mesh
+    from navi_compiler.scene import Scene
+    from navi_env.corpus.folder import build_corpus, build_default_corpus, merge_corpora
+
+    build_default_corpus(tmp_path / "maze", resolution=32, count=1, seed=0, families=["maze"])
+    box = trimesh.creation.box((3.0, 3.0, 3.0))
+    closet = Scene(
+        name="closet",
+        vertices=np.asarray(box.vertices, np.float64),
+        faces=np.asarray(box.faces, np.int64),
+        face_class=np.zeros(len(box.faces), np.uint8),
+        class_names=("unknown",),
+        seeds=np.zeros((1, 3), np.float64),
+    )
+    build_corpus([write_scene_mesh(closet, tmp_path / "closet.obj")], tmp_path / "closet", 32, "cpu")
+    merge_corpora([tmp_path / "maze", tmp_path / "closet"], tmp_path / "both")
+    keep, notes = pointgoal_scenes(tmp_path / "both", "cpu")
+    assert keep == ["maze_0000"], (keep, notes)
+    assert len(notes) == 1 and "closet" in notes[0] and "left out" in notes[0], notes

@@ -76,17 +76,22 @@ def build_tables(
 ) -> list[GoalTable]:
     """One GoalTable per scene of the corpus for its spawns (K_s, 3); ValueError names a scene where no
     spawn has a goal within [near, far]."""
-    tables = []
-    for s, points in enumerate(spawns):
-        cell = lattice_cell(corpus, s, cfg.cell, cfg.max_voxels)
-        space = free_space(corpus, s, cell, radius)
-        try:
-            tables.append(
-                goal_table(space, points, cfg.per_scene, cfg.near, cfg.far, cfg.clearance, seed=cfg.seed + s)
-            )
-        except ValueError as err:
-            raise ValueError(f"scene {corpus.infos[s].name!r}: {err}") from None
-    return tables
+    return [scene_table(corpus, s, points, cfg, radius) for s, points in enumerate(spawns)]
+
+
+def scene_table(
+    corpus: SceneCorpus, scene: int, spawns: torch.Tensor, cfg: GoalConfig, radius: float
+) -> GoalTable:
+    """The GoalTable of one scene of the corpus for its spawns (K, 3); ValueError, naming the scene, where
+    no spawn has a goal within [near, far]."""
+    cell = lattice_cell(corpus, scene, cfg.cell, cfg.max_voxels)
+    space = free_space(corpus, scene, cell, radius)
+    try:
+        return goal_table(
+            space, spawns, cfg.per_scene, cfg.near, cfg.far, cfg.clearance, seed=cfg.seed + scene
+        )
+    except ValueError as err:
+        raise ValueError(f"scene {corpus.infos[scene].name!r}: {err}") from None
 
 
 def goal_bank(
