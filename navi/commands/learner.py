@@ -497,12 +497,12 @@ def run_cmd(
     ] = True,
 ) -> None:
     """The main job: build the corpora, train (CUDA: until competent on unseen scenes or the budget; CPU:
-    fine-tune the shipped reference checkpoint), promote, evaluate against random and reactive on unseen scenes
-    (--task pointgoal: train point-goal episodes from scratch, compare with random, greedy and oracle); where
+    fine-tune the task's shipped reference checkpoint), promote, evaluate against random and reactive on unseen
+    scenes (--task pointgoal: point-goal episodes, compared with random, greedy and oracle); where
     the OpenArena maps are present, also on real maps never seen."""
     from navi_env.config import TASKS
     from navi_env.corpus.openarena import default_pk3
-    from navi_learner.evaluation.main_job import REFERENCE, MainJobConfig, MainJobError, main_job
+    from navi_learner.evaluation.main_job import MainJobConfig, MainJobError, main_job
 
     dev = pick_device(device)
     task = check_choice(task, TASKS, "--task")
@@ -513,7 +513,6 @@ def run_cmd(
         device=dev,
         seed=seed,
         **asdict(settings.config()),
-        reference=REFERENCE,
         task=task,
         openarena=default_pk3() if real_maps else None,
     )

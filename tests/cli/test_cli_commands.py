@@ -29,7 +29,7 @@ from navi_learner.evaluation.evaluate import (
     evaluate,
     jsonable,
 )
-from navi_learner.evaluation.main_job import REFERENCE, UNSEEN_SEED
+from navi_learner.evaluation.main_job import POINTGOAL_REFERENCE, REFERENCE, UNSEEN_SEED
 from navi_learner.serving.checkpoint import load_checkpoint
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -93,13 +93,15 @@ def test_navi_run_fine_tunes_promotes_and_reports_the_unseen_comparison(
     promoted checkpoint flown against random and reactive on the unseen corpus."""
     train, unseen = corpora
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(EvalProtocol, "for_device", classmethod(lambda cls, device: SMALL))
+    monkeypatch.setattr(EvalProtocol, "for_device", classmethod(lambda cls, device, task="explore": SMALL))
     args = ["run", "--corpus", str(train), "--unseen", str(unseen), "--device", "cpu", "--no-real-maps"]
     result = runner.invoke(build_app(), [*args, "--cpu-steps", str(CPU_STEPS)])
     assert result.exit_code == 0, result.output[-3000:]
     reference_step = load_checkpoint(REFERENCE).meta.step_id
     lines = result.stdout.splitlines()
-    assert lines[0].startswith(f"[navi run] path: CPU. Fine-tuning the reference checkpoint {REFERENCE}")
+    assert lines[0].startswith(
+        f"[navi run] path: CPU. Fine-tuning the explore reference checkpoint {REFERENCE}"
+    )
     assert f"for {CPU_STEPS:,} steps on {train}" in lines[0]
     assert any(x.startswith(f"[navi run] trained to step {reference_step + CPU_STEPS:,} in ") for x in lines)
     assert any(x.endswith("promoted: v001") for x in lines), result.stdout
@@ -150,23 +152,25 @@ def test_navi_run_fine_tunes_promotes_and_reports_the_unseen_comparison(
     assert in_process(again) | {"policy": trained.policy} == without_timing(data["results"][0])
 
 
-def test_navi_run_point_goal_trains_from_scratch_and_compares_with_the_seekers(
+def test_navi_run_point_goal_fine_tunes_its_reference_and_compares_with_the_seekers(
     corpora: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """`navi run --task pointgoal --device cpu` trains point-goal episodes from scratch and scores the
+    """`navi run --task pointgoal --device cpu` fine-tunes the point-goal reference and scores the
     promoted checkpoint against random, greedy and oracle with success and SPL."""
     train, unseen = corpora
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(EvalProtocol, "for_device", classmethod(lambda cls, device: SMALL))
+    monkeypatch.setattr(EvalProtocol, "for_device", classmethod(lambda cls, device, task="explore": SMALL))
     args = ["run", "--corpus", str(train), "--unseen", str(unseen), "--device", "cpu", "--task", "pointgoal"]
     result = runner.invoke(build_app(), [*args, "--cpu-steps", str(CPU_STEPS), "--no-real-maps"])
     assert result.exit_code == 0, result.output[-3000:]
     lines = result.stdout.splitlines()
     assert lines[0].startswith(
-        f"[navi run] path: CPU. Training point-goal episodes from scratch for {CPU_STEPS}"
+        f"[navi run] path: CPU. Fine-tuning the pointgoal reference checkpoint {POINTGOAL_REFERENCE}"
     )
     meta = load_checkpoint(tmp_path / "artifacts" / "models" / "latest.pt").meta
-    assert meta.parent_checkpoint is None and meta.step_id == CPU_STEPS and meta.config["task"] == "pointgoal"
+    reference_step = load_checkpoint(POINTGOAL_REFERENCE).meta.step_id
+    assert meta.parent_checkpoint == str(POINTGOAL_REFERENCE) and meta.step_id == reference_step + CPU_STEPS
+    assert meta.config["task"] == "pointgoal"
     report = Path(lines[-1].removeprefix("report: "))
     data = json.loads(report.with_name("evaluation.json").read_text())
     rows = [EvalMetrics(**r) for r in data["results"]]

@@ -1,7 +1,7 @@
-"""The reference checkpoint shipped with Navi, and the CPU path of the main job that fine-tunes it.
+"""The reference checkpoints shipped with Navi, and the CPU path of the main job that fine-tunes them.
 
-The reference (navi_learner/reference/mamba2.pt) was made by Navi on a GPU; its JSON names the
-command. The CPU path fine-tunes it and then flies it live on the eight unseen procedural scenes (seed
+The references (navi_learner/reference/mamba2.pt for explore, mamba2-pointgoal.pt for point-goal) were
+made by Navi on a GPU; their JSONs name the command. The CPU path fine-tunes it and then flies it live on the eight unseen procedural scenes (seed
 1000, one of each family, at 512^3 as `navi run` builds them) with the CPU protocol (48 actors x 500
 steps, episodes of 250: 96 episodes), deterministic actions: its verdict must hold with the intervals,
 paired over the same spawns, not only on the point estimates.
@@ -21,14 +21,25 @@ from navi_bench.learn import LearnConfig
 from navi_bench.learn import train_config as bench_train_config
 from navi_env.corpus.folder import build_default_corpus
 from navi_env.corpus.openarena import openarena_maps, split_openarena
+from navi_learner.envs.factory import make_env
+from navi_learner.evaluation.baselines import goal_seeker_for_env
 from navi_learner.evaluation.competence import EvalProtocol
-from navi_learner.evaluation.evaluate import EvalMetrics, beats_supported, competent_supported
+from navi_learner.evaluation.evaluate import (
+    CheckpointPolicy,
+    EvalMetrics,
+    beats_supported,
+    competent_supported,
+    evaluate,
+)
 from navi_learner.evaluation.main_job import (
     CORPUS_RESOLUTION,
+    POINTGOAL_REFERENCE,
     REFERENCE,
+    REFERENCES,
     UNSEEN_SCENES,
     UNSEEN_SEED,
     MainJobConfig,
+    MainJobError,
     cuda_config,
     judge,
     main_job,
@@ -51,13 +62,17 @@ def assert_beats_both(trained: EvalMetrics, rand: EvalMetrics, reactive: EvalMet
     assert trained.coverage_per_1k > reactive.coverage_per_1k, (trained, reactive)
 
 
-def test_reference_checkpoint_says_how_it_was_made() -> None:
-    made = json.loads(REFERENCE.with_suffix(".json").read_text())
-    ckpt = load_checkpoint(REFERENCE)
+@pytest.mark.parametrize("task", sorted(REFERENCES))
+def test_reference_checkpoint_says_how_it_was_made(task: str) -> None:
+    reference = REFERENCES[task]
+    made = json.loads(reference.with_suffix(".json").read_text())
+    ckpt = load_checkpoint(reference)
     assert made["command"].startswith("navi ") and "--device cuda" in made["command"]
+    assert ("--task pointgoal" in made["command"]) == (task == "pointgoal")
     assert ckpt.meta.step_id == made["steps"] and ckpt.meta.training_source == "rl"
     assert ckpt.meta.parent_checkpoint is None and ckpt.meta.temporal_core == "mamba2"
     assert ckpt.meta.obs_shape == [3, 256, 48] and ckpt.optimizer is not None
+    assert ckpt.meta.config.get("task", "explore") == task
 
 
 def test_main_job_cpu_path_fine_tunes_the_reference_and_reports_live(
@@ -69,7 +84,7 @@ def test_main_job_cpu_path_fine_tunes_the_reference_and_reports_live(
     job = MainJobConfig(train, unseen, tmp_path / "models", "cpu", cpu_steps=256)
     report = main_job(job)
     out = capsys.readouterr().out
-    assert "path: CPU. Fine-tuning the reference checkpoint" in out and "--device cuda" in out
+    assert "path: CPU. Fine-tuning the explore reference checkpoint" in out and "--device cuda" in out
     result = json.loads((report.parent / "evaluation.json").read_text())
     assert result["path"] == "cpu"
     trained, rand, reactive = (EvalMetrics(**r) for r in result["results"])
@@ -107,20 +122,25 @@ def test_main_job_trains_on_a_gpu_with_the_learning_benchmarks_settings(tmp_path
     assert ours.time_limit_s == job.budget_s
 
 
-def test_main_job_point_goal_cpu_path_trains_from_scratch_and_compares_with_the_seekers(
+def test_main_job_point_goal_cpu_path_fine_tunes_its_reference_and_compares_with_the_seekers(
     unseen: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.chdir(tmp_path)
     train = tmp_path / "train"
     build_default_corpus(train, resolution=CORPUS_RESOLUTION, count=1, seed=0)
-    # The job's plumbing for point-goal episodes, on a small evaluation (no point-goal reference ships).
+    # The job's plumbing for point-goal episodes, on a small evaluation (the CPU protocol's verdict is
+    # the next test's).
     small = EvalProtocol(actors=8, steps=200, episode_steps=100)
     job = MainJobConfig(
         train, unseen, tmp_path / "models", "cpu", cpu_steps=256, task="pointgoal", protocol=small
     )
-    assert cuda_config(job).task == "pointgoal"
+    assert cuda_config(job).task == "pointgoal" and job.reference_checkpoint() == POINTGOAL_REFERENCE
     report = main_job(job)
-    assert "Training point-goal episodes from scratch" in capsys.readouterr().out
+    assert "path: CPU. Fine-tuning the pointgoal reference checkpoint" in capsys.readouterr().out
+    fine_tuned = load_checkpoint(job.models_dir / "latest.pt")
+    assert fine_tuned.meta.parent_checkpoint == str(POINTGOAL_REFERENCE)
+    assert fine_tuned.meta.config["task"] == "pointgoal"
+    assert fine_tuned.meta.step_id == load_checkpoint(POINTGOAL_REFERENCE).meta.step_id + 256
     result = json.loads((report.parent / "evaluation.json").read_text())
     trained, rand, greedy, oracle = (EvalMetrics(**r) for r in result["results"])
     assert (rand.policy, greedy.policy, oracle.policy) == ("random", "greedy", "oracle")
@@ -138,8 +158,34 @@ def test_main_job_point_goal_cpu_path_trains_from_scratch_and_compares_with_the_
     competent = trained.success_rate >= 0.9 and trained.spl >= 0.75 and fewer
     assert result["competent"] is competent
     assert f"fewer collisions per episode than greedy): {'yes' if competent else 'no'}." in report.read_text()
-    made = load_checkpoint(job.models_dir / "latest.pt")
-    assert made.meta.parent_checkpoint is None and made.meta.config["task"] == "pointgoal"
+
+
+def test_point_goal_reference_flies_the_cpu_protocol_ahead_of_the_greedy_seeker(unseen: Path) -> None:
+    """The shipped point-goal reference on the CPU path's point-goal protocol (48 actors x 1,000 steps,
+    the task's own 500-step episodes, env seed 12345) on the eight unseen scenes: near the competence bar
+    (success 0.90 measured there, reference/README.md) and well ahead of the map-less greedy seeker in
+    success, SPL and collisions per episode."""
+    protocol = EvalProtocol.for_device(torch.device("cpu"), "pointgoal")
+    assert (protocol.actors, protocol.steps, protocol.episode_steps) == (48, 1000, 500)
+    env = make_env(
+        unseen, protocol.actors, "cpu", protocol.seed, episode_steps=protocol.episode_steps, task="pointgoal"
+    )
+    reference = CheckpointPolicy(POINTGOAL_REFERENCE, torch.device("cpu"))
+    trained = evaluate(env, reference, protocol.steps, protocol.seed)
+    greedy = evaluate(env, goal_seeker_for_env("greedy", env), protocol.steps, protocol.seed)
+    assert trained.episodes >= protocol.actors and greedy.episodes >= protocol.actors
+    assert trained.success_rate >= 0.85 and trained.spl >= 0.75, trained
+    assert trained.success_rate > greedy.success_rate + 0.1, (trained, greedy)
+    assert trained.spl > greedy.spl and trained.collisions_per_episode < greedy.collisions_per_episode
+
+
+def test_main_job_refuses_a_reference_of_another_task(tmp_path: Path) -> None:
+    """The CPU path checks its reference before it builds anything."""
+    train, unseen = tmp_path / "train", tmp_path / "unseen"
+    job = MainJobConfig(train, unseen, tmp_path / "models", "cpu", task="pointgoal", reference=REFERENCE)
+    with pytest.raises(MainJobError, match="trained for task 'explore', not 'pointgoal'"):
+        main_job(job)
+    assert not train.exists() and not unseen.exists()
 
 
 OPENARENA_PK3 = Path(

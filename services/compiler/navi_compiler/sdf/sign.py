@@ -134,6 +134,8 @@ def signs(drawn: Nearest, barrier: Nearest, tri: Triangles, bar: Triangles, fill
         out[drawn_wall] = np.where(mine & ~other & off, 1, -1)
     pts = np.argwhere(barrier_wall)  # (P, 3)
     if len(pts):
-        mine, other, off = _probes(pts.astype(np.float64), bar, barrier.triangle[barrier_wall], filled.reached)
+        mine, other, off = _probes(
+            pts.astype(np.float64), bar, barrier.triangle[barrier_wall], filled.reached
+        )
         out[barrier_wall] = np.where(mine & ~other & off, 1, -1)
     return out

@@ -49,11 +49,19 @@ class EvalProtocol:
     seed: int = 12345
 
     @classmethod
-    def for_device(cls, device: torch.device) -> EvalProtocol:
+    def for_device(cls, device: torch.device, task: str = "explore") -> EvalProtocol:
         """256 actors x 1,000 steps on a GPU (512 episodes); on a CPU 48 actors x 500 steps, episodes of
         250 (96 episodes, about 75 s a policy on 2 cores): enough that the paired intervals of the main
-        job's verdict separate a competent drone from the reactive baseline."""
-        return cls() if device.type == "cuda" else cls(actors=48, steps=500, episode_steps=250)
+        job's verdict separate a competent drone from the reactive baseline. Point-goal episodes keep
+        their own time limit on a CPU too (POINTGOAL_EPISODE_STEPS: a goal 30 m away must be reachable
+        within the episode): 48 actors x 1,000 steps, episodes of 500."""
+        if device.type == "cuda":
+            return cls()
+        if task == "pointgoal":
+            from navi_env.config import POINTGOAL_EPISODE_STEPS
+
+            return cls(actors=48, steps=2 * POINTGOAL_EPISODE_STEPS, episode_steps=POINTGOAL_EPISODE_STEPS)
+        return cls(actors=48, steps=500, episode_steps=250)
 
 
 def baseline_policies(env: BatchedEnv, protocol: EvalProtocol) -> list[EvalPolicy]:

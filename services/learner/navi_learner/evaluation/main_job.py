@@ -6,13 +6,13 @@ registry's latest when compatible) until the drone is competent on the unseen sc
 budget ends, with a progress bar that shows the latest unseen collisions and coverage; promote; then
 evaluate with enough steps for episodes to finish, and write the table and the learning curves.
 
-On a CPU, where minutes cannot train this engine from scratch: start from the reference checkpoint
-shipped with Navi (made by `navi train` on a GPU; reference/README.md and its JSON say how), fine-tune
-it for the CPU budget on the default corpus, then evaluate the same way.
+On a CPU, where minutes cannot train this engine from scratch: start from the task's reference
+checkpoint shipped with Navi (made by `navi run` on a GPU; reference/README.md and its JSONs say how),
+fine-tune it for the CPU budget on the default corpus, then evaluate the same way.
 
-With task "pointgoal" the job trains point-goal episodes from scratch (no point-goal reference checkpoint
-ships): on CUDA until the point-goal bar (docs/TASKS.md) or the budget, on a CPU for the CPU budget
-(which shows the job end to end, not a competent drone); then it compares with random, greedy and oracle.
+With task "pointgoal" the job trains point-goal episodes (on CUDA from scratch until the point-goal bar,
+docs/TASKS.md, or the budget; on a CPU from the point-goal reference) and compares with random, greedy
+and oracle.
 
 Where the OpenArena maps are on the machine (navi_env.corpus.openarena), the job also flies the trained
 drone and the baselines on the held-out fifth of them, maps no drone Navi trains has seen, and reports
@@ -51,11 +51,17 @@ from navi_learner.evaluation.evaluate import (
     paired_intervals,
 )
 from navi_learner.ppo.train import train
-from navi_learner.serving.checkpoint import CheckpointError, atomic_write, read_meta
+from navi_learner.serving.checkpoint import CheckpointError, CheckpointMeta, atomic_write, read_meta
 from navi_learner.serving.registry import ModelRegistry
 
 REFERENCE = Path(__file__).resolve().parents[1] / "reference" / "mamba2.pt"
-"""The reference checkpoint the CPU path fine-tunes (reference/mamba2.json: how it was made)."""
+"""The explore reference checkpoint the CPU path fine-tunes (reference/mamba2.json: how it was made)."""
+
+POINTGOAL_REFERENCE = REFERENCE.with_name("mamba2-pointgoal.pt")
+"""The point-goal reference checkpoint the CPU path fine-tunes (its JSON: how it was made)."""
+
+REFERENCES = {"explore": REFERENCE, "pointgoal": POINTGOAL_REFERENCE}
+"""The reference checkpoint of each task."""
 
 UNSEEN_SEED = 1000
 """Seed of the procedural scenes the main job evaluates on (the default corpus uses seed 0)."""
@@ -85,9 +91,15 @@ class MainJobConfig(RunBudget):
     models_dir: Path
     device: str
     seed: int = 0
-    reference: Path = REFERENCE
+    reference: Path | None = None
+    """The checkpoint the CPU path fine-tunes; None: the task's (REFERENCES)."""
     task: str = "explore"
-    """explore, or pointgoal (trained from scratch on either path)."""
+    """explore, or pointgoal."""
+
+    def reference_checkpoint(self) -> Path:
+        """The checkpoint the CPU path fine-tunes."""
+        return self.reference or REFERENCES[self.task]
+
     protocol: EvalProtocol | None = None
     """The unseen evaluation; None: EvalProtocol.for_device (a smaller one only where a test says why)."""
     openarena: Path | None = None
@@ -204,13 +216,30 @@ def resume_point(registry: ModelRegistry, cfg: TrainConfig) -> tuple[Path | None
     )
 
 
+def checked_reference(job: MainJobConfig) -> tuple[Path, CheckpointMeta]:
+    """The CPU path's reference checkpoint and its metadata; MainJobError when it is missing or was
+    trained for another task."""
+    reference = job.reference_checkpoint()
+    if not reference.is_file():
+        raise MainJobError(f"the reference checkpoint {reference} is missing (it ships with Navi)")
+    meta = read_meta(reference)
+    trained_for = meta.config.get("task", "explore")
+    if trained_for != job.task:
+        raise MainJobError(
+            f"the reference checkpoint {reference} was trained for task {trained_for!r}, not {job.task!r}"
+        )
+    return reference, meta
+
+
 def main_job(job: MainJobConfig) -> Path:
     """Returns the path of the evaluation report."""
     dev = torch.device(job.device)
     cuda = dev.type == "cuda"
+    if not cuda:
+        checked_reference(job)  # before any corpus is built
     ensure_corpus(job.corpus, dev, count=16 if dev.type == "cuda" else CPU_TRAIN_SCENES)
     ensure_corpus(job.unseen, dev, seed=UNSEEN_SEED, count=UNSEEN_SCENES)
-    protocol = job.protocol or EvalProtocol.for_device(dev)
+    protocol = job.protocol or EvalProtocol.for_device(dev, job.task)
     registry = ModelRegistry(job.models_dir)
     try:
         unseen_env = make_env(
@@ -231,25 +260,16 @@ def main_job(job: MainJobConfig) -> Path:
         monitor = CompetenceMonitor(
             unseen_env, protocol, job.eval_every_s, say=lambda line: print(f"\n[navi run] {line}", flush=True)
         )
-    elif job.task == "pointgoal":
-        resume, cfg = None, replace(cpu_config(job, 0), task=job.task)
-        print(
-            f"[navi run] path: CPU. Training point-goal episodes from scratch for {job.cpu_steps:,} steps on "
-            f"{job.corpus} (no point-goal reference checkpoint ships: expect no competence here; "
-            "`navi run --task pointgoal --device cuda` trains to the bar in about 10 minutes)",
-            flush=True,
-        )
     else:
-        if not job.reference.is_file():
-            raise MainJobError(f"the reference checkpoint {job.reference} is missing (it ships with Navi)")
-        meta = read_meta(job.reference)
-        made_by = json.loads(job.reference.with_suffix(".json").read_text()).get("command", "?")
-        resume = job.reference
-        cfg = replace(cpu_config(job, meta.step_id), engine=EngineConfig.from_dict(meta.config["engine"]))
+        reference, meta = checked_reference(job)
+        made_by = json.loads(reference.with_suffix(".json").read_text()).get("command", "?")
+        resume = reference
+        cfg = replace(
+            cpu_config(job, meta.step_id), engine=EngineConfig.from_dict(meta.config["engine"]), task=job.task
+        )
         print(
-            f"[navi run] path: CPU. Fine-tuning the reference checkpoint {job.reference} (step {meta.step_id:,}, "
-            f"made on a GPU by `{made_by}`) for {job.cpu_steps:,} "
-            f"steps on {job.corpus}",
+            f"[navi run] path: CPU. Fine-tuning the {job.task} reference checkpoint {reference} "
+            f"(step {meta.step_id:,}, made on a GPU by `{made_by}`) for {job.cpu_steps:,} steps on {job.corpus}",
             flush=True,
         )
     try:
