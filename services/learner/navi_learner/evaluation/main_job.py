@@ -95,17 +95,16 @@ class MainJobConfig(RunBudget):
     """The checkpoint the CPU path fine-tunes; None: the task's (REFERENCES)."""
     task: str = "explore"
     """explore, or pointgoal."""
-
-    def reference_checkpoint(self) -> Path:
-        """The checkpoint the CPU path fine-tunes."""
-        return self.reference or REFERENCES[self.task]
-
     protocol: EvalProtocol | None = None
     """The unseen evaluation; None: EvalProtocol.for_device (a smaller one only where a test says why)."""
     openarena: Path | None = None
     """The OpenArena package; where it exists, the job also judges the drone on its held-out maps."""
     real_maps: int = 0
     """How many of the held-out maps that verdict flies (0: all ten)."""
+
+    def reference_checkpoint(self) -> Path:
+        """The checkpoint the CPU path fine-tunes."""
+        return self.reference or REFERENCES[self.task]
 
 
 def real_map_corpus(job: MainJobConfig, device: torch.device) -> Path | None:
@@ -235,8 +234,7 @@ def main_job(job: MainJobConfig) -> Path:
     """Returns the path of the evaluation report."""
     dev = torch.device(job.device)
     cuda = dev.type == "cuda"
-    if not cuda:
-        checked_reference(job)  # before any corpus is built
+    reference = None if cuda else checked_reference(job)  # before any corpus is built
     ensure_corpus(job.corpus, dev, count=16 if dev.type == "cuda" else CPU_TRAIN_SCENES)
     ensure_corpus(job.unseen, dev, seed=UNSEEN_SEED, count=UNSEEN_SCENES)
     protocol = job.protocol or EvalProtocol.for_device(dev, job.task)
@@ -261,14 +259,14 @@ def main_job(job: MainJobConfig) -> Path:
             unseen_env, protocol, job.eval_every_s, say=lambda line: print(f"\n[navi run] {line}", flush=True)
         )
     else:
-        reference, meta = checked_reference(job)
-        made_by = json.loads(reference.with_suffix(".json").read_text()).get("command", "?")
-        resume = reference
+        assert reference is not None
+        resume, meta = reference
+        made_by = json.loads(resume.with_suffix(".json").read_text()).get("command", "?")
         cfg = replace(
             cpu_config(job, meta.step_id), engine=EngineConfig.from_dict(meta.config["engine"]), task=job.task
         )
         print(
-            f"[navi run] path: CPU. Fine-tuning the {job.task} reference checkpoint {reference} "
+            f"[navi run] path: CPU. Fine-tuning the {job.task} reference checkpoint {resume} "
             f"(step {meta.step_id:,}, made on a GPU by `{made_by}`) for {job.cpu_steps:,} steps on {job.corpus}",
             flush=True,
         )
