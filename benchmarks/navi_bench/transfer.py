@@ -222,20 +222,17 @@ def plan_corpora(
             if not (merged / "manifest.json").is_file():
                 merge_corpora(chunks, merged)
             by_name = {s.name: s for s in read_manifest(merged).scenes}
+            tag = f"{len(maps)}maps"
             if cfg.train.task == "pointgoal":
                 posable, left_out = pointgoal_scenes(merged, device)
                 notes.extend(left_out)
-                by_name = {name: by_name[name] for name in posable}
-                if len(posable) < len(maps):
-                    tag = f"{len(maps)}maps-pointgoal{len(posable)}"
-                    merged_all = merged
+                if len(posable) < len(by_name):
+                    tag += f"-pointgoal{len(posable)}"
+                    every = merged
                     merged = root / f"openarena-{tag}-all-{resolution}"
                     if not (merged / "manifest.json").is_file():
-                        subset_corpus(merged_all, posable, merged)
-                else:
-                    tag = f"{len(maps)}maps"
-            else:
-                tag = f"{len(maps)}maps"
+                        subset_corpus(every, posable, merged)
+                by_name = {name: by_name[name] for name in posable}
             for part, chosen in (("train", train_maps), ("held-out", held)):
                 folder = root / f"openarena-{tag}-{part}-{resolution}"
                 keep = [names[m] for m in chosen if names[m] in by_name]
