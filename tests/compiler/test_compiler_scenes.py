@@ -38,7 +38,8 @@ from navi_compiler.ingest.procedural import (
 )
 
 SEEDS = (0, 1, 2)
-OPEN = {Family.FOREST, Family.YARD, Family.PLATFORMS}
+OPEN = {Family.FOREST, Family.YARD, Family.PLATFORMS, Family.FLOATING}
+WIDEST = {Family.FLOATING: 80.0}  # meters across; 60 for the other families
 EXPECTED_CLASS = {
     Family.HALL: "pillar",
     Family.FOREST: "trunk",
@@ -126,7 +127,7 @@ def test_every_family_is_valid(family: Family, layouts: dict[tuple[Family, int],
         area = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
         assert np.isfinite(scene.vertices).all() and area.min() > 1e-6
         lo, hi = scene.bounds
-        assert 10.0 <= (hi - lo)[:2].max() <= 60.0 and (hi - lo)[2] >= 2.5, hi - lo
+        assert 10.0 <= (hi - lo)[:2].max() <= WIDEST.get(family, 60.0) and (hi - lo)[2] >= 2.5, hi - lo
         assert len(scene.seeds) >= 4
         assert ((scene.seeds > lo) & (scene.seeds < hi)).all()
         assert is_clear(air_grid(layout.air), layout.solids, scene.seeds, SEED_CLEARANCE - 1e-6).all()

@@ -4,7 +4,8 @@ Every scene is a `Layout`: the interior is the union of axis-aligned *air* boxes
 solid rock (its boundary becomes floor / wall / ceiling faces), plus solid obstacles standing in
 that air (pillars, trunks, crates, stairs, and oriented slabs: ramps, balconies, slanted struts,
 railings). Open families (forest, yard, platforms) have no drawn roof: the top of the interior
-becomes an undrawn barrier, like a Quake 3 sky. World meters, +Z up, the
+becomes an undrawn barrier, like a Quake 3 sky; the floating family has no drawn boundary at all (a
+space map's sky box above, below and around). World meters, +Z up, the
 floor at z = 0. Passages are sized for a drone of radius 0.3 m (doorways ≥ 1.2 m wide, corridors
 and tunnels ≥ 1.6 m wide, obstacles ≥ 1.4 m apart).
 
@@ -40,6 +41,7 @@ class Family(StrEnum):
     YARD = "yard"
     ARENA = "arena"
     PLATFORMS = "platforms"
+    FLOATING = "floating"
 
 
 FAMILIES: tuple[Family, ...] = tuple(Family)
@@ -150,6 +152,8 @@ class Layout:
     open_top: float | None
     """Z of the undrawn lid of an open family (its ceiling faces become barriers); None: closed."""
     seeds: np.ndarray  # (S, 3) float64 meters, free points with SEED_CLEARANCE around them
+    void: bool = False
+    """Every boundary face of the air is an undrawn barrier (a sky box on all sides, below included)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -858,6 +862,116 @@ def _platforms(rng: np.random.Generator) -> _Parts:
     return [_box(0.0, 0.0, 0.0, length, width, height)], solids, height, preferred
 
 
+def _floating(rng: np.random.Generator) -> _Parts:
+    """A space map: floating decks at many heights in a sky box (undrawn on every side, below included),
+    bridges and ramps between them with thin side rails, roofs on posts over some decks, towers from the
+    bottom to the sky, hanging and standing poles, slanted struts and jump-pad pedestals."""
+    length, width = float(rng.uniform(40.0, 80.0)), float(rng.uniform(30.0, 60.0))
+    height = float(rng.uniform(22.0, 40.0))
+    solids: list[Solid] = []
+    preferred: list[tuple[float, float, float]] = []
+    decks: list[tuple[float, float, float, float, float]] = []  # (x0, y0, x1, y1, top)
+
+    def clear_of_decks(x0: float, y0: float, z0: float, x1: float, y1: float, z1: float, gap: float) -> bool:
+        return not any(
+            x0 < d[2] + gap
+            and d[0] < x1 + gap
+            and y0 < d[3] + gap
+            and d[1] < y1 + gap
+            and z0 < d[4] + gap + 3.0
+            and d[4] - 1.6 < z1 + gap
+            for d in decks
+        )
+
+    for _ in range(int(np.clip(length * width / 220.0, 5, 12))):  # decks, some over others
+        for _try in range(30):
+            sx, sy = float(rng.uniform(5.0, 14.0)), float(rng.uniform(5.0, 14.0))
+            x0 = float(rng.uniform(2.0, length - 2.0 - sx))
+            y0 = float(rng.uniform(2.0, width - 2.0 - sy))
+            top = float(rng.uniform(3.0, height - 6.0))
+            thick = float(rng.uniform(0.4, 1.6))
+            if clear_of_decks(x0, y0, top - thick, x0 + sx, y0 + sy, top, 1.5):
+                decks.append((x0, y0, x0 + sx, y0 + sy, top))
+                solids.append(Solid(_box(x0, y0, top - thick, x0 + sx, y0 + sy, top), FLOOR))
+                preferred.append((x0 + sx / 2, y0 + sy / 2, top + 1.5))
+                if rng.random() < 0.35:  # a column under the deck down to the bottom of the box
+                    r = float(rng.uniform(0.5, 1.5))
+                    solids.append(Solid(Cylinder(x0 + sx / 2, y0 + sy / 2, r, 0.0, top - thick), PILLAR))
+                else:
+                    preferred.append((x0 + sx / 2, y0 + sy / 2, top - thick - 1.5))
+                break
+    for a, b in itertools.pairwise(decks):  # bridges and ramps from deck to deck
+        pa = np.array([(a[0] + a[2]) / 2, (a[1] + a[3]) / 2, a[4]])  # (3,) deck centres on top
+        pb = np.array([(b[0] + b[2]) / 2, (b[1] + b[3]) / 2, b[4]])  # (3,)
+        run = float(np.hypot(*(pb - pa)[:2]))
+        if run < 4.0 or np.degrees(np.arctan2(abs(pb[2] - pa[2]), run)) > 30.0 or rng.random() < 0.25:
+            continue
+        bw = float(rng.uniform(1.6, 3.0))
+        solids.append(Solid(slab_between(pa, pb, bw, 0.3), RAMP))
+        if rng.random() < 0.6:  # thin rails along both sides, a meter above the walking surface
+            along = (pb - pa) / np.linalg.norm(pb - pa)  # (3,)
+            side = np.cross([0.0, 0.0, 1.0], along)  # (3,)
+            side /= np.linalg.norm(side)
+            thick = float(rng.uniform(0.06, 0.12))
+            for sign in (-1.0, 1.0):
+                off = side * sign * (bw / 2 - thick) + np.array([0.0, 0.0, 1.0])  # (3,)
+                solids.append(Solid(slab_between(pa + off, pb + off, thick, thick, top=False), RAILING))
+    for d in decks:  # roofs on posts over some decks: low ceilings in the open
+        if rng.random() < 0.35 and d[4] + 4.5 < height - 1.0:
+            roof = d[4] + float(rng.uniform(2.6, 4.0))
+            x0, y0, x1, y1 = d[0] + 0.5, d[1] + 0.5, d[2] - 0.5, d[3] - 0.5
+            solids.append(Solid(_box(x0, y0, roof, x1, y1, roof + 0.3), FLOOR))
+            post = float(rng.uniform(0.1, 0.3))
+            for cx, cy in itertools.product((x0 + post, x1 - post), (y0 + post, y1 - post)):
+                solids.append(Solid(Cylinder(cx, cy, post, d[4], roof), PILLAR))
+        elif rng.random() < 0.5:  # a jump-pad pedestal or a low wall on the deck
+            if rng.random() < 0.5:
+                r = float(rng.uniform(0.6, 1.0))
+                cx, cy = (d[0] + d[2]) / 2 + float(rng.uniform(-1.0, 1.0)), (d[1] + d[3]) / 2
+                solids.append(
+                    Solid(Cylinder(cx, cy, r, d[4], d[4] + float(rng.uniform(0.15, 0.35))), OBSTACLE)
+                )
+            else:
+                tall = float(rng.uniform(0.8, 1.5))
+                solids.append(Solid(_box(d[0], d[1], d[4], d[2], d[1] + 0.3, d[4] + tall), WALL))
+    for _ in range(int(rng.integers(2, 6))):  # towers from the bottom to the sky
+        for _try in range(20):
+            r = float(rng.uniform(1.0, 4.0))
+            x, y = float(rng.uniform(r + 1.0, length - r - 1.0)), float(rng.uniform(r + 1.0, width - r - 1.0))
+            if clear_of_decks(x - r, y - r, 0.0, x + r, y + r, height, 1.5):
+                square = _box(x - r, y - r, 0.0, x + r, y + r, height)
+                solids.append(Solid(Cylinder(x, y, r, 0.0, height) if rng.random() < 0.5 else square, WALL))
+                break
+    for _ in range(int(rng.integers(4, 12))):  # poles hanging from the sky or standing on the bottom
+        r = float(rng.uniform(0.06, 0.2))
+        x, y = float(rng.uniform(1.0, length - 1.0)), float(rng.uniform(1.0, width - 1.0))
+        span = float(rng.uniform(4.0, height * 0.6))
+        z0, z1 = (height - span, height) if rng.random() < 0.5 else (0.0, span)
+        if clear_of_decks(x - r, y - r, z0, x + r, y + r, z1, 1.4):
+            solids.append(Solid(Cylinder(x, y, r, z0, z1), PILLAR))
+    for _ in range(int(rng.integers(2, 6))):  # slanted struts leaning across the air
+        x, y, z = (
+            float(rng.uniform(2.0, length - 6.0)),
+            float(rng.uniform(2.0, width - 2.0)),
+            float(rng.uniform(1.0, height - 8.0)),
+        )
+        reach, rise = float(rng.uniform(2.0, 5.0)), float(rng.uniform(3.0, 6.0))
+        if clear_of_decks(x, y - 0.3, z, x + reach, y + 0.3, z + rise, 1.4):
+            beam = slab_between(
+                (x, y, z), (x + reach, y, z + rise), float(rng.uniform(0.2, 0.4)), 0.3, top=False
+            )
+            solids.append(Solid(beam, OBSTACLE))
+    for _ in range(8):  # open air between the decks
+        preferred.append(
+            (
+                float(rng.uniform(2.0, length - 2.0)),
+                float(rng.uniform(2.0, width - 2.0)),
+                float(rng.uniform(3.0, height - 3.0)),
+            )
+        )
+    return [_box(0.0, 0.0, 0.0, length, width, height)], solids, height, preferred
+
+
 def build_layout(family: Family | str, seed: int) -> Layout:
     """The primitives of one scene of a family; the same (family, seed) always gives the same layout."""
     fam = Family(family)
@@ -883,9 +997,19 @@ def build_layout(family: Family | str, seed: int) -> Layout:
             parts = _arena(rng)
         case Family.PLATFORMS:
             parts = _platforms(rng)
+        case Family.FLOATING:
+            parts = _floating(rng)
     air, solids, open_top, preferred = parts
     seeds = _pick_seeds(rng, air, solids, preferred)
-    return Layout(family=fam, seed=seed, air=tuple(air), solids=tuple(solids), open_top=open_top, seeds=seeds)
+    return Layout(
+        family=fam,
+        seed=seed,
+        air=tuple(air),
+        solids=tuple(solids),
+        open_top=open_top,
+        seeds=seeds,
+        void=fam == Family.FLOATING,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -998,7 +1122,9 @@ def mesh_layout(layout: Layout, semantics: Semantics | str = Semantics.OBJECT) -
     quad_class[normal == 3] = FLOOR
     quad_class[normal == -3] = CEILING
     lid = np.zeros(len(quads), dtype=bool)  # (Q,) bool
-    if layout.open_top is not None:
+    if layout.void:
+        lid = np.ones(len(quads), dtype=bool)
+    elif layout.open_top is not None:
         lid = (normal == -3) & np.isclose(quads[:, 0, 2], layout.open_top)
     tris = [_split_quads(quads[~lid])]  # list of (T, 3, 3)
     classes = [np.tile(quad_class[~lid], 2)]  # list of (T,)
