@@ -209,7 +209,13 @@ def plan_corpora(
         train[arm.key] = folder
     for semantics in sorted({a.semantics for a in arms}):
         folder = root / f"procedural-{semantics}-unseen-{unseen_count}-{resolution}"
-        args = {"resolution": resolution, "count": unseen_count, "seed": UNSEEN_SEED, "semantics": semantics}
+        args = {
+            "resolution": resolution,
+            "count": unseen_count,
+            "seed": UNSEEN_SEED,
+            "semantics": semantics,
+            "families": [f.value for f in FAMILIES],
+        }
         jobs.append(BuildJob(folder, "procedural", args))
 
     def finish() -> Corpora:
@@ -220,7 +226,7 @@ def plan_corpora(
             names = {m: Path(m).stem for m in maps}
             merged = root / f"openarena-{len(maps)}maps-all-{resolution}"
             if not (merged / "manifest.json").is_file():
-                merge_corpora(chunks, merged)
+                merge_corpora(chunks, merged, by_name=True)
             by_name = {s.name: s for s in read_manifest(merged).scenes}
             tag = f"{len(maps)}maps"
             if cfg.train.task == "pointgoal":

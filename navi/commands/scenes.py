@@ -12,7 +12,7 @@ import typer
 
 
 def _parse_families(raw: list[str] | None) -> list[str] | None:
-    """Split repeated and comma-separated `--families` values; None keeps every family."""
+    """Split repeated and comma-separated `--families` values; None keeps the default corpus's families."""
     if not raw:
         return None
     names = [name.strip() for item in raw for name in item.split(",") if name.strip()]
@@ -30,8 +30,8 @@ def generate(
     families: Annotated[
         list[str] | None,
         typer.Option(
-            help="Families to cycle (repeat or comma-separate); default: all. "
-            "See `docs/SCENES.md` for the list.",
+            help="Families to cycle (repeat or comma-separate); default: every family but floating "
+            "(the main job's corpus). See `docs/SCENES.md` for the list.",
         ),
     ] = None,
     semantics: Annotated[

@@ -16,6 +16,7 @@ from navi_compiler.ingest.bsp import CLASS_NAMES as SURFACE_CLASS_NAMES
 from navi_compiler.ingest.bsp import HORIZONTAL_NZ
 from navi_compiler.ingest.procedural import (
     CLASS_NAMES,
+    DEFAULT_FAMILIES,
     DRONE_RADIUS,
     FAMILIES,
     SEED_CLEARANCE,
@@ -213,12 +214,12 @@ def test_surface_semantics_class_faces_as_a_quake_map_does(family: Family) -> No
 
 
 def test_corpus_cycles_families_and_is_deterministic(tmp_path: Path) -> None:
-    a = generate_corpus(tmp_path / "a", len(FAMILIES) + 2, seed=4)
-    b = generate_corpus(tmp_path / "b", len(FAMILIES) + 2, seed=4)
+    a = generate_corpus(tmp_path / "a", len(DEFAULT_FAMILIES) + 2, seed=4)
+    b = generate_corpus(tmp_path / "b", len(DEFAULT_FAMILIES) + 2, seed=4)
     c = generate_corpus(tmp_path / "c", 3, seed=5, families=["maze"])
-    assert [p.name.split("_")[0] for p in a] == [f.value for f in FAMILIES] + [
-        FAMILIES[0].value,
-        FAMILIES[1].value,
+    assert [p.name.split("_")[0] for p in a] == [f.value for f in DEFAULT_FAMILIES] + [
+        DEFAULT_FAMILIES[0].value,
+        DEFAULT_FAMILIES[1].value,
     ]
     for pa, pb in zip(a, b, strict=True):
         assert pa.read_bytes() == pb.read_bytes()
@@ -229,7 +230,7 @@ def test_corpus_cycles_families_and_is_deterministic(tmp_path: Path) -> None:
     assert a[0].read_bytes() != a[8].read_bytes()  # same family, different scene
     assert [p.name for p in c] == ["maze_0000.obj", "maze_0001.obj", "maze_0002.obj"]
     sizes = {tuple(np.round(np.subtract(*load_scene(p).bounds[::-1]), 1)) for p in a}
-    assert len(sizes) == len(FAMILIES) + 2
+    assert len(sizes) == len(DEFAULT_FAMILIES) + 2
 
 
 def test_scenes_generate_command(tmp_path: Path) -> None:

@@ -187,22 +187,37 @@ def test_mesh_sources_compile_into_a_corpus(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("semantics", ["object", "surface"])
-def test_arenas_and_platforms_compile_qualify_and_repeat_per_seed(tmp_path: Path, semantics: str) -> None:
+def test_slab_families_compile_qualify_and_repeat_per_seed(tmp_path: Path, semantics: str) -> None:
     """The slab families at 128^3: every scene compiles and qualifies with spawns, the same seed builds the
     same files, and a surface-classed scene names only Quake 3's classes."""
     from navi_compiler.ingest.bsp import CLASS_NAMES as SURFACE_CLASS_NAMES
     from navi_env.corpus.folder import build_default_corpus
 
-    families = ["arena", "platforms"]
-    a = build_default_corpus(tmp_path / "a", 128, 2, 7, families=families, semantics=semantics)
-    b = build_default_corpus(tmp_path / "b", 128, 2, 7, families=families, semantics=semantics)
-    assert [s.name for s in a.scenes] == ["arena_0000", "platforms_0001"] and not a.rejected
+    families = ["arena", "platforms", "floating"]
+    a = build_default_corpus(tmp_path / "a", 128, 3, 7, families=families, semantics=semantics)
+    b = build_default_corpus(tmp_path / "b", 128, 3, 7, families=families, semantics=semantics)
+    assert [s.name for s in a.scenes] == ["arena_0000", "platforms_0001", "floating_0002"] and not a.rejected
     for sa, sb in zip(a.scenes, b.scenes, strict=True):
         assert len(sa.spawns()) >= 4
         assert (tmp_path / "a" / sa.file).read_bytes() == (tmp_path / "b" / sb.file).read_bytes()
     corpus, _ = load_corpus_folder(tmp_path / "a", torch.device("cpu"))
     for info in corpus.infos:
         assert (info.class_names == SURFACE_CLASS_NAMES) == (semantics == "surface")
+
+
+def test_a_corpus_built_in_pieces_merges_the_same_however_it_was_dealt(tmp_path: Path) -> None:
+    from navi_env.corpus.folder import build_default_corpus, merge_corpora
+
+    for name, families in (("p", ["maze", "rooms"]), ("q", ["caves"])):
+        build_default_corpus(tmp_path / name, 32, 2, 3, families=families)
+    kept = merge_corpora([tmp_path / "p", tmp_path / "q"], tmp_path / "kept")
+    a = merge_corpora([tmp_path / "q", tmp_path / "p"], tmp_path / "a", by_name=True)
+    b = merge_corpora([tmp_path / "p", tmp_path / "q"], tmp_path / "b", by_name=True)
+    assert [s.name for s in kept.scenes] == ["maze_0000", "rooms_0001", "caves_0000", "caves_0001"]
+    assert [s.name for s in a.scenes] == [s.name for s in b.scenes] == sorted(s.name for s in kept.scenes)
+    assert [s.name for s in a.scenes] != [s.name for s in kept.scenes]
+    for sa, sb in zip(a.scenes, b.scenes, strict=True):
+        assert (tmp_path / "a" / sa.file).read_bytes() == (tmp_path / "b" / sb.file).read_bytes()
 
 
 def test_scenes_declare_moving_obstacles_through_sidecar_and_manifest(tmp_path: Path) -> None:

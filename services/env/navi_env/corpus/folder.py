@@ -364,10 +364,14 @@ def build_corpus(
     return manifest
 
 
-def merge_corpora(parts: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str]) -> CorpusManifest:
-    """One corpus folder `out` holding every scene of the corpus folders `parts` (copied, in order;
-    a repeated name gets a suffix), transactionally like build_corpus. The resolution recorded is the
-    first part's; scenes keep their own."""
+def merge_corpora(
+    parts: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str], by_name: bool = False
+) -> CorpusManifest:
+    """One corpus folder `out` holding every scene of the corpus folders `parts` (copied, in order, or
+    ordered by name with `by_name`; a repeated name gets a suffix), transactionally like build_corpus. The
+    resolution recorded is the first part's; scenes keep their own. Scene order decides which actors fly
+    which scene, so a corpus built in pieces in parallel is merged `by_name` to be the same however it
+    was dealt."""
     if not parts:
         raise CorpusError("no corpus to merge")
     with _transaction(out, "merge") as work:
@@ -383,6 +387,8 @@ def merge_corpora(parts: Sequence[str | os.PathLike[str]], out: str | os.PathLik
                 name = _scene_name(scene.name, taken)
                 shutil.copyfile(Path(part) / scene.file, work / f"{name}.gmdag")
                 scenes.append(replace(scene, name=name, file=f"{name}.gmdag"))
+        if by_name:
+            scenes.sort(key=lambda scene: scene.name)
         merged = CorpusManifest(
             created_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             resolution=resolution,
@@ -423,7 +429,8 @@ def build_default_corpus(
     families: Sequence[str] | None = None,
     semantics: str = "object",
 ) -> CorpusManifest:
-    """Generate `count` procedural scenes (navi_compiler.ingest.procedural: `families` cycled, all when None,
+    """Generate `count` procedural scenes (navi_compiler.ingest.procedural: `families` cycled, the default
+    families when None,
     face classes by `semantics`) and build them into the corpus `out`."""
     from navi_compiler.ingest.procedural import generate_corpus
 
