@@ -3,7 +3,9 @@ connected parts, a geodesic field from a spawn), timed and sized, and the covera
 in the evaluation's episodes, per 1,000 steps: an upper bound from the drone's speed limit and the free
 space of the spawn's part, and what a planner with the map flies under the env's speed limits and
 proximity limiter (navi_env.space.freespace.greedy_coverage), with the reward per step the env would pay
-that flight (flight_reward). With goals G > 0 it also builds the
+that flight (flight_reward), and how open the first spawn's part is: the view clearance (the shortest ray of
+the 256 x 48 view, as the env reads it) at OPEN_POINTS of its voxels, its median and the share of them
+at the cap (EnvConfig.clearance_range, 10 m), where the rewards and the limiter read only "open". With goals G > 0 it also builds the
 scene's point-goal table (navi_env.space.goal_tables: G goals 5-30 m from the spawns, their geodesic fields),
 timed and sized."""
 
@@ -20,9 +22,11 @@ import torch
 
 from navi_env.config import EnvConfig
 from navi_env.corpus.folder import load_corpus_folder
+from navi_env.rays import spherical_directions
 from navi_env.sim.rewards import escape_potential, exploration_term, proximity_term
 from navi_env.space.freespace import (
     Flight,
+    FreeSpace,
     components,
     coverage_bound,
     free_space,
@@ -33,9 +37,44 @@ from navi_env.space.freespace import (
 )
 from navi_env.space.goal_tables import goal_table
 from navi_env.tracer.scene import SceneCorpus
+from navi_env.tracer.trace import trace
 
 PLANNER_SPAWNS = 3
 """Spawns per scene the planner flies from (the median is reported)."""
+OPEN_POINTS = 64
+"""Voxels of the spawn's part (drawn with a fixed seed) whose view clearance gives the part's openness."""
+
+
+def view_clearance(
+    corpus: SceneCorpus,
+    scene: int,
+    space: FreeSpace,
+    labels: torch.Tensor,
+    start: torch.Tensor,
+    cfg: EnvConfig,
+) -> torch.Tensor:
+    """The view clearance (P,) meters, capped at cfg.clearance_range, at up to OPEN_POINTS voxel centres
+    of the part holding voxel start (1, 3); empty when that voxel is blocked."""
+    part = labels[tuple(start[0].tolist())]  # () the part's label, -1 when blocked
+    if int(part) < 0:
+        return torch.empty(0)
+    index = torch.nonzero(labels == part)  # (M, 3) int64
+    pick = torch.randperm(index.shape[0], generator=torch.Generator().manual_seed(0))[:OPEN_POINTS]  # (P,)
+    origins = space.centre_of(index[pick.to(index.device)]).contiguous()  # (P, 3)
+    dirs = spherical_directions(cfg.azimuth_bins, cfg.elevation_bins, corpus.device)  # (R, 3)
+    ids = torch.full((origins.shape[0],), scene, dtype=torch.int64, device=corpus.device)  # (P,)
+    depth = torch.empty(origins.shape[0], dirs.shape[0], device=corpus.device)  # (P, R) meters
+    trace(
+        corpus,
+        ids,
+        origins,
+        dirs,
+        out_depth=depth,
+        horizon=cfg.clearance_range,
+        hit_epsilon=cfg.hit_epsilon,
+        hit_slope=cfg.hit_slope,
+    )
+    return depth.min(dim=1).values.clamp(max=cfg.clearance_range).cpu()  # (P,)
 
 
 def limiter(cfg: EnvConfig) -> Callable[[float], float]:
@@ -117,6 +156,7 @@ def survey_scene(
     sizes = torch.bincount(torch.searchsorted(parts, labels[labels >= 0]))  # (P,) voxels per part
     finite = field[torch.isfinite(field)] if field is not None else torch.empty(0)
     reachable = int(statistics.median(reach))
+    view = view_clearance(corpus, scene, space, labels, start, cfg)  # (P,) meters
     return {
         "name": corpus.infos[scene].name,
         "cell_m": cell,
@@ -136,6 +176,8 @@ def survey_scene(
             statistics.median(flight_reward(f, episode_steps, cfg) for f in flights), 4
         ),
         "farthest_path_m": round(float(finite.max()), 2) if finite.numel() else None,
+        "view_clearance_median_m": round(float(view.median()), 2) if view.numel() else None,
+        "open_share": round(float((view >= cfg.clearance_range).float().mean()), 4) if view.numel() else 0.0,
         "seconds": {
             "sample": round(t1 - t0, 3),
             "components": round(t2 - t1, 3),

@@ -5,7 +5,8 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
   and rollouts) from scratch for `budget_s` seconds of training on its own train split, once per seed:
   - `procedural[:SEMANTICS[:FAMILY+FAMILY...]]`: procedural scenes of seed 0 (the main job's corpus),
     face classes by SEMANTICS (object or surface, navi_compiler.ingest.procedural.Semantics; default
-    object), of the listed families (default all);
+    object), of the listed families (default: the default families; FAMILY@S scales that entry's scenes by
+    up to S);
   - `openarena`: the OpenArena maps outside the held-out fifth (every fifth map by name, as `navi bench
     learn` holds out): the upper reference, a drone that has seen real maps.
 - Evaluation. Every arm's final checkpoint flies (EvalProtocol, deterministic, same env seed) on:
@@ -74,8 +75,9 @@ class Arm:
 
 
 def parse_arm(spec: str) -> Arm:
-    """An Arm from `openarena` or `procedural[:SEMANTICS[:FAMILY+FAMILY...]]`; ValueError on anything else."""
-    from navi_compiler.ingest.procedural import FAMILIES, SEMANTICS
+    """An Arm from `openarena` or `procedural[:SEMANTICS[:FAMILY+FAMILY...]]` (an entry FAMILY@S scales its
+    scenes by up to S, navi_compiler.ingest.procedural.parse_entry); ValueError on anything else."""
+    from navi_compiler.ingest.procedural import SEMANTICS, parse_entry
 
     parts = spec.strip().split(":")
     if parts == ["openarena"]:
@@ -86,9 +88,11 @@ def parse_arm(spec: str) -> Arm:
     if semantics not in {s.value for s in SEMANTICS}:
         raise ValueError(f"arm {spec!r}: semantics must be one of {', '.join(s.value for s in SEMANTICS)}")
     families = tuple(f for f in parts[2].split("+") if f) if len(parts) > 2 else ()
-    unknown = sorted(set(families) - {f.value for f in FAMILIES})
-    if unknown:
-        raise ValueError(f"arm {spec!r}: unknown families {', '.join(unknown)}")
+    for entry in families:
+        try:
+            parse_entry(entry)
+        except ValueError as err:
+            raise ValueError(f"arm {spec!r}: {err}") from err
     return Arm(spec.strip(), real=False, semantics=semantics, families=families)
 
 

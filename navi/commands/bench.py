@@ -373,8 +373,9 @@ def bench_freespace_cmd(
     record: RecordOpt = None,
 ) -> None:
     """Each scene as free space at the drone's radius: voxels, connected parts, a geodesic field from a
-    spawn (times and bytes), and the coverage per 1,000 steps its spawns can reach at most (speed limit
-    and the spawn's free part)."""
+    spawn (times and bytes), the coverage per 1,000 steps its spawns can reach at most (speed limit
+    and the spawn's free part), and how open that part is (the view clearance at 64 of its voxels: its
+    median and the share at the 10 m cap)."""
     from navi_bench.survey import survey_corpus
     from navi_learner.envs.factory import parse_reward_overrides
 
@@ -402,6 +403,7 @@ def bench_freespace_cmd(
             f"reachable {row['reachable_cells_median']} cells, coverage <= {row['coverage_bound_per_1k']}/1k, "
             f"planner {row['planner_coverage_per_1k']}/1k at {row['planner_speed_m_s']} m/s "
             f"(reward {row['planner_reward_per_step']}/step), "
+            f"view clearance median {row['view_clearance_median_m']} m, {row['open_share']:.0%} open, "
             f"{sum(row['seconds'].values()):.2f} s"
             + "".join(
                 f", {k} {v['coverage_per_1k']:.0f}/1k ({v['distance_per_1k']:.0f} m, {v['m_per_new_cell']} m per cell, "
@@ -606,7 +608,8 @@ def bench_transfer_cmd(
         typer.Option(
             "--arm",
             help="What a run trains on (repeatable): procedural[:SEMANTICS[:FAMILY+FAMILY...]] (procedural "
-            "scenes of seed 0; SEMANTICS object or surface) or openarena (the maps outside the held-out fifth). "
+            "scenes of seed 0; SEMANTICS object or surface; FAMILY@S scales that entry's scenes by up to S) or "
+            "openarena (the maps outside the held-out fifth). "
             "Default: procedural and openarena.",
         ),
     ] = None,

@@ -46,18 +46,18 @@ def generate(
     ] = False,
 ) -> None:
     """Write COUNT varied procedural scenes (.obj + .scene.json sidecar) into OUT."""
-    from navi_compiler.ingest.procedural import FAMILIES, SEMANTICS, generate_corpus
+    from navi_compiler.ingest.procedural import SEMANTICS, generate_corpus, parse_entry
 
     if semantics not in {s.value for s in SEMANTICS}:
         known = ", ".join(s.value for s in SEMANTICS)
         raise typer.BadParameter(f"unknown semantics {semantics!r}; known: {known}", param_hint="--semantics")
 
     chosen = _parse_families(families)
-    if chosen is not None:
-        unknown = sorted(set(chosen) - {f.value for f in FAMILIES})
-        if unknown:
-            known = ", ".join(f.value for f in FAMILIES)
-            raise typer.BadParameter(f"unknown families {unknown}; known: {known}", param_hint="--families")
+    for entry in chosen or []:
+        try:
+            parse_entry(entry)
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="--families") from err
     show = sys.stderr.isatty() and not json_out
     started = time.perf_counter()
 

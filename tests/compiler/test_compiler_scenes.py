@@ -233,6 +233,33 @@ def test_corpus_cycles_families_and_is_deterministic(tmp_path: Path) -> None:
     assert len(sizes) == len(DEFAULT_FAMILIES) + 2
 
 
+def test_scaled_entries_repeat_and_scale_each_scene_with_its_seeds(tmp_path: Path) -> None:
+    """An entry FAMILY@S: each scene is the unscaled one times a factor in [1, S] drawn from (seed, index)."""
+    plain = generate_corpus(tmp_path / "plain", 6, seed=2, families=["hall", "arena"])
+    scaled = generate_corpus(tmp_path / "scaled", 6, seed=2, families=["hall@3", "arena@3"])
+    again = generate_corpus(tmp_path / "again", 6, seed=2, families=["hall@3", "arena@3"])
+    assert [p.name for p in scaled] == [p.name for p in plain]
+    factors = []
+    for p, s, a in zip(plain, scaled, again, strict=True):
+        assert s.read_bytes() == a.read_bytes()
+        one, big = load_scene(p), load_scene(s)
+        factor = float(np.ptp(big.vertices[:, 0]) / np.ptp(one.vertices[:, 0]))
+        np.testing.assert_allclose(big.vertices, one.vertices * factor, atol=1e-5)
+        np.testing.assert_allclose(big.seeds, one.seeds * factor, atol=1e-5)
+        np.testing.assert_array_equal(big.faces, one.faces)
+        factors.append(factor)
+    assert all(1.0 <= f <= 3.0 for f in factors) and max(factors) - min(factors) > 0.3, factors
+    mixed = generate_corpus(tmp_path / "mixed", 2, seed=2, families=["hall", "arena@3"])
+    assert mixed[0].read_bytes() == plain[0].read_bytes() and mixed[1].read_bytes() == scaled[1].read_bytes()
+    for bad, why in (
+        ("hall@0.5", "from 1 to 100"),
+        ("hall@big", "from 1 to 100"),
+        ("castle@2", "unknown family"),
+    ):
+        with pytest.raises(ValueError, match=why):
+            generate_corpus(tmp_path / "bad", 1, seed=2, families=[bad])
+
+
 def test_scenes_generate_command(tmp_path: Path) -> None:
     app = typer.Typer()
     app.add_typer(scenes.app, name="scenes")
@@ -251,6 +278,23 @@ def test_scenes_generate_command(tmp_path: Path) -> None:
     assert result.exit_code == 0 and "caves, maze" in result.stdout
     bad = runner.invoke(app, ["scenes", "generate", "--out", str(tmp_path), "--families", "castle"])
     assert bad.exit_code == 2 and "castle" in bad.output
+    bad = runner.invoke(app, ["scenes", "generate", "--out", str(tmp_path), "--families", "hall@0"])
+    assert bad.exit_code == 2 and "the scale after @" in bad.output
+    big = runner.invoke(
+        app,
+        [
+            "scenes",
+            "generate",
+            "--out",
+            str(tmp_path / "big"),
+            "--families",
+            "hall@4",
+            "--count",
+            "1",
+            "--json",
+        ],
+    )
+    assert big.exit_code == 0 and json.loads(big.stdout)["families"] == ["hall"], big.output
     surface = tmp_path / "surface"
     args = ["scenes", "generate", "--out", str(surface), "--families", "arena", "--count", "1", "--semantics"]
     result = runner.invoke(app, [*args, "surface", "--json"])

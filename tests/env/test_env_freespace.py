@@ -265,6 +265,23 @@ def test_bench_freespace_reports_every_scene_with_a_sound_bound(small_corpus: Pa
         assert 5.0 * 0.2 <= row["planner_speed_m_s"] <= 5.0  # between the limiter's floor and full speed
         assert row["goals"] == 4 and row["goal_pairs_per_spawn"] > 0 and row["cell_m"] == 0.5
         assert row["goal_bytes"] >= 4 * 4 * math.prod(row["grid"])  # four float32 fields
+        # rooms and a hall at most 12 m high: no view is clear for 10 m all round
+        assert row["open_share"] == 0.0 and 0.3 <= row["view_clearance_median_m"] <= 6.0
+
+
+def test_a_scaled_entry_opens_space_its_family_lacks(tmp_path: Path) -> None:
+    """The survey's openness: platforms as designed have no view clear for 10 m all round; the same scene
+    scaled (platforms@4, a factor of 2.73 for this seed) has."""
+    from navi_bench.survey import survey_corpus
+    from navi_env.corpus.folder import build_default_corpus
+
+    rows = {}
+    for entry in ("platforms", "platforms@4"):
+        build_default_corpus(tmp_path / entry, 64, 1, 3, families=[entry])
+        rows[entry] = survey_corpus(tmp_path / entry, "cpu", cell=4.0)["scenes"][0]
+    plain, scaled = rows["platforms"], rows["platforms@4"]
+    assert plain["open_share"] == 0.0 and scaled["open_share"] > 0.1
+    assert scaled["view_clearance_median_m"] > 2 * plain["view_clearance_median_m"]
 
 
 def line(shape: tuple[int, int, int], clearance: float) -> FreeSpace:

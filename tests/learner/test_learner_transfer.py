@@ -38,10 +38,12 @@ def test_arms_parse_and_bad_ones_are_refused() -> None:
         ("arena", "maze"),
         "procedural-surface-arena+maze",
     )
+    assert parse_arm("procedural:object:rooms+arena@4").families == ("rooms", "arena@4")
     for bad, why in (
         ("quake", "expected openarena or procedural"),
         ("procedural:texture", "semantics must be one of"),
-        ("procedural:object:castle", "unknown families castle"),
+        ("procedural:object:castle", "unknown family 'castle'"),
+        ("procedural:object:arena@0", "the scale after @"),
         ("openarena:surface", "expected openarena or procedural"),
     ):
         with pytest.raises(ValueError, match=why):

@@ -17,7 +17,7 @@ from __future__ import annotations
 import itertools
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 from pathlib import Path
 
@@ -80,6 +80,8 @@ DRONE_RADIUS = 0.3  # meters
 SEED_CLEARANCE = 0.5  # meters of free space around every seed (drone radius plus a margin)
 SEED_COUNT = 12  # seeds per scene (fewer when the free space is small)
 CYLINDER_SEGMENTS = 16
+SCALE_STREAM = 1
+"""Third word of the seed sequence (seed, scene index, SCALE_STREAM) that draws a scene's scale."""
 
 
 @dataclass(frozen=True)
@@ -1223,6 +1225,21 @@ def write_scene_mesh(scene: Scene, path: str | os.PathLike[str]) -> Path:
     return out
 
 
+def parse_entry(entry: Family | str) -> tuple[Family, float]:
+    """(family, largest scale) of a corpus entry `FAMILY` or `FAMILY@S` with S >= 1; ValueError otherwise
+    (an unknown family names the known ones)."""
+    name, _, scale = str(entry.value if isinstance(entry, Family) else entry).partition("@")
+    if name not in {f.value for f in FAMILIES}:
+        raise ValueError(f"unknown family {name!r}; known: {', '.join(f.value for f in FAMILIES)}")
+    try:
+        largest = float(scale) if scale else 1.0
+    except ValueError:
+        largest = 0.0
+    if not 1.0 <= largest <= 100.0:
+        raise ValueError(f"entry {entry!r}: the scale after @ must be a number from 1 to 100")
+    return Family(name), largest
+
+
 def generate_corpus(
     out_dir: str | os.PathLike[str],
     count: int,
@@ -1234,19 +1251,26 @@ def generate_corpus(
     """Write `count` scenes into out_dir as `<family>_<index>.obj` (+ sidecars), cycling the families
     (DEFAULT_FAMILIES when None), their faces classed by `semantics`.
 
-    Scene i uses family families[i % len(families)] and a seed derived from (seed, i): the same
-    arguments always write the same files. Returns the mesh paths in order.
+    Scene i uses entry families[i % len(families)] and a seed derived from (seed, i): the same
+    arguments always write the same files. An entry is a family or `FAMILY@S` (parse_entry): its scenes
+    are scaled about the origin, seeds too, by S ** u, u uniform in [0, 1] from (seed, i), so an atrium
+    becomes a stadium and a field of platforms a valley: open space no unscaled family holds. Returns the
+    mesh paths in order.
     """
-    chosen = [Family(f) for f in families] if families else list(DEFAULT_FAMILIES)
+    chosen = [parse_entry(f) for f in families] if families else [(f, 1.0) for f in DEFAULT_FAMILIES]
     if count < 0:
         raise ValueError(f"count must be >= 0, got {count}")
     root = Path(out_dir)
     root.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
     for i in range(count):
-        family = chosen[i % len(chosen)]
+        family, scale_max = chosen[i % len(chosen)]
         scene_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
         scene = generate_scene(family, scene_seed, semantics)
+        if scale_max > 1.0:
+            u = np.random.default_rng(np.random.SeedSequence([seed, i, SCALE_STREAM])).random()
+            factor = float(scale_max**u)
+            scene = replace(scene, vertices=scene.vertices * factor, seeds=scene.seeds * factor)
         path = write_scene_mesh(scene, root / f"{family.value}_{i:04d}.obj")
         paths.append(path)
         if progress is not None:
