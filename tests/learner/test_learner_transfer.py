@@ -93,12 +93,12 @@ def test_the_bar_on_real_maps() -> None:
 
 
 def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
-    """Two procedural arms (one family each, object and surface semantics), one seed, no OpenArena package:
-    the job says so, builds each arm's corpora, flies the baselines and each final checkpoint on the unseen
+    """Two procedural arms (one family each, object and surface semantics, the second scaled by up to 2), one
+    seed, no OpenArena package: the job says so, builds each arm's corpora, flies the baselines and each final checkpoint on the unseen
     procedural scenes, and its summary and report hold exactly those runs."""
     train: TrainConfig = learning_recipe(TrainConfig(n_actors=4, rollout_length=16))
     cfg = TransferConfig(
-        arms=(parse_arm("procedural:object:maze"), parse_arm("procedural:surface:maze")),
+        arms=(parse_arm("procedural:object:maze"), parse_arm("procedural:surface:maze@2")),
         seeds=(3,),
         budget_s=2.0,
         train=train,
@@ -114,7 +114,7 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     assert any("OpenArena maps not found" in note for note in saved["notes"])
     assert saved["scenes"] == {
         "train/procedural-object-maze": ["maze_0000"],
-        "train/procedural-surface-maze": ["maze_0000"],
+        "train/procedural-surface-maze@2": ["maze_0000"],
     }
     assert set(saved["baselines"]) == {"procedural"} and set(saved["baselines"]["procedural"]) == {
         "random",
@@ -122,7 +122,7 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     }
     assert [(r["arm"], r["seed"]) for r in saved["runs"]] == [
         ("procedural:object:maze", 3),
-        ("procedural:surface:maze", 3),
+        ("procedural:surface:maze@2", 3),
     ]
     for run in saved["runs"]:
         assert set(run["final_by_part"]) == {"procedural"} and run["steps"] > 0 and run["train_s"] >= 2.0
@@ -133,7 +133,7 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
         base = saved["baselines"]["procedural"]
         assert arm["competent_seeds"] == int(verdict(part, base, "explore")) and arm["seeds_run"] == 1
     report = (out / "report.md").read_text()
-    assert "| procedural:surface:maze |" in report and "| reactive |" in report
+    assert "| procedural:surface:maze@2 |" in report and "| reactive |" in report
     assert result["summary"]["per_map"] == {} and not (out / "transfer.png").exists()
 
 
