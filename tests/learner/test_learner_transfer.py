@@ -94,8 +94,8 @@ def test_the_bar_on_real_maps() -> None:
 
 def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     """Two procedural arms (one family each, object and surface semantics, the second scaled by up to 2), one
-    seed, no OpenArena package: the job says so, builds each arm's corpora, flies the baselines and each final checkpoint on the unseen
-    procedural scenes, and its summary and report hold exactly those runs."""
+    seed, no OpenArena package: the job says so, builds each arm's corpora, flies the baselines and each
+    final checkpoint on the unseen procedural scenes, and its summary and report hold exactly those runs."""
     train: TrainConfig = learning_recipe(TrainConfig(n_actors=4, rollout_length=16))
     cfg = TransferConfig(
         arms=(parse_arm("procedural:object:maze"), parse_arm("procedural:surface:maze@2")),
