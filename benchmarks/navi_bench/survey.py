@@ -3,11 +3,11 @@ connected parts, a geodesic field from a spawn), timed and sized, and the covera
 in the evaluation's episodes, per 1,000 steps: an upper bound from the drone's speed limit and the free
 space of the spawn's part, and what a planner with the map flies under the env's speed limits and
 proximity limiter (navi_env.space.freespace.greedy_coverage), with the reward per step the env would pay
-that flight (flight_reward), and how open the first spawn's part is: the view clearance (the shortest ray of
-the 256 x 48 view, as the env reads it) at OPEN_POINTS of its voxels, its median and the share of them
-at the cap (EnvConfig.clearance_range, 10 m), where the rewards and the limiter read only "open". With goals G > 0 it also builds the
-scene's point-goal table (navi_env.space.goal_tables: G goals 5-30 m from the spawns, their geodesic fields),
-timed and sized."""
+that flight (flight_reward), and how open the first spawn's part is: the view clearance (the shortest
+ray of the 256 x 48 view, as the env reads it) at OPEN_POINTS of its voxels, its median and the share of
+them at the cap (EnvConfig.clearance_range, 10 m), where the rewards and the limiter read only "open".
+With goals G > 0 it also builds the scene's point-goal table (navi_env.space.goal_tables: G goals 5-30 m
+from the spawns, their geodesic fields), timed and sized."""
 
 from __future__ import annotations
 

@@ -31,7 +31,8 @@ def generate(
         list[str] | None,
         typer.Option(
             help="Families to cycle (repeat or comma-separate); default: every family but floating "
-            "(the main job's corpus). See `docs/SCENES.md` for the list.",
+            "(the main job's corpus). FAMILY@S scales that entry's scenes by up to S (a factor drawn per "
+            "scene from the seed). See `docs/SCENES.md` for the list.",
         ),
     ] = None,
     semantics: Annotated[
