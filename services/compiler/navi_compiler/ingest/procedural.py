@@ -157,8 +157,11 @@ class Layout:
     open_top: float | None
     """Z of the undrawn lid of an open family (its ceiling faces become barriers); None: closed."""
     seeds: np.ndarray  # (S, 3) float64 meters, free points with SEED_CLEARANCE around them
-    void: bool = False
-    """Every boundary face of the air is an undrawn barrier (a sky box on all sides, below included)."""
+
+    @property
+    def void(self) -> bool:
+        """Every boundary face of the air is an undrawn barrier (a sky box on all sides, below included)."""
+        return self.family == Family.FLOATING
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1006,15 +1009,7 @@ def build_layout(family: Family | str, seed: int) -> Layout:
             parts = _floating(rng)
     air, solids, open_top, preferred = parts
     seeds = _pick_seeds(rng, air, solids, preferred)
-    return Layout(
-        family=fam,
-        seed=seed,
-        air=tuple(air),
-        solids=tuple(solids),
-        open_top=open_top,
-        seeds=seeds,
-        void=fam == Family.FLOATING,
-    )
+    return Layout(family=fam, seed=seed, air=tuple(air), solids=tuple(solids), open_top=open_top, seeds=seeds)
 
 
 # ---------------------------------------------------------------------------------------------
