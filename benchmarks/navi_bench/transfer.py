@@ -16,9 +16,11 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
   The task's baselines fly the same envs (random and the reactive avoider; random, greedy and oracle
   for point-goal). On `openarena` every collision is classed by the surface it touched (the distance
   field's normal there: floor, ceiling, wall or slope; thin when the solid behind it is thinner than
-  THIN_M) and counted per map.
-- Runs are placed one per GPU (`gpus`), each GPU working through its share in turn; the corpora are
-  built once under `root` and reused.
+  THIN_M) and counted per map, and so are the pinned contacts (a drone in contact PINNED_STEPS or more
+  steps in a row).
+- Runs are placed one per GPU (`gpus`), each GPU working through its share in turn, after a few
+  untimed updates that fill the compile cache (WarmupJob), so that every run's budget is training; the
+  corpora are built once under `root` and reused.
 Output folder: result.json and report.md (and transfer.png where matplotlib is installed).
 """
 
@@ -52,6 +54,11 @@ THIN_M = 0.4
 """A collision is with thin geometry when the solid behind the touched surface is thinner than this."""
 NORMAL_STEP_M = 0.05
 """Finite-difference step of the distance field's normal at a collision."""
+PINNED_STEPS = 10
+"""A contact is pinned when it is at least the PINNED_STEPS-th step in a row that its drone is in contact
+(1 s at the default 0.1 s step): the drone stays pressed against a surface rather than grazing it."""
+WARMUP_UPDATES = 3
+"""Untimed PPO updates each worker runs before its first timed run (WarmupJob)."""
 SURFACES = ("floor", "ceiling", "wall", "slope")
 """Collision classes by the touched surface's normal n: floor n_z >= 0.7 (the surface is below), ceiling
 n_z <= -0.7, wall |n_z| < 0.2, slope in between (ramps, stairs' noses, curved patches)."""
@@ -265,25 +272,40 @@ def plan_corpora(
     return jobs, finish
 
 
+COUNTS = (*SURFACES, "thin", "pinned")
+"""What the collision table counts per map: contacts per surface class, those with thin geometry behind,
+and those that were pinned (PINNED_STEPS)."""
+
+
 class CollisionSites:
-    """An `evaluate` observer that keeps where each collision happened: (scene, position) per contact."""
+    """An `evaluate` observer that keeps where each collision happened, (scene, position) per contact, and
+    how many steps in a row its drone had been in contact by then (a new episode starts a new run)."""
 
     def __init__(self) -> None:
         self.scene: list[torch.Tensor] = []
         self.position: list[torch.Tensor] = []
+        self.run: list[torch.Tensor] = []
+        self.streak: torch.Tensor | None = None  # (N,) contact steps in a row, up to the last step
 
     def __call__(self, out: StepLike) -> None:
         hit = out.info["collision"].bool()  # (N,)
+        if self.streak is None:
+            self.streak = torch.zeros(hit.shape[0], dtype=torch.long, device=hit.device)  # (N,)
+        self.streak = (self.streak + 1) * hit  # (N,) a step without contact ends the run
         self.scene.append(out.info["scene_id"].long()[hit])  # (C_t,)
         self.position.append(out.info["position"].float()[hit])  # (C_t, 3)
+        self.run.append(self.streak[hit])  # (C_t,) 1 for a first contact
+        self.streak = self.streak * ~(out.done | out.truncated)  # (N,) the next episode starts afresh
 
     def classify(self, env: Any, names: tuple[str, ...]) -> dict[str, dict[str, int]]:
-        """Per scene name (and "all"): contacts per surface class (SURFACES) and how many were thin."""
+        """Per scene name (and "all"): contacts per surface class (SURFACES), how many were thin and how
+        many were pinned."""
         from navi_env.tracer.trace import sample_distance
 
         scene = torch.cat(self.scene) if self.scene else torch.zeros(0, dtype=torch.long)  # (C,)
         pos = torch.cat(self.position) if self.position else torch.zeros(0, 3)  # (C, 3)
-        out: dict[str, dict[str, int]] = {"all": {k: 0 for k in (*SURFACES, "thin")}}
+        run = torch.cat(self.run) if self.run else torch.zeros(0, dtype=torch.long)  # (C,)
+        out: dict[str, dict[str, int]] = {"all": dict.fromkeys(COUNTS, 0)}
         if scene.numel() == 0:
             return out
         corpus = env.corpus
@@ -307,6 +329,7 @@ class CollisionSites:
             mine = scene == k if name != "all" else torch.ones_like(thin)  # (C,) bool
             row = {s: int(((surface == i) & mine).sum()) for i, s in enumerate(SURFACES)}
             row["thin"] = int((thin & mine).sum())
+            row["pinned"] = int(((run >= PINNED_STEPS) & mine).sum())
             if name == "all" or any(row.values()):
                 out[name] = row
         return out
@@ -371,6 +394,42 @@ class RunJob:
             "final_by_part": finals,
             "collisions_by_surface": collisions,
         }
+
+
+@dataclass(frozen=True)
+class WarmupJob:
+    """WARMUP_UPDATES untimed updates of the recipe on a train corpus, run by each worker before its first
+    timed run: they put the compiled rollout step and update in the compile cache, so that no run spends
+    its budget compiling (the first run on a fresh host would otherwise train about a third fewer steps
+    in 200 s than the runs after it)."""
+
+    cfg: TransferConfig
+    train: Path
+    run_dir: Path
+
+    def __call__(self, device: str, say: Say) -> dict[str, Any]:
+        from navi_learner.ppo.train import train
+
+        started = time.perf_counter()
+        tcfg = learning_size(self.cfg.train, torch.device(device).type == "cuda")
+        tcfg = replace(
+            tcfg,
+            total_steps=WARMUP_UPDATES * tcfg.n_actors * tcfg.rollout_length,
+            time_limit_s=0.0,
+            checkpoint_every=10**12,
+            device=device,
+        )
+        env = make_env(self.train, tcfg.n_actors, device, tcfg.seed, task=tcfg.task)
+        train(
+            env,
+            tcfg,
+            run_dir=self.run_dir,
+            corpus_summary=corpus_summary(self.train, "sdfdag"),
+            progress=False,
+        )
+        seconds = time.perf_counter() - started
+        say(f"[bench transfer] warm-up on {device}: {WARMUP_UPDATES} untimed updates in {seconds:.0f} s")
+        return {"device": device, "updates": WARMUP_UPDATES, "seconds": seconds}
 
 
 def _names(env: Any) -> tuple[str, ...]:
@@ -504,7 +563,7 @@ def summarise(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]], 
                     row[arm] = {m: statistics.median(x[m] for x in mine) for m in metrics}
             out["per_map"][name] = row
         for arm in dict.fromkeys(r["arm"] for r in runs):
-            total = {k: 0 for k in (*SURFACES, "thin")}
+            total = dict.fromkeys(COUNTS, 0)
             for r in runs:
                 if r["arm"] == arm:
                     for k in total:
@@ -526,6 +585,13 @@ def report_markdown(result: dict[str, Any]) -> str:
     metrics = task_metrics(task)
     lines = ["# navi bench transfer", "", f"{result['device']}, {result['date']}, task {task}, "
              f"{result['config']['budget_s']:.0f} s of training per run, seeds {result['config']['seeds']}", ""]  # fmt: skip
+    warm = result.get("warmups", [])
+    if warm:
+        seconds = ", ".join(f"{w['seconds']:.0f}" for w in warm)
+        lines += [
+            f"Each worker first ran {warm[0]['updates']} untimed updates (the compile warm-up: {seconds} s).",
+            "",
+        ]
     for part, p in s["parts"].items():
         lines += [f"## {part}", "", "| policy | " + " | ".join(metrics) + " | competent seeds |"]
         lines += ["| --- |" + " --- |" * (len(metrics) + 1)]
@@ -541,12 +607,13 @@ def report_markdown(result: dict[str, Any]) -> str:
         lines.append("")
     if s["surfaces"]:
         lines += ["## Collisions on the OpenArena maps by the surface touched (all seeds)", ""]
+        lines += [f"pinned: the drone's {PINNED_STEPS}th or later contact step in a row.", ""]
         lines += [
-            "| policy | " + " | ".join((*SURFACES, "thin")) + " |",
-            "| --- |" + " --- |" * (len(SURFACES) + 1),
+            "| policy | " + " | ".join(COUNTS) + " |",
+            "| --- |" + " --- |" * len(COUNTS),
         ]
         for name, row in s["surfaces"].items():
-            lines.append(f"| {name} | " + " | ".join(str(row.get(k, 0)) for k in (*SURFACES, "thin")) + " |")
+            lines.append(f"| {name} | " + " | ".join(str(row.get(k, "–")) for k in COUNTS) + " |")
         lines.append("")
     if s["per_map"]:
         policies = list(next(iter(s["per_map"].values())))
@@ -626,9 +693,15 @@ def bench_transfer(
         for arm in cfg.arms
         if arm.key in corpora.train
     ]
-    done = run_spread([*base_jobs, *run_jobs], device, cfg.gpus)
+    warm_jobs = (
+        [WarmupJob(cfg, run_jobs[0].train, out / "runs" / f"warmup-{k}") for k in range(max(1, cfg.gpus))]
+        if run_jobs
+        else []
+    )  # one per worker, ahead of its first run: any `gpus` consecutive jobs go one to each GPU
+    done = run_spread([*base_jobs, *warm_jobs, *run_jobs], device, cfg.gpus)
     baselines = {d["part"]: d["baselines"] for d in done[: len(base_jobs)]}
-    runs = list(done[len(base_jobs) :])
+    warmups = list(done[len(base_jobs) : len(base_jobs) + len(warm_jobs)])
+    runs = list(done[len(base_jobs) + len(warm_jobs) :])
     result: dict[str, Any] = {
         "device": (torch.cuda.get_device_name() if device.startswith("cuda") else "cpu")
         + (f" x {cfg.gpus} (one run per GPU at a time)" if cfg.gpus > 0 else ""),
@@ -639,6 +712,7 @@ def bench_transfer(
         "scenes": corpora.scenes,
         "notes": corpora.notes,
         "baselines": baselines,
+        "warmups": warmups,
         "runs": runs,
         "summary": summarise(runs, baselines, cfg.train.task),
         "wall_s": time.perf_counter() - started,

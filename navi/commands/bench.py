@@ -654,7 +654,9 @@ def bench_transfer_cmd(
 ) -> None:
     """Train on procedural scenes alone (and, as the upper reference, on real maps), then fly every final
     checkpoint on the OpenArena maps it never saw, per map, against the baselines; collisions broken down
-    by the surface touched (docs/TRAINING.md, "Real maps never seen")."""
+    by the surface touched and counted as pinned from a drone's 10th contact step in a row. Each worker
+    runs a few untimed updates first, so no run spends its budget compiling (docs/TRAINING.md, "Real maps
+    never seen")."""
     from navi_bench.transfer import TransferConfig, bench_transfer, parse_arm
     from navi_learner.evaluation.competence import EvalProtocol
     from navi_learner.evaluation.evaluate import jsonable

@@ -11,7 +11,9 @@ import pytest
 import torch
 
 from navi_bench.transfer import (
+    PINNED_STEPS,
     SURFACES,
+    WARMUP_UPDATES,
     Arm,
     CollisionSites,
     TransferConfig,
@@ -63,15 +65,48 @@ def test_collisions_are_classed_by_the_surface_touched_and_what_lies_behind_it()
     )  # (5, 3) floor, ceiling, room wall, plate, room wall
     hit = torch.tensor([True, True, True, True, False])  # (5,) the last is no contact
     sites = CollisionSites()
-    sites(
-        SimpleNamespace(
-            info={"collision": hit, "scene_id": torch.zeros(5, dtype=torch.long), "position": points}
-        )
-    )
+    sites(step(hit, points))
     rows = sites.classify(env, ("room",))
-    assert rows["room"] == rows["all"] == {"floor": 1, "ceiling": 1, "wall": 2, "slope": 0, "thin": 1}
-    assert set(rows["all"]) == {*SURFACES, "thin"}
-    assert CollisionSites().classify(env, ("room",))["all"] == dict.fromkeys((*SURFACES, "thin"), 0)
+    assert (
+        rows["room"]
+        == rows["all"]
+        == {
+            "floor": 1,
+            "ceiling": 1,
+            "wall": 2,
+            "slope": 0,
+            "thin": 1,
+            "pinned": 0,
+        }
+    )
+    assert set(rows["all"]) == {*SURFACES, "thin", "pinned"}
+    assert CollisionSites().classify(env, ("room",))["all"] == dict.fromkeys((*SURFACES, "thin", "pinned"), 0)
+
+
+def step(hit: torch.Tensor, points: torch.Tensor, ends: torch.Tensor | None = None) -> SimpleNamespace:
+    """A step's output as CollisionSites reads it: contact, scene 0, position, episode ends."""
+    n = hit.shape[0]
+    done = torch.zeros(n, dtype=torch.bool) if ends is None else ends  # (N,)
+    info = {"collision": hit, "scene_id": torch.zeros(n, dtype=torch.long), "position": points}
+    return SimpleNamespace(info=info, done=done, truncated=torch.zeros(n, dtype=torch.bool))
+
+
+def test_a_contact_is_pinned_from_the_tenth_step_in_a_row_and_a_new_episode_starts_afresh() -> None:
+    """Three drones against the room's floor: one pressed for 14 steps (5 pinned contacts), one that
+    touches every other step (never pinned), one pressed for 9 steps, then a new episode, then 9 more
+    (18 contacts, none pinned: the run restarts with the episode)."""
+    room = Room((1.0, 1.0, 1.0), (5.4, 5.4, 4.0))
+    scene = AnalyticScene((room,), resolution=64, voxel_size=0.1)
+    gmdag = build_gmdag(scene.lattice(), origin=(0.0, 0.0, 0.0), voxel_size=0.1, bounds=(room.lo, room.hi))
+    env = SimpleNamespace(corpus=load_corpus([gmdag], "cpu"))
+    points = torch.tensor([[2.0, 2.0, 1.2], [3.0, 2.0, 1.2], [4.0, 2.0, 1.2]])  # (3, 3) on the floor
+    sites = CollisionSites()
+    for t in range(18):
+        hit = torch.tensor([t < 14, t % 2 == 0, True])  # (3,)
+        sites(step(hit, points, ends=torch.tensor([False, False, t == 8])))
+    rows = sites.classify(env, ("room",))
+    assert rows["all"]["floor"] == 14 + 9 + 18
+    assert rows["all"]["pinned"] == 14 - (PINNED_STEPS - 1) == 5
 
 
 def test_the_bar_on_real_maps() -> None:
@@ -94,8 +129,9 @@ def test_the_bar_on_real_maps() -> None:
 
 def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     """Two procedural arms (one family each, object and surface semantics, the second scaled by up to 2), one
-    seed, no OpenArena package: the job says so, builds each arm's corpora, flies the baselines and each
-    final checkpoint on the unseen procedural scenes, and its summary and report hold exactly those runs."""
+    seed, no OpenArena package: the job says so, builds each arm's corpora, runs the untimed warm-up once,
+    flies the baselines and each final checkpoint on the unseen procedural scenes, and its summary and
+    report hold exactly those runs."""
     train: TrainConfig = learning_recipe(TrainConfig(n_actors=4, rollout_length=16))
     cfg = TransferConfig(
         arms=(parse_arm("procedural:object:maze"), parse_arm("procedural:surface:maze@2")),
@@ -132,8 +168,11 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
         assert arm["collisions_per_1k"]["seeds"] == [part["collisions_per_1k"]]
         base = saved["baselines"]["procedural"]
         assert arm["competent_seeds"] == int(verdict(part, base, "explore")) and arm["seeds_run"] == 1
+    assert [(w["device"], w["updates"]) for w in saved["warmups"]] == [("cpu", WARMUP_UPDATES)]
+    assert (out / "runs" / "warmup-0").is_dir()  # the untimed updates ran once, ahead of both runs
     report = (out / "report.md").read_text()
     assert "| procedural:surface:maze@2 |" in report and "| reactive |" in report
+    assert f"Each worker first ran {WARMUP_UPDATES} untimed updates" in report
     assert result["summary"]["per_map"] == {} and not (out / "transfer.png").exists()
 
 
@@ -161,7 +200,9 @@ def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
             "arm": "procedural",
             "seed": seed,
             "final_by_part": {"openarena": row(s, spl, c, maps)},
-            "collisions_by_surface": {"all": {"floor": 1, "ceiling": 0, "wall": 2, "slope": 0, "thin": seed}},
+            "collisions_by_surface": {
+                "all": {"floor": 1, "ceiling": 0, "wall": 2, "slope": 0, "thin": seed, "pinned": 1}
+            },
         }
         for seed, (s, spl, c) in enumerate(((0.95, 0.85, 0.3), (0.9, 0.79, 0.2), (0.7, 0.6, 5.0)))
     ]
@@ -175,7 +216,14 @@ def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
         "collisions_per_episode": 1.0,
     }
     assert summary["per_map"]["dm1"]["greedy"]["spl"] == 0.84
-    assert summary["surfaces"]["procedural"] == {"floor": 3, "ceiling": 0, "wall": 6, "slope": 0, "thin": 3}
+    assert summary["surfaces"]["procedural"] == {
+        "floor": 3,
+        "ceiling": 0,
+        "wall": 6,
+        "slope": 0,
+        "thin": 3,
+        "pinned": 3,
+    }
     assert summary["surfaces"]["greedy"]["wall"] == 3
     text = report_markdown(
         {
@@ -188,6 +236,7 @@ def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
     )
     assert "| procedural | 0.9 (0.95, 0.9, 0.7) | 0.79 (0.85, 0.79, 0.6) | 0.3 (0.3, 0.2, 5) | 1/3 |" in text
     assert "| dm2 | 0 / 0 | 0.88 / 0.84 | 0.92 / 0.86 | 0.8 / 0.7 |" in text
+    assert "| procedural | 3 | 0 | 6 | 0 | 3 | 3 |" in text and "| greedy | 0 | 0 | 3 | 1 | 2 | – |" in text
 
 
 def test_point_goal_parts_leave_out_the_maps_where_no_goal_can_be_posed(tmp_path: Path) -> None:
