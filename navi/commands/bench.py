@@ -750,6 +750,7 @@ BENCH_TRAIN_OPTIONS = (
     "tf32",
     "obs_dtype",
     "max_minibatch",
+    "rank_scenes",
 )
 """The TrainConfig settings `navi bench train` takes as options."""
 
@@ -801,7 +802,7 @@ def bench_train_cmd(
         try:
             cfg = train_config(settings, dev, engine)
             n = cfg.n_actors or default_actors(torch.device(dev))
-            environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world)
+            environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world, rank_scenes=cfg.rank_scenes)
             cfg = replace(cfg, n_actors=n)
             result = bench_train(environment, cfg, updates=updates, dist=d)
         except (dist.DistError, StorageError) as err:

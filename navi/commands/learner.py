@@ -90,9 +90,12 @@ def build_env(
     obstacles: int = 0,
     squad: int = 0,
     task: str = "explore",
+    rank_scenes: str = "share",
 ) -> Any:
-    """The environment for a command (a data-parallel rank: its share of the scenes), or exit 2."""
+    """The environment for a command (a data-parallel rank: its share of the scenes, or every scene with
+    `rank_scenes` "all"), or exit 2."""
     from navi_env.config import TASKS
+    from navi_env.corpus.folder import RANK_SCENES
     from navi_learner.envs.factory import EnvUnavailable, make_env
 
     kind: Literal["sdfdag", "toy"] = (
@@ -110,6 +113,7 @@ def build_env(
             obstacles=obstacles,
             squad=squad,
             task=check_choice(task, TASKS, "--task"),
+            rank_scenes=check_choice(rank_scenes, RANK_SCENES, "--rank-scenes"),
         )
     except (EnvUnavailable, ValueError) as err:
         raise fail(str(err)) from err
@@ -122,12 +126,14 @@ def train_config(settings: Settings, device: str, engine_items: list[str] | None
     from dataclasses import replace
 
     from navi_env.config import TASKS
+    from navi_env.corpus.folder import RANK_SCENES
     from navi_learner.config import OBS_STORAGE, TEMPORAL_CORES, engine_overrides
 
     cfg: TrainConfig = settings.config()
     check_choice(cfg.engine.temporal_core, TEMPORAL_CORES, "--temporal-core")
     check_choice(cfg.obs_dtype, OBS_STORAGE, "--obs-storage")
     check_choice(cfg.task, TASKS, "--task")
+    check_choice(cfg.rank_scenes, RANK_SCENES, "--rank-scenes")
     try:
         overrides = engine_overrides(engine_items or [])
     except ValueError as err:
@@ -154,6 +160,7 @@ TRAIN_OPTIONS = (
     "obs_dtype",
     "max_minibatch",
     "task",
+    "rank_scenes",
 )
 """The TrainConfig settings `navi train` takes as options."""
 
@@ -302,7 +309,17 @@ def train(
             typer.echo(f"note: --engine is ignored: the engine comes from {resume}", err=True)
         n = cfg.n_actors or default_actors(torch.device(dev))
         environment = build_env(
-            env, corpus, n, dev, cfg.seed + d.rank, d.rank, d.world, obstacles, squad, cfg.task
+            env,
+            corpus,
+            n,
+            dev,
+            cfg.seed + d.rank,
+            d.rank,
+            d.world,
+            obstacles,
+            squad,
+            cfg.task,
+            cfg.rank_scenes,
         )
         summary = corpus_summary(corpus or DEFAULT_CORPUS, "toy" if env == "toy" else "sdfdag")
         result = run_train(

@@ -127,6 +127,23 @@ def test_data_parallel_ranks_load_disjoint_shares_of_the_scenes(
         load_corpus_folder(out, "cpu", scene=2)
 
 
+def test_with_rank_scenes_all_every_rank_loads_every_scene(sources: Path, tmp_path: Path) -> None:
+    """rank_scenes "all": each of 3 ranks loads both scenes of a 2-scene corpus, in manifest order (more
+    ranks than scenes is no error then), and an env on it spreads its actors over both; an unknown
+    value is refused by name."""
+    out = tmp_path / "corpus"
+    full = build_corpus(find_sources(sources), out, resolution=32)
+    for rank in range(3):
+        scenes, manifest = load_corpus_folder(out, "cpu", rank, 3, rank_scenes="all")
+        assert manifest.scenes == full.scenes and len(scenes.infos) == 2
+    cfg = EnvConfig(azimuth_bins=16, elevation_bins=4)
+    env = SdfDagEnv(scenes, 4, "cpu", cfg, spawns=manifest.spawn_tensors())
+    env.reset(seed=1)
+    assert sorted(set(env.scene.tolist())) == [0, 1]
+    with pytest.raises(CorpusError, match="rank_scenes must be one of share, all"):
+        load_corpus_folder(out, "cpu", 0, 2, rank_scenes="half")
+
+
 def _entry(name: str, cost: float) -> SceneEntry:
     return SceneEntry(name, f"{name}.gmdag", name, 32, VOXEL, 1, {"verdict": "pass", "trace_cost": cost})
 

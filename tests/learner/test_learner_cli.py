@@ -132,6 +132,9 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     assert code == 2 and "DistanceMatrix v2" in err  # the toy env's observations are not
     code, _, err = invoke("bench", "train", "--env", "toy", "--obs-storage", "bfloat16", "--device", "cpu")
     assert code == 2 and "--obs-storage" in err
+    for command in (("train", "--fresh"), ("bench", "train")):
+        code, _, err = invoke(*command, "--env", "toy", "--rank-scenes", "half", "--device", "cpu")
+        assert code == 2 and "--rank-scenes" in err and "share, all" in err
     code, _, err = invoke("bench", "learn", "--reward", "no_such_weight=1", "--device", "cpu")
     assert code == 2 and "unknown reward weight" in err and "exploration_weight" in err
     code, _, err = invoke("bench", "learn", "--reward", "exploration_weight", "--device", "cpu")

@@ -138,6 +138,11 @@ def costs_recorded(scenes: Sequence[SceneEntry]) -> bool:
     return all(s.trace_cost() > 0.0 for s in scenes)
 
 
+RANK_SCENES = ("share", "all")
+"""How data-parallel ranks take a corpus's scenes: `share` (rank_share: disjoint shares, dealt by trace
+cost) or `all` (every rank loads every scene)."""
+
+
 def rank_share(scenes: Sequence[SceneEntry], rank: int, world: int) -> tuple[SceneEntry, ...]:
     """Rank `rank`'s share of `scenes` among `world` data-parallel ranks, in manifest order.
 
@@ -164,14 +169,18 @@ def load_corpus_folder(
     rank: int = 0,
     world: int = 1,
     scene: int | None = None,
+    rank_scenes: str = "share",
 ) -> tuple[SceneCorpus, CorpusManifest]:
     """Load the scenes of a corpus onto `device`, in manifest order, with its manifest.
 
-    With world > 1 (data-parallel training) only this rank's share (rank_share) is loaded and the
-    returned manifest lists just those. `scene` loads that one scene (its index in the manifest) alone.
-    Use `manifest.spawn_tensors()` as SdfDagEnv's `spawns`.
+    With world > 1 (data-parallel training) and rank_scenes "share" only this rank's share (rank_share)
+    is loaded and the returned manifest lists just those; with "all" every rank loads every scene.
+    `scene` loads that one scene (its index in the manifest) alone. Use `manifest.spawn_tensors()` as
+    SdfDagEnv's `spawns`.
     """
     root = Path(corpus_dir)
+    if rank_scenes not in RANK_SCENES:
+        raise CorpusError(f"rank_scenes must be one of {', '.join(RANK_SCENES)}, got {rank_scenes!r}")
     manifest = read_manifest(root)
     if not manifest.scenes:
         raise CorpusError(f"{root}: the corpus holds no scene")
@@ -181,7 +190,7 @@ def load_corpus_folder(
                 f"{root}: scene {scene} alone needs one rank and 0 <= scene < {len(manifest.scenes)}"
             )
         manifest = replace(manifest, scenes=manifest.scenes[scene : scene + 1])
-    elif world > 1:
+    elif world > 1 and rank_scenes == "share":
         if len(manifest.scenes) < world:
             raise CorpusError(
                 f"{root}: {len(manifest.scenes)} scenes cannot be shared by {world} ranks (one scene each at least)"

@@ -80,11 +80,13 @@ def make_env(
     obstacles: int = 0,
     squad: int = 0,
     task: str = "explore",
+    rank_scenes: str = "share",
 ) -> BatchedEnv:
     """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
     qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation). With
     world > 1 the drone env flies only this rank's scenes (data-parallel training; navi_env's
-    `rank_share`), and with `scene` that scene of the corpus alone.
+    `rank_share`), or every scene with `rank_scenes` "all", and with `scene` that scene of the corpus
+    alone.
     `reward` replaces RewardConfig fields by name (see `reward_config`). `obstacles` > 0 gives every actor
     that many scripted moving obstacles (EnvConfig.obstacles, default motions and sizes); `squad` >= 2
     makes squads of that many actors share a scene and see and collide with each other. `task` is
@@ -102,7 +104,7 @@ def make_env(
     except ImportError as err:
         raise EnvUnavailable(f"navi_env's SdfDagEnv is not importable: {err}") from err
     try:
-        scenes, manifest = load_corpus_folder(corpus, torch.device(device), rank, world, scene)
+        scenes, manifest = load_corpus_folder(corpus, torch.device(device), rank, world, scene, rank_scenes)
     except CorpusError as err:
         raise EnvUnavailable(str(err)) from err
     steps = episode_steps if episode_steps > 0 else POINTGOAL_EPISODE_STEPS if task == "pointgoal" else 0

@@ -183,7 +183,14 @@ def train_rank(cfg: LearnerServiceConfig, stop: threading.Event, d: Dist) -> dic
     n = cfg.train.n_actors or default_actors(torch.device(cfg.train.device))
     corpus = cfg.corpus if cfg.env_kind == "sdfdag" else None
     env = make_env(
-        corpus, n, cfg.train.device, cfg.train.seed + d.rank, cfg.env_kind, rank=d.rank, world=d.world
+        corpus,
+        n,
+        cfg.train.device,
+        cfg.train.seed + d.rank,
+        cfg.env_kind,
+        rank=d.rank,
+        world=d.world,
+        rank_scenes=cfg.train.rank_scenes,
     )
     result = train(  # rank 0's run id and folder are broadcast; this rank writes nothing
         env, cfg.train, resume_from=cfg.resume_from, progress=False, dist=d, should_stop=stop.is_set

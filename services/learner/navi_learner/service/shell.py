@@ -98,6 +98,7 @@ def serve_learner(
             cfg.env_kind,
             rank=d.rank,
             world=d.world,
+            rank_scenes=cfg.train.rank_scenes,
         )
         tap = TelemetryTap(base_env, pubs, cfg.observation_hz)
         heartbeat.tap = tap
