@@ -6,10 +6,11 @@
 # SPS of env only / env + inference / env + training, scaling efficiency SPS(N) / (N x SPS(1))).
 #   tests/gpu_dist.sh [CORPUS_DIR] [NPROC]      # default artifacts/bench-corpus, 2
 #   CORES="mamba2 gru" tests/gpu_dist.sh ...    # temporal cores to measure (default mamba2)
+#   tests/gpu_dist.sh CORPUS 4 --rank-scenes all # further arguments go to `navi bench train`
 # A missing corpus is built first (procedural, 8 scenes at 512^3: 4 per rank with 2 ranks).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-corpus=${1:-artifacts/bench-corpus}; nproc=${2:-2}; cores=${CORES:-mamba2}
+corpus=${1:-artifacts/bench-corpus}; nproc=${2:-2}; cores=${CORES:-mamba2}; shift $(( $# < 2 ? $# : 2 ))
 out=${OUT:-artifacts/gpu-dist}; mkdir -p "$out"
 source tests/gpu_env.sh
 export NCCL_NVLS_ENABLE=0  # NVLink multicast (NVLS) stays off: on shared multi-GPU hosts it can take the GPUs out of service
@@ -22,5 +23,5 @@ if [ ! -f "$corpus/manifest.json" ]; then
 fi
 for core in $cores; do
   navi bench train --corpus "$corpus" --actors 8192 --temporal-core "$core" --device cuda --nproc "$nproc" \
-    --json | tee -a "$out/bench_train_nproc.jsonl"
+    --json "$@" | tee -a "$out/bench_train_nproc.jsonl"
 done
