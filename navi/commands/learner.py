@@ -95,7 +95,6 @@ def build_env(
     """The environment for a command (a data-parallel rank: its share of the scenes, or every scene with
     `rank_scenes` "all"), or exit 2."""
     from navi_env.config import TASKS
-    from navi_env.corpus.folder import RANK_SCENES
     from navi_learner.envs.factory import EnvUnavailable, make_env
 
     kind: Literal["sdfdag", "toy"] = (
@@ -113,7 +112,7 @@ def build_env(
             obstacles=obstacles,
             squad=squad,
             task=check_choice(task, TASKS, "--task"),
-            rank_scenes=check_choice(rank_scenes, RANK_SCENES, "--rank-scenes"),
+            rank_scenes=rank_scenes,  # checked by train_config and by the corpus loader
         )
     except (EnvUnavailable, ValueError) as err:
         raise fail(str(err)) from err

@@ -3,8 +3,8 @@
 Launched by torchrun (`torchrun --standalone --nproc-per-node N -m navi train ...`, or `navi train
 --nproc N`, which runs exactly that). Each rank owns its actors, its share of the corpus scenes
 (navi_env.corpus.folder.rank_share: dealt out by trace cost; every scene with TrainConfig.rank_scenes
-"all"), its env, rollout storage and engine
-copy on its own device (cuda:LOCAL_RANK, or the CPU). What crosses ranks, and when:
+"all"), its env, rollout storage and engine copy on its own device (cuda:LOCAL_RANK, or the CPU). What
+crosses ranks, and when:
 - start: the run id and folder, then every parameter and buffer of rank 0 (broadcast; after a resume
   too), so all replicas start identical;
 - every env step: the RND error's sum, sum of squares and count (3 numbers), all-reduced without
