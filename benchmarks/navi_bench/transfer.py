@@ -31,6 +31,7 @@ import multiprocessing
 import statistics
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -137,21 +138,26 @@ class Corpora:
 
 
 class BuildJob:
-    """One corpus to build on one device (a picklable callable for the worker processes)."""
+    """One corpus to build on one device (a picklable callable for the worker processes). `share` builds
+    run side by side (one per GPU), so each compiles on its share of the CPU cores and memory."""
 
-    def __init__(self, out: Path, kind: str, args: dict[str, Any]) -> None:
-        self.out, self.kind, self.args = out, kind, args
+    def __init__(self, out: Path, kind: str, args: dict[str, Any], share: int = 1) -> None:
+        self.out, self.kind, self.args, self.share = out, kind, args, share
 
     def __call__(self, device: str, say: Say) -> None:
-        from navi_env.corpus.folder import build_corpus, build_default_corpus
+        from navi_env.corpus.folder import build_corpus, build_default_corpus, compile_workers
 
         if (self.out / "manifest.json").is_file():
             return
-        say(f"[bench transfer] building {self.out} on {device}")
+        count = len(self.args["sources"]) if self.kind == "openarena" else self.args["count"]
+        workers = compile_workers(self.args["resolution"], count, self.share)
+        say(f"[bench transfer] building {self.out} on {device}, {workers} compiling at a time")
+        started = time.perf_counter()
         if self.kind == "procedural":
-            build_default_corpus(self.out, device=device, **self.args)
+            build_default_corpus(self.out, device=device, workers=workers, **self.args)
         else:
-            build_corpus(self.args["sources"], self.out, self.args["resolution"], device)
+            build_corpus(self.args["sources"], self.out, self.args["resolution"], device, workers=workers)
+        say(f"[bench transfer] built {self.out} in {time.perf_counter() - started:.0f} s")
 
 
 def pointgoal_scenes(folder: Path, device: str) -> tuple[list[str], list[str]]:
@@ -203,7 +209,9 @@ def plan_corpora(
             if mine:
                 chunks.append(root / f"openarena-{len(maps)}maps-{k}of{pieces}-{resolution}")
                 sources = [f"{pk3}:{m}" for m in mine]
-                jobs.append(BuildJob(chunks[-1], "openarena", {"sources": sources, "resolution": resolution}))
+                jobs.append(
+                    BuildJob(chunks[-1], "openarena", {"sources": sources, "resolution": resolution}, pieces)
+                )
     for arm in arms:
         if arm.real:
             continue
@@ -216,7 +224,7 @@ def plan_corpora(
                 "families": list(arm.families) or None,
                 "semantics": arm.semantics,
             }
-            jobs.append(BuildJob(folder, "procedural", args))
+            jobs.append(BuildJob(folder, "procedural", args, max(1, cfg.gpus)))
         train[arm.key] = folder
     for semantics in sorted({a.semantics for a in arms}):
         folder = root / f"procedural-{semantics}-unseen-{unseen_count}-{resolution}"
@@ -227,7 +235,7 @@ def plan_corpora(
             "semantics": semantics,
             "families": [f.value for f in FAMILIES],
         }
-        jobs.append(BuildJob(folder, "procedural", args))
+        jobs.append(BuildJob(folder, "procedural", args, max(1, cfg.gpus)))
 
     def finish() -> Corpora:
         scenes: dict[str, list[str]] = {}
@@ -483,8 +491,9 @@ def run_spread(jobs: list[Any], device: str, gpus: int) -> list[Any]:
     if gpus <= 0:
         return [job(device, say_stderr) for job in jobs]
     shares = [(f"cuda:{g}", jobs[g::gpus]) for g in range(gpus)]
-    with multiprocessing.get_context("spawn").Pool(gpus) as pool:
-        done = pool.map(_device_worker, shares)
+    # not a multiprocessing.Pool: its workers are daemons, which may not start the compile processes
+    with ProcessPoolExecutor(gpus, multiprocessing.get_context("spawn")) as pool:
+        done = list(pool.map(_device_worker, shares))
     out: list[Any] = [None] * len(jobs)
     for g, results in enumerate(done):
         for k, r in enumerate(results):

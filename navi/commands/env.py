@@ -68,6 +68,14 @@ def corpus_build(
     count: Annotated[int, typer.Option(help="Procedural scenes to generate with --default.", min=1)] = 16,
     seed: Annotated[int, typer.Option(help="Seed of the procedural scenes with --default.")] = 0,
     device: Annotated[str, typer.Option(help="Device that traces the qualification rays.")] = "cpu",
+    workers: Annotated[
+        int,
+        typer.Option(
+            help="Sources compiled at once, each in a process of its own (0: one per CPU core, as many as"
+            " memory holds; 1 below 256 cells, where a process costs more than it saves).",
+            min=0,
+        ),
+    ] = 0,
     json_out: Annotated[bool, typer.Option("--json", help="Print the manifest summary as JSON.")] = False,
 ) -> None:
     """Compile, check and qualify every source into OUT; the old corpus is replaced only on success."""
@@ -77,12 +85,14 @@ def corpus_build(
         raise fail("give either SRC_DIR or --default")
     try:
         if src_dir is None:
-            manifest = build_default_corpus(out, resolution, count, seed, device, progress=_say)
+            manifest = build_default_corpus(
+                out, resolution, count, seed, device, progress=_say, workers=workers
+            )
         else:
             sources = find_sources(src_dir)
             if not sources:
                 raise fail(f"no scene sources found in {src_dir}")
-            manifest = build_corpus(sources, out, resolution, device, progress=_say)
+            manifest = build_corpus(sources, out, resolution, device, progress=_say, workers=workers)
     except CorpusError as exc:
         raise fail(f"{exc} (the previous corpus at {out} is unchanged)") from exc
     summary = {"corpus": str(out), **manifest.summary()}

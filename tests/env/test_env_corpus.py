@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -201,6 +202,56 @@ def test_mesh_sources_compile_into_a_corpus(tmp_path: Path) -> None:
     manifest = build_corpus(meshes, tmp_path / "corpus", resolution=32)
     assert len(manifest.scenes) + len(manifest.rejected) == 2 and manifest.scenes
     assert all(s.resolution == 32 for s in manifest.scenes)
+
+
+def test_sources_compiled_in_worker_processes_build_the_same_corpus(sources: Path, tmp_path: Path) -> None:
+    """Two worker processes compile the same files and manifest as one process, in source order; a source
+    that fails in a worker names itself and leaves the old corpus as it was."""
+    from navi_compiler.ingest.procedural import generate_corpus
+
+    meshes = generate_corpus(tmp_path / "meshes", 3, seed=2, families=["rooms", "corridors", "hall"])
+    here = build_corpus(meshes, tmp_path / "here", resolution=32, workers=1)
+    lines: list[str] = []
+    pooled = build_corpus(meshes, tmp_path / "pooled", resolution=32, workers=2, progress=lines.append)
+    assert replace(pooled, created_at="") == replace(here, created_at="")
+    assert snapshot(tmp_path / "pooled").keys() == snapshot(tmp_path / "here").keys()
+    for name, data in snapshot(tmp_path / "here").items():
+        if name != "manifest.json":
+            assert snapshot(tmp_path / "pooled")[name] == data, name
+    assert lines[0] == "compiling 3 sources, 2 at a time"
+    assert [line.split(":")[0] for line in lines[1:]] == [
+        "[1/3] rooms_0000",
+        "[2/3] corridors_0001",
+        "[3/3] hall_0002",
+    ]
+
+    before = snapshot(tmp_path / "pooled")
+    broken = sources / "broken.gmdag"
+    data = bytearray((sources / "room_b.gmdag").read_bytes())
+    data[200] ^= 0xFF  # checksum mismatch
+    broken.write_bytes(bytes(data))
+    with pytest.raises(CorpusError, match=r"broken\.gmdag"):
+        build_corpus(
+            [sources / "room_a.gmdag", broken, sources / "room_b.gmdag"], tmp_path / "pooled", 32, workers=2
+        )
+    assert snapshot(tmp_path / "pooled") == before
+    assert not list(tmp_path.glob(".pooled.*"))
+
+
+def test_compile_workers_follow_cores_memory_and_lattice(monkeypatch: pytest.MonkeyPatch) -> None:
+    from navi_env.corpus import folder
+
+    monkeypatch.setattr(folder, "_cores", lambda: 16)
+    monkeypatch.setattr(folder, "_memory_bytes", lambda: int(128e9))
+    assert folder.compile_workers(512, 50) == 16  # one per core: 16 x 3.5 GB fit in 128 GB
+    assert folder.compile_workers(512, 50, share=4) == 4  # four builds side by side split the cores
+    assert folder.compile_workers(512, 3) == 3  # never more than there are sources
+    assert folder.compile_workers(128, 50) == 1  # small lattices compile here, in order
+    assert folder.compile_workers(512, 1) == 1
+    monkeypatch.setattr(folder, "_memory_bytes", lambda: int(10e9))
+    assert folder.compile_workers(512, 50) == 2  # 10 GB holds two 512^3 compiles
+    assert folder.compile_workers(256, 50) == 16  # and eight times as many at 256^3, capped by cores
+    assert folder._cores() >= 1 and folder._memory_bytes() > 0  # this machine's figures can be read
 
 
 @pytest.mark.parametrize("semantics", ["object", "surface"])
