@@ -7,10 +7,10 @@ navi corpus build scenes/ --out corpus/ --resolution 64
 python examples/train_rsl_rl.py --corpus corpus/ --actors 64 --steps 3072
 python examples/train_rsl_rl.py --corpus corpus/ --actors 64 --steps 3072 --recurrent
 
-On a GPU, twenty scenes of every family at 256³, judged on ten others it never saw (the trainers table's
+On a GPU, twenty scenes of the ten unscaled families at 256³, judged on ten others it never saw (the trainers table's
 split, docs/ENVIRONMENT.md):
-navi scenes generate --out scenes-gpu/ --count 20
-navi scenes generate --out unseen-gpu/ --count 10 --seed 7
+navi scenes generate --out scenes-gpu/ --count 20 --families rooms,corridors,hall,maze,caves,forest,building,yard,arena,platforms
+navi scenes generate --out unseen-gpu/ --count 10 --seed 7 --families rooms,corridors,hall,maze,caves,forest,building,yard,arena,platforms
 navi corpus build scenes-gpu/ --out corpus-gpu/ --resolution 256 --device cuda
 navi corpus build unseen-gpu/ --out unseen-corpus-gpu/ --resolution 256 --device cuda
 python examples/train_rsl_rl.py --corpus corpus-gpu/ --unseen unseen-corpus-gpu/ --actors 2048 --steps 8192 --device cuda --full-view

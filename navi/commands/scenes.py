@@ -30,9 +30,9 @@ def generate(
     families: Annotated[
         list[str] | None,
         typer.Option(
-            help="Families to cycle (repeat or comma-separate); default: every family but floating "
-            "(the main job's corpus). FAMILY@S scales that entry's scenes by up to S (a factor drawn per "
-            "scene from the seed). See `docs/SCENES.md` for the list.",
+            help="Families to cycle (repeat or comma-separate); FAMILY@S scales that entry's scenes by up "
+            "to S (a factor drawn per scene from the seed). Default: the main job's corpus, every family but "
+            "floating, then arena@4, platforms@4 and floating@4. See `docs/SCENES.md` for the list.",
         ),
     ] = None,
     semantics: Annotated[

@@ -16,7 +16,7 @@ from navi_compiler.ingest.bsp import CLASS_NAMES as SURFACE_CLASS_NAMES
 from navi_compiler.ingest.bsp import HORIZONTAL_NZ
 from navi_compiler.ingest.procedural import (
     CLASS_NAMES,
-    DEFAULT_FAMILIES,
+    DEFAULT_ENTRIES,
     DRONE_RADIUS,
     FAMILIES,
     SEED_CLEARANCE,
@@ -33,6 +33,7 @@ from navi_compiler.ingest.procedural import (
     generate_scene,
     is_clear,
     mesh_layout,
+    parse_entry,
     slab_between,
     solid_bounds,
     solid_distance,
@@ -214,23 +215,26 @@ def test_surface_semantics_class_faces_as_a_quake_map_does(family: Family) -> No
 
 
 def test_corpus_cycles_families_and_is_deterministic(tmp_path: Path) -> None:
-    a = generate_corpus(tmp_path / "a", len(DEFAULT_FAMILIES) + 2, seed=4)
-    b = generate_corpus(tmp_path / "b", len(DEFAULT_FAMILIES) + 2, seed=4)
+    n = len(DEFAULT_ENTRIES) + 2
+    a = generate_corpus(tmp_path / "a", n, seed=4)
+    b = generate_corpus(tmp_path / "b", n, seed=4)
     c = generate_corpus(tmp_path / "c", 3, seed=5, families=["maze"])
-    assert [p.name.split("_")[0] for p in a] == [f.value for f in DEFAULT_FAMILIES] + [
-        DEFAULT_FAMILIES[0].value,
-        DEFAULT_FAMILIES[1].value,
-    ]
+    entries = [parse_entry(e) for e in (*DEFAULT_ENTRIES, *DEFAULT_ENTRIES[:2])]
+    assert [p.name.split("_")[0] for p in a] == [family.value for family, _ in entries]
+    assert [scale for _, scale in entries] == [1.0] * 10 + [4.0] * 3 + [
+        1.0
+    ] * 2  # open entries scaled by up to 4
     for pa, pb in zip(a, b, strict=True):
         assert pa.read_bytes() == pb.read_bytes()
         assert (
             pa.with_name(pa.stem + ".scene.json").read_bytes()
             == pb.with_name(pb.stem + ".scene.json").read_bytes()
         )
-    assert a[0].read_bytes() != a[8].read_bytes()  # same family, different scene
+    assert a[0].read_bytes() != a[8].read_bytes()  # different families
+    assert a[0].read_bytes() != a[len(DEFAULT_ENTRIES)].read_bytes()  # same family, different scene
     assert [p.name for p in c] == ["maze_0000.obj", "maze_0001.obj", "maze_0002.obj"]
     sizes = {tuple(np.round(np.subtract(*load_scene(p).bounds[::-1]), 1)) for p in a}
-    assert len(sizes) == len(DEFAULT_FAMILIES) + 2
+    assert len(sizes) == n
 
 
 def test_scaled_entries_repeat_and_scale_each_scene_with_its_seeds(tmp_path: Path) -> None:
