@@ -238,6 +238,24 @@ def test_sources_compiled_in_worker_processes_build_the_same_corpus(sources: Pat
     assert not list(tmp_path.glob(".pooled.*"))
 
 
+def test_a_script_without_a_main_guard_builds_with_worker_processes(sources: Path, tmp_path: Path) -> None:
+    """The compile processes do not run the caller's script again: a plain script, no `__main__` guard,
+    builds with workers and prints its scenes once."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "build.py"
+    script.write_text(
+        "from navi_env.corpus.folder import build_corpus\n"
+        f"m = build_corpus([{str(sources / 'room_a.gmdag')!r}, {str(sources / 'room_b.gmdag')!r}], "
+        f"{str(tmp_path / 'corpus')!r}, 32, workers=2)\n"
+        "print('scenes', [s.name for s in m.scenes])\n"
+    )
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["scenes ['room_a', 'room_b']"]
+
+
 def test_compile_workers_follow_cores_memory_and_lattice(monkeypatch: pytest.MonkeyPatch) -> None:
     from navi_env.corpus import folder
 
