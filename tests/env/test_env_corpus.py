@@ -272,6 +272,22 @@ def test_compile_workers_follow_cores_memory_and_lattice(monkeypatch: pytest.Mon
     assert folder._cores() >= 1 and folder._memory_bytes() > 0  # this machine's figures can be read
 
 
+def test_available_memory_honours_a_container_limit(tmp_path: Path) -> None:
+    from navi_env.corpus.folder import _memory_bytes
+
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_text("MemTotal:       24683656 kB\nMemAvailable:   20000000 kB\n")
+    cgroup = tmp_path / "cgroup"
+    cgroup.mkdir()
+    assert _memory_bytes(str(meminfo), str(cgroup)) == 20000000 * 1024  # no cgroup files: MemAvailable
+    (cgroup / "memory.max").write_text("max\n")
+    (cgroup / "memory.current").write_text("1000\n")
+    assert _memory_bytes(str(meminfo), str(cgroup)) == 20000000 * 1024  # no limit set
+    (cgroup / "memory.max").write_text(f"{8 * 2**30}\n")
+    (cgroup / "memory.current").write_text(f"{2**30}\n")
+    assert _memory_bytes(str(meminfo), str(cgroup)) == 7 * 2**30  # the limit less what is in use
+
+
 @pytest.mark.parametrize("semantics", ["object", "surface"])
 def test_slab_families_compile_qualify_and_repeat_per_seed(tmp_path: Path, semantics: str) -> None:
     """The slab families at 128^3: every scene compiles and qualifies with spawns, the same seed builds the

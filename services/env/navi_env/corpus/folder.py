@@ -19,6 +19,7 @@ it was. A scene that fails qualification is left out and listed under "rejected"
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import multiprocessing
@@ -272,16 +273,19 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
-def _memory_bytes() -> int:
-    """Memory available for new work (MemAvailable where /proc/meminfo has it, else physical memory)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+def _memory_bytes(meminfo: str = "/proc/meminfo", cgroup: str = "/sys/fs/cgroup") -> int:
+    """Memory available for new work: MemAvailable where /proc/meminfo has it (else physical memory),
+    and no more than a cgroup v2 limit leaves (a container's `memory.max` less its `memory.current`)."""
+    free = int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    with contextlib.suppress(OSError, ValueError), open(meminfo) as f:
+        for line in f:
+            if line.startswith("MemAvailable:"):
+                free = int(line.split()[1]) * 1024
+    with contextlib.suppress(OSError, ValueError):
+        limit = Path(cgroup, "memory.max").read_text().strip()
+        if limit != "max":
+            free = min(free, int(limit) - int(Path(cgroup, "memory.current").read_text()))
+    return max(free, 0)
 
 
 def compile_workers(resolution: int, sources: int, share: int = 1) -> int:
