@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.metadata
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -72,8 +73,23 @@ def pip(*args: str, quiet_failure: bool = False) -> subprocess.CompletedProcess[
     if done.returncode != 0:
         raise SystemExit(
             f"[navi] set-up failed: `pip install {' '.join(args)}` exited {done.returncode} (pip's error above)"
+            + disk_hint(Path(sys.prefix), shutil.disk_usage(sys.prefix).free)
         )
     return done
+
+
+ENV_BYTES = 7 * 10**9
+"""About what a new environment takes on disk, torch's CUDA build being most of it (6.7 GB measured)."""
+
+
+def disk_hint(prefix: Path, free: int) -> str:
+    """A second line for a failed pip call when the disk of `prefix` is nearly full, else ""."""
+    if free >= 2 * 10**9:
+        return ""
+    return (
+        f"\n[navi] the disk holding {prefix} has {free / 1e9:.2f} GB free; a new environment takes about "
+        f"{ENV_BYTES / 1e9:.0f} GB (torch's CUDA build is most of it): free some space and run it again"
+    )
 
 
 def first_error(output: str) -> str:

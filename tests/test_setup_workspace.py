@@ -140,6 +140,17 @@ def test_a_failing_extra_is_reported_in_one_line() -> None:
     assert setup_workspace.first_error(output).startswith("ERROR: Cannot install torchrl")
 
 
+def test_a_failed_install_on_a_full_disk_says_how_much_is_free_and_needed() -> None:
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import setup_workspace
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    hint = setup_workspace.disk_hint(Path("/venv"), 300 * 10**6)
+    assert "/venv has 0.30 GB free" in hint and "about 7 GB" in hint
+    assert setup_workspace.disk_hint(Path("/venv"), 50 * 10**9) == ""
+
+
 def test_an_extra_that_cannot_resolve_is_skipped_in_one_line_and_set_up_goes_on(tmp_path: Path) -> None:
     """Real pip, no index: an extra naming a package nobody has is skipped with one line; the next extra,
     whose requirement is already installed, still goes in."""
