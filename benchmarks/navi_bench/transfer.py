@@ -18,6 +18,9 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
   field's normal there: floor, ceiling, wall or slope; thin when the solid behind it is thinner than
   THIN_M) and counted per map, and so are the pinned contacts (a drone in contact PINNED_STEPS or more
   steps in a row).
+- Open floor. Every explore run's final checkpoint also flies the open-floor probe
+  (navi_learner.evaluation.open_floor, `navi bench openfloor`): does it hold its height over flat floors
+  whose walls lie beyond its view clearance, or sink to the floor as large open maps show?
 - Runs are placed one per GPU (`gpus`), each GPU working through its share in turn, after a few
   untimed updates that fill the compile cache (WarmupJob), so that every run's budget is training; the
   corpora are built once under `root` and reused.
@@ -46,6 +49,13 @@ from navi_learner.envs.factory import corpus_summary, make_env
 from navi_learner.envs.protocol import StepLike
 from navi_learner.evaluation.competence import EvalProtocol, baseline_policies
 from navi_learner.evaluation.evaluate import COLLISION_FLOOR_PER_1K, comparison_table, evaluate, jsonable
+from navi_learner.evaluation.open_floor import (
+    OpenFloorConfig,
+    build_open_floors,
+    open_floor_env,
+    open_floor_probe,
+    probe_table,
+)
 
 PROCEDURAL_TRAIN = 16
 """Procedural train scenes per arm (the main job's corpus size on CUDA)."""
@@ -123,6 +133,8 @@ class TransferConfig:
     """Unseen procedural scenes (0: one per family)."""
     openarena_maps: int = 0
     """Use only the first this many OpenArena maps by name (0: all; small jobs and tests)."""
+    open_floor: OpenFloorConfig | None = field(default_factory=OpenFloorConfig)
+    """The open-floor probe each explore run's final checkpoint flies (None: none)."""
 
 
 @dataclass(frozen=True)
@@ -353,6 +365,8 @@ class RunJob:
     train: Path
     unseen: dict[str, Path]
     run_dir: Path
+    floors: dict[float, Path] = field(default_factory=dict)
+    """The open-floor probe's scenes by width (empty: no probe)."""
 
     def __call__(self, device: str, say: Say) -> dict[str, Any]:
         from navi_learner.evaluation.evaluate import CheckpointPolicy
@@ -392,6 +406,13 @@ class RunJob:
             say(
                 f"[bench transfer] {self.arm.spec} seed {self.seed} on {part}:\n{comparison_table([metrics])}"
             )
+        floor: list[dict[str, Any]] = []
+        probe = self.cfg.open_floor
+        if self.floors and probe is not None:
+            trained.name = f"{self.arm.spec} seed {self.seed}"
+            rows = open_floor_probe(trained, open_floor_env(self.floors, probe, device), probe)
+            floor = [asdict(r) for r in rows]
+            say(f"[bench transfer] {self.arm.spec} seed {self.seed} on the open floors:\n{probe_table(rows)}")
         return {
             "arm": self.arm.spec,
             "seed": self.seed,
@@ -401,6 +422,7 @@ class RunJob:
             "sps": result.sps,
             "final_by_part": finals,
             "collisions_by_surface": collisions,
+            "open_floor": floor,
         }
 
 
@@ -545,7 +567,7 @@ def summarise(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]], 
     whether the run clears the bar there; per OpenArena map: per arm the median collisions/1k and
     coverage/1k (or success and SPL), beside the baselines'."""
     metrics = task_metrics(task)
-    out: dict[str, Any] = {"parts": {}, "per_map": {}, "surfaces": {}}
+    out: dict[str, Any] = {"parts": {}, "per_map": {}, "surfaces": {}, "open_floor": open_floor_rows(runs)}
     for part, base in baselines.items():
         rows = median_rows(runs, part, metrics)
         for arm, arm_row in rows.items():
@@ -580,6 +602,19 @@ def summarise(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]], 
             out["surfaces"][arm] = total
         for name, b in baselines["openarena"].items():
             out["surfaces"][name] = b.get("collisions_by_surface", {}).get("all", {})
+    return out
+
+
+def open_floor_rows(runs: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, list[float]]]]:
+    """Per arm and floor width: each seed's final height (median over its drones) and share on the floor."""
+    out: dict[str, dict[str, dict[str, list[float]]]] = {}
+    for r in runs:
+        for row in r.get("open_floor", []):
+            cell = out.setdefault(r["arm"], {}).setdefault(
+                f"{row['width']:g}", {"final_height": [], "on_floor": []}
+            )
+            cell["final_height"].append(row["final_height"])
+            cell["on_floor"].append(row["on_floor"])
     return out
 
 
@@ -623,6 +658,20 @@ def report_markdown(result: dict[str, Any]) -> str:
         ]
         for name, row in s["surfaces"].items():
             lines.append(f"| {name} | " + " | ".join(str(row.get(k, "–")) for k in COUNTS) + " |")
+        lines.append("")
+    if s.get("open_floor"):
+        widths = list(next(iter(s["open_floor"].values())))
+        lines += ["## Open floors: final height (m) / share on the floor, per seed", ""]
+        lines += [
+            "| policy | " + " | ".join(f"{w} m" for w in widths) + " |",
+            "| --- |" + " --- |" * len(widths),
+        ]
+        for arm, by_width in s["open_floor"].items():
+            cells = [
+                ", ".join(f"{h:.2f} / {f:.0%}" for h, f in zip(c["final_height"], c["on_floor"], strict=True))
+                for c in (by_width[w] for w in widths)
+            ]
+            lines.append(f"| {arm} | " + " | ".join(cells) + " |")
         lines.append("")
     if s["per_map"]:
         policies = list(next(iter(s["per_map"].values())))
@@ -688,6 +737,8 @@ def bench_transfer(
     corpora = finish()
     say(f"[bench transfer] corpora ready after {time.perf_counter() - started:.0f} s")
     parts = {part: folder for parts in corpora.unseen.values() for part, folder in parts.items()}
+    probe = cfg.open_floor if cfg.train.task == "explore" else None
+    floors = build_open_floors(root / "open-floor", probe) if probe is not None else {}
     base_jobs = [BaselineJob(part, folder, cfg) for part, folder in parts.items()]
     run_jobs = [
         RunJob(
@@ -697,6 +748,7 @@ def bench_transfer(
             corpora.train[arm.key],
             corpora.unseen[arm.key],
             out / "runs" / f"{arm.key}-seed{seed}",
+            floors,
         )
         for seed in cfg.seeds
         for arm in cfg.arms

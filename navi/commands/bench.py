@@ -1,6 +1,6 @@
-"""`navi bench compile|trace|env|wrappers|train|learn|transfer|trainers`: each measures one stage (or learning itself) and prints its
-result; `--json` prints one JSON object and `--record DIR` appends it to DIR/DATE-GPU.jsonl
-(docs/PERFORMANCE.md). Targets are benchmarks, never timed tests."""
+"""`navi bench compile|trace|env|wrappers|freespace|openfloor|train|learn|transfer|trainers`: each measures
+one stage (or learning itself) and prints its result; `--json` prints one JSON object and `--record DIR`
+appends it to DIR/DATE-GPU.jsonl (docs/PERFORMANCE.md). Targets are benchmarks, never timed tests."""
 
 from __future__ import annotations
 
@@ -411,6 +411,75 @@ def bench_freespace_cmd(
                 for k, v in row.get("evaluated", {}).items()
             )
         )
+
+
+@app.command("openfloor")
+def bench_openfloor_cmd(
+    checkpoints: Annotated[
+        list[Path] | None,
+        typer.Argument(help="Explore checkpoints to fly (default: the shipped explore reference)."),
+    ] = None,
+    device: Annotated[str, typer.Option(help="cpu, cuda or cuda:N.")] = "cpu",
+    widths: Annotated[
+        str,
+        typer.Option("--widths", help="Floor edges in meters, comma-separated (the sky at a third of each)."),
+    ] = "15,30,60,120",
+    steps: Annotated[int, typer.Option("--steps", min=2, help="Steps flown (dt 0.1 s).")] = 300,
+    actors: Annotated[int, typer.Option("--actors-per-start", min=1, help="Drones per start height.")] = 8,
+    folder: Annotated[
+        Path, typer.Option("--scenes", help="Where the floors are built (reused when present).")
+    ] = Path("artifacts/corpus/open-floor"),
+    json_out: JsonOutOpt = False,
+    record: RecordOpt = None,
+) -> None:
+    """Does a drone hold its height where nothing is near? Flat walled floors under an undrawn sky, nothing
+    else; drones start above the centre at 1-16 m and fly 30 s. Per floor: the height they end at and the
+    share pressed to the floor, for each checkpoint and the reactive avoider. A drone that sinks in open
+    space shows it here in seconds, without the real maps (docs/TRAINING.md, "Real maps never seen")."""
+    import torch
+
+    from navi_learner.evaluation.baselines import reactive_for_env
+    from navi_learner.evaluation.evaluate import CheckpointPolicy, jsonable
+    from navi_learner.evaluation.main_job import REFERENCE
+    from navi_learner.evaluation.open_floor import (
+        OpenFloorConfig,
+        build_open_floors,
+        open_floor_env,
+        open_floor_probe,
+        probe_table,
+    )
+
+    started = time.perf_counter()
+    dev = pick_device(device)
+    try:
+        cfg = OpenFloorConfig(
+            widths=tuple(float(w) for w in widths.split(",") if w.strip()),
+            steps=steps,
+            actors_per_start=actors,
+        )
+        say = None if json_out else typer.echo
+        env = open_floor_env(build_open_floors(folder, cfg, say), cfg, dev)
+        policies: list[Any] = []
+        for path in checkpoints or [REFERENCE]:
+            policy = CheckpointPolicy(path, torch.device(dev))
+            if policy.obs_shape != env.obs_shape:
+                raise ValueError(f"{path} sees {policy.obs_shape}, the probe's view is {env.obs_shape}")
+            policies.append(policy)
+        policies.append(reactive_for_env(env))
+        rows = [row for policy in policies for row in open_floor_probe(policy, env, cfg)]
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise fail(str(exc)) from exc
+    result = {
+        "config": dataclasses.asdict(cfg),
+        "rows": [dataclasses.asdict(r) for r in rows],
+        "seconds": round(time.perf_counter() - started, 1),
+    }
+    if record is not None:
+        record_result(result, "openfloor", device, record)
+    if json_out:
+        typer.echo(json.dumps(jsonable(result)))
+    else:
+        typer.echo(probe_table(rows))
 
 
 LEARN_OPTIONS = (

@@ -29,6 +29,7 @@ from navi_env.tracer.analytic_scenes import AnalyticScene, Box, Room
 from navi_env.tracer.scene import load_corpus
 from navi_learner.config import TrainConfig, learning_recipe
 from navi_learner.evaluation.competence import EvalProtocol
+from navi_learner.evaluation.open_floor import OpenFloorConfig
 
 
 def test_arms_parse_and_bad_ones_are_refused() -> None:
@@ -141,6 +142,9 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
         protocol=EvalProtocol(actors=4, steps=40, episode_steps=20),
         procedural_train=1,
         procedural_unseen=2,
+        open_floor=OpenFloorConfig(
+            widths=(15.0,), heights=(1.0,), actors_per_start=1, steps=5, resolution=64
+        ),
     )
     out = tmp_path / "out"
     result = bench_transfer(
@@ -162,6 +166,12 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     ]
     for run in saved["runs"]:
         assert set(run["final_by_part"]) == {"procedural"} and run["steps"] > 0 and run["train_s"] >= 2.0
+        (floor,) = run["open_floor"]  # each final checkpoint flew the probe's one floor and start
+        assert floor["policy"] == f"{run['arm']} seed 3" and floor["starts"] == [1.0]
+        assert result["summary"]["open_floor"][run["arm"]]["15"] == {
+            "final_height": [floor["final_height"]],
+            "on_floor": [floor["on_floor"]],
+        }
         part = run["final_by_part"]["procedural"]
         assert part["actors"] == 4 and part["steps"] == 40
         arm = result["summary"]["parts"]["procedural"]["arms"][run["arm"]]
@@ -173,6 +183,7 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     report = (out / "report.md").read_text()
     assert "| procedural:surface:maze@2 |" in report and "| reactive |" in report
     assert f"Each worker first ran {WARMUP_UPDATES} untimed updates" in report
+    assert "## Open floors" in report and "| procedural:object:maze | " in report
     assert result["summary"]["per_map"] == {} and not (out / "transfer.png").exists()
 
 
