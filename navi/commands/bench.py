@@ -448,6 +448,7 @@ def bench_openfloor_cmd(
         open_floor_probe,
         probe_table,
     )
+    from navi_learner.serving.checkpoint import load_checkpoint
 
     started = time.perf_counter()
     dev = pick_device(device)
@@ -461,7 +462,13 @@ def bench_openfloor_cmd(
         env = open_floor_env(build_open_floors(folder, cfg, say), cfg, dev)
         policies: list[Any] = []
         for path in checkpoints or [REFERENCE]:
+            task = load_checkpoint(path).meta.config.get("task", "explore")
+            if task != "explore":
+                raise ValueError(
+                    f"{path} was trained for {task}; the open-floor probe flies explore checkpoints"
+                )
             policy = CheckpointPolicy(path, torch.device(dev))
+            policy.name = str(path.relative_to(Path.cwd()) if path.is_relative_to(Path.cwd()) else path)
             if policy.obs_shape != env.obs_shape:
                 raise ValueError(f"{path} sees {policy.obs_shape}, the probe's view is {env.obs_shape}")
             policies.append(policy)

@@ -32,7 +32,7 @@ def generate(
         typer.Option(
             help="Families to cycle (repeat or comma-separate); FAMILY@S scales that entry's scenes by up "
             "to S (a factor drawn per scene from the seed). Default: the main job's corpus, every family but "
-            "floating, then arena@4, platforms@4 and floating@4. See `docs/SCENES.md` for the list.",
+            "floating and field, then arena@4, platforms@4 and floating@4. See `docs/SCENES.md` for the list.",
         ),
     ] = None,
     semantics: Annotated[

@@ -290,15 +290,16 @@ def test_available_memory_honours_a_container_limit(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("semantics", ["object", "surface"])
 def test_slab_families_compile_qualify_and_repeat_per_seed(tmp_path: Path, semantics: str) -> None:
-    """The slab families at 128^3: every scene compiles and qualifies with spawns, the same seed builds the
-    same files, and a surface-classed scene names only Quake 3's classes."""
+    """The slab families and the field at 128^3: every scene compiles and qualifies with spawns, the same
+    seed builds the same files, and a surface-classed scene names only Quake 3's classes."""
     from navi_compiler.ingest.bsp import CLASS_NAMES as SURFACE_CLASS_NAMES
     from navi_env.corpus.folder import build_default_corpus
 
-    families = ["arena", "platforms", "floating"]
-    a = build_default_corpus(tmp_path / "a", 128, 3, 7, families=families, semantics=semantics)
-    b = build_default_corpus(tmp_path / "b", 128, 3, 7, families=families, semantics=semantics)
-    assert [s.name for s in a.scenes] == ["arena_0000", "platforms_0001", "floating_0002"] and not a.rejected
+    families = ["arena", "platforms", "floating", "field"]
+    a = build_default_corpus(tmp_path / "a", 128, 4, 7, families=families, semantics=semantics)
+    b = build_default_corpus(tmp_path / "b", 128, 4, 7, families=families, semantics=semantics)
+    names = ["arena_0000", "platforms_0001", "floating_0002", "field_0003"]
+    assert [s.name for s in a.scenes] == names and not a.rejected
     for sa, sb in zip(a.scenes, b.scenes, strict=True):
         assert len(sa.spawns()) >= 4
         assert (tmp_path / "a" / sa.file).read_bytes() == (tmp_path / "b" / sb.file).read_bytes()

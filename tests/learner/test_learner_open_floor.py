@@ -98,11 +98,15 @@ def test_bench_openfloor_flies_a_checkpoint_and_the_avoider(tmp_path: Path) -> N
     assert done.exit_code == 0, done.output
     result = json.loads(done.output)
     rows = result["rows"]
+    shown = str(REFERENCE.relative_to(Path.cwd()) if REFERENCE.is_relative_to(Path.cwd()) else REFERENCE)
     assert [(r["policy"], r["width"], r["starts"]) for r in rows] == [
-        (str(REFERENCE), 15.0, [1.0, 2.0, 4.0]),
+        (shown, 15.0, [1.0, 2.0, 4.0]),
         ("reactive", 15.0, [1.0, 2.0, 4.0]),
     ]
     assert rows[1]["contacts_per_1k"] == 0.0 and rows[1]["final_by_start"][0] > 1.0
     assert result["config"]["steps"] == 20
     bad = CliRunner().invoke(build_app(), ["bench", "openfloor", "--widths", "2", "--scenes", str(tmp_path)])
     assert bad.exit_code != 0 and "no start height" in bad.output
+    goal = REFERENCE.with_name("mamba2-pointgoal.pt")
+    bad = CliRunner().invoke(build_app(), ["bench", "openfloor", str(goal), "--scenes", str(tmp_path)])
+    assert bad.exit_code != 0 and "trained for pointgoal" in bad.output

@@ -42,11 +42,12 @@ class Family(StrEnum):
     ARENA = "arena"
     PLATFORMS = "platforms"
     FLOATING = "floating"
+    FIELD = "field"
 
 
 FAMILIES: tuple[Family, ...] = tuple(Family)
 DEFAULT_ENTRIES: tuple[str, ...] = (
-    *(f.value for f in Family if f != Family.FLOATING),
+    *(f.value for f in Family if f not in (Family.FLOATING, Family.FIELD)),
     "arena@4",
     "platforms@4",
     "floating@4",
@@ -55,7 +56,8 @@ DEFAULT_ENTRIES: tuple[str, ...] = (
 its own size, then arenas, platforms and floating decks scaled by up to 4 (parse_entry), whose views are
 clear for 10 m all round as on large real maps. Against the ten families alone this corpus flew the 50
 OpenArena maps with fewer collisions and the same coverage (docs/TRAINING.md, "Real maps never seen");
-the floating family at its own size did not help there and is built only when named."""
+the floating family at its own size did not help there, and it and the field family are built only when
+named."""
 
 CLASS_NAMES = (
     "unknown",
@@ -988,6 +990,89 @@ def _floating(rng: np.random.Generator) -> _Parts:
     return [_box(0.0, 0.0, 0.0, length, width, height)], solids, height, preferred
 
 
+def _field(rng: np.random.Generator) -> _Parts:
+    """A wide field under a high sky: a floor 60-140 m across, walled far away, and a few landmarks at
+    least FIELD_GAP apart (towers up to the sky, pillars, blocks of buildings, plateaus with a ramp up,
+    long low walls, thin poles), so that most of the air is clear for 10 m all round and the floor is
+    often the only surface in range, as in the open parts of large real maps. Seeds lie 1-12 m up."""
+    length, width = float(rng.uniform(60.0, 140.0)), float(rng.uniform(60.0, 140.0))
+    height = float(rng.uniform(14.0, 40.0))
+    solids: list[Solid] = []
+    preferred: list[tuple[float, float, float]] = []
+    ground = _Ground(rng, (0.0, 0.0), (length, width))
+
+    def spot(sx: float, sy: float) -> tuple[float, float] | None:
+        """The lower corner of an sx × sy footprint with FIELD_GAP of open floor reserved round it."""
+        corner = ground.place(sx + 2 * FIELD_GAP, sy + 2 * FIELD_GAP, margin=0.0)
+        return None if corner is None else (corner[0] + FIELD_GAP, corner[1] + FIELD_GAP)
+
+    for _ in range(int(np.clip(length * width / 1200.0, 4, 12))):
+        kind = rng.random()
+        if kind < 0.2:  # a tower up to the sky
+            r = float(rng.uniform(1.0, 4.0))
+            at = spot(2 * r, 2 * r)
+            if at is not None:
+                x, y = at[0] + r, at[1] + r
+                square = _box(x - r, y - r, 0.0, x + r, y + r, height)
+                solids.append(Solid(Cylinder(x, y, r, 0.0, height) if rng.random() < 0.5 else square, WALL))
+        elif kind < 0.4:  # a pillar or a thin pole
+            r = float(rng.uniform(0.3, 1.0)) if rng.random() < 0.6 else float(rng.uniform(0.06, 0.15))
+            at = spot(2 * r, 2 * r)
+            if at is not None:
+                top = float(rng.uniform(3.0, height - 1.0))
+                solids.append(Solid(Cylinder(at[0] + r, at[1] + r, r, 0.0, top), PILLAR))
+        elif kind < 0.6:  # a block of buildings
+            sx, sy, tall = (
+                float(rng.uniform(4.0, 14.0)),
+                float(rng.uniform(4.0, 14.0)),
+                float(rng.uniform(3.0, 10.0)),
+            )
+            at = spot(sx, sy)
+            if at is not None:
+                solids.append(
+                    Solid(_box(at[0], at[1], 0.0, at[0] + sx, at[1] + sy, min(tall, height - 2.0)), WALL)
+                )
+        elif kind < 0.8:  # a plateau with a ramp up to it
+            sx, sy, top = (
+                float(rng.uniform(8.0, 18.0)),
+                float(rng.uniform(8.0, 18.0)),
+                float(rng.uniform(1.5, 4.0)),
+            )
+            run = _ramp_run(top, rng, 12.0)
+            rw = float(rng.uniform(2.0, 3.5))
+            at = spot(sx + (run or 0.0), sy)
+            if at is not None:
+                px = at[0] + (run or 0.0)
+                solids.append(Solid(_box(px, at[1], 0.0, px + sx, at[1] + sy, top), FLOOR))
+                if run is not None:
+                    c = float(rng.uniform(at[1] + rw / 2, at[1] + sy - rw / 2))
+                    solids.append(Solid(slab_between((at[0], c, 0.0), (px, c, top), rw, 0.3), RAMP))
+                preferred.append((px + sx / 2, at[1] + sy / 2, top + float(rng.uniform(1.0, 6.0))))
+        else:  # a long low wall
+            lw, th, tall = (
+                float(rng.uniform(6.0, 20.0)),
+                float(rng.uniform(0.25, 0.5)),
+                float(rng.uniform(1.0, 2.5)),
+            )
+            sx, sy = (lw, th) if rng.random() < 0.5 else (th, lw)
+            at = spot(sx, sy)
+            if at is not None:
+                solids.append(Solid(_box(at[0], at[1], 0.0, at[0] + sx, at[1] + sy, tall), WALL))
+    for _ in range(10):  # open air at every height a drone flies
+        preferred.append(
+            (
+                float(rng.uniform(2.0, length - 2.0)),
+                float(rng.uniform(2.0, width - 2.0)),
+                float(rng.uniform(1.0, min(12.0, height - 2.0))),
+            )
+        )
+    return [_box(0.0, 0.0, 0.0, length, width, height)], solids, height, preferred
+
+
+FIELD_GAP = 8.0
+"""Meters of open floor the field family keeps round each landmark."""
+
+
 def build_layout(family: Family | str, seed: int) -> Layout:
     """The primitives of one scene of a family; the same (family, seed) always gives the same layout."""
     fam = Family(family)
@@ -1015,6 +1100,8 @@ def build_layout(family: Family | str, seed: int) -> Layout:
             parts = _platforms(rng)
         case Family.FLOATING:
             parts = _floating(rng)
+        case Family.FIELD:
+            parts = _field(rng)
     air, solids, open_top, preferred = parts
     seeds = _pick_seeds(rng, air, solids, preferred)
     return Layout(family=fam, seed=seed, air=tuple(air), solids=tuple(solids), open_top=open_top, seeds=seeds)
