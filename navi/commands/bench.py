@@ -422,8 +422,13 @@ def bench_openfloor_cmd(
     device: Annotated[str, typer.Option(help="cpu, cuda or cuda:N.")] = "cpu",
     widths: Annotated[
         str,
-        typer.Option("--widths", help="Floor edges in meters, comma-separated (the sky at a third of each)."),
+        typer.Option(
+            "--widths", help="Floor edges in meters, comma-separated (the sky at --sky-ratio of each)."
+        ),
     ] = "15,30,60,120",
+    sky_ratio: Annotated[
+        float, typer.Option("--sky-ratio", min=0.01, help="The sky's height as a share of the floor's width.")
+    ] = 1.0 / 3.0,
     steps: Annotated[int, typer.Option("--steps", min=2, help="Steps flown (dt 0.1 s).")] = 300,
     actors: Annotated[int, typer.Option("--actors-per-start", min=1, help="Drones per start height.")] = 8,
     folder: Annotated[
@@ -455,6 +460,7 @@ def bench_openfloor_cmd(
     try:
         cfg = OpenFloorConfig(
             widths=tuple(float(w) for w in widths.split(",") if w.strip()),
+            sky_ratio=sky_ratio,
             steps=steps,
             actors_per_start=actors,
         )

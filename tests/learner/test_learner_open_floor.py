@@ -43,8 +43,15 @@ def floors(tmp_path_factory: pytest.TempPathFactory) -> dict[float, Path]:
     return build_open_floors(tmp_path_factory.mktemp("open-floor"), CFG)
 
 
-def test_the_starts_stay_a_meter_under_each_sky() -> None:
+def test_the_starts_stay_a_meter_under_each_sky(tmp_path: Path) -> None:
     assert CFG.starts() == [(15.0, 1.0), (15.0, 4.0), (60.0, 1.0), (60.0, 4.0), (60.0, 16.0)]
+    high = replace(CFG, widths=(15.0,), sky_ratio=1.0)
+    assert high.starts() == [(15.0, 1.0), (15.0, 4.0)]  # 16 m is not 1 m under a 15 m sky
+    (low,), (tall,) = (
+        build_open_floors(tmp_path, replace(high, sky_ratio=0.2)).values(),
+        build_open_floors(tmp_path, high).values(),
+    )
+    assert low.name == "open-floor-15m-sky3m-64.gmdag" and tall.name == "open-floor-15m-sky15m-64.gmdag"
     with pytest.raises(ValueError, match="no start height"):
         build_open_floors(Path("/nonexistent"), OpenFloorConfig(widths=(3.0,)))
 

@@ -54,7 +54,8 @@ class OpenFloorConfig:
 
 
 def floor_scene_name(width: float, cfg: OpenFloorConfig) -> str:
-    return f"open-floor-{width:g}m-{cfg.resolution}"
+    """The file name of a floor: its width, its sky and its lattice."""
+    return f"open-floor-{width:g}m-sky{width * cfg.sky_ratio:.4g}m-{cfg.resolution}"
 
 
 def build_open_floors(folder: Path, cfg: OpenFloorConfig, say: Say | None = None) -> dict[float, Path]:
