@@ -94,7 +94,8 @@ def open_floor_env(
     files: dict[float, Path], cfg: OpenFloorConfig, device: str, env: EnvConfig | None = None
 ) -> Any:
     """The probe's env: one scene per (width, start height) with that start as its only spawn, so actor i
-    starts at cfg.starts()[i % S]; episodes last longer than the probe."""
+    starts at cfg.starts()[i % S]; episodes last longer than the probe. It steps eagerly (no compiled
+    passes, no CUDA graph): a hundred-odd drones for a few hundred steps cost less than compiling."""
     from navi_env.corpus.folder import load_corpus
     from navi_env.sim.env import SdfDagEnv
 
@@ -104,7 +105,7 @@ def open_floor_env(
     base = env or EnvConfig()
     config = replace(base, max_steps_per_episode=max(base.max_steps_per_episode, cfg.steps + 1))
     n = len(starts) * cfg.actors_per_start
-    return SdfDagEnv(corpus, n, device, config, spawns=spawns, seed=cfg.seed)
+    return SdfDagEnv(corpus, n, device, config, spawns=spawns, seed=cfg.seed, eager=True)
 
 
 @dataclass
