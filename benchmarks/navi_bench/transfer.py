@@ -8,7 +8,10 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
     object), of the listed families (default: the default families; FAMILY@S scales that entry's scenes by
     up to S);
   - `openarena`: the OpenArena maps outside the held-out fifth (every fifth map by name, as `navi bench
-    learn` holds out): the upper reference, a drone that has seen real maps.
+    learn` holds out): the upper reference, a drone that has seen real maps;
+  - either followed by `/KEY=NUMBER[,KEY=NUMBER...]`: the arm trains with those RewardConfig fields
+    replaced (`procedural/structure_weight=0`), on the same corpus as the arm without them, so that a
+    reward lever is measured beside the recipe in one job; evaluation never reads the reward.
 - Evaluation. Every arm's final checkpoint flies (EvalProtocol, deterministic, same env seed) on:
   - `openarena`: all OpenArena maps, per map too (no procedural arm has seen any of them);
   - `openarena-held-out`: the held-out fifth, which no arm has seen: the parity comparison;
@@ -83,6 +86,8 @@ class Arm:
     real: bool
     semantics: str = "object"
     families: tuple[str, ...] = ()
+    reward: tuple[tuple[str, float], ...] = ()
+    """RewardConfig fields the arm's training replaces (name, value)."""
 
     @property
     def key(self) -> str:
@@ -91,15 +96,36 @@ class Arm:
             return "openarena"
         return f"procedural-{self.semantics}-{'+'.join(self.families) or 'all'}"
 
+    @property
+    def run_key(self) -> str:
+        """A folder-safe name of its runs: the corpus's, and the reward it replaces."""
+        return "-".join([self.key, *(f"{k}={v:g}" for k, v in self.reward)])
+
 
 def parse_arm(spec: str) -> Arm:
     """An Arm from `openarena` or `procedural[:SEMANTICS[:FAMILY+FAMILY...]]` (an entry FAMILY@S scales its
-    scenes by up to S, navi_compiler.ingest.procedural.parse_entry); ValueError on anything else."""
+    scenes by up to S, navi_compiler.ingest.procedural.parse_entry), either followed by
+    `/KEY=NUMBER[,KEY=NUMBER...]` (RewardConfig fields); ValueError on anything else."""
+    from navi_learner.envs.factory import parse_reward_overrides
+
+    base, slash, overrides = spec.strip().partition("/")
+    try:
+        reward = tuple(parse_reward_overrides([o for o in overrides.split(",") if o.strip()]).items())
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"arm {spec!r}: {err}") from err
+    if slash and not reward:
+        raise ValueError(f"arm {spec!r}: name KEY=NUMBER after /")
+    arm = _parse_corpus_arm(base, spec)
+    return replace(arm, spec=spec.strip(), reward=reward)
+
+
+def _parse_corpus_arm(base: str, spec: str) -> Arm:
+    """The Arm of the part of a spec before any `/`."""
     from navi_compiler.ingest.procedural import SEMANTICS, parse_entry
 
-    parts = spec.strip().split(":")
+    parts = base.split(":")
     if parts == ["openarena"]:
-        return Arm(spec.strip(), real=True)
+        return Arm(base, real=True)
     if parts[0] != "procedural" or len(parts) > 3:
         raise ValueError(f"arm {spec!r}: expected openarena or procedural[:SEMANTICS[:FAMILY+FAMILY...]]")
     semantics = parts[1] if len(parts) > 1 and parts[1] else "object"
@@ -111,7 +137,7 @@ def parse_arm(spec: str) -> Arm:
             parse_entry(entry)
         except ValueError as err:
             raise ValueError(f"arm {spec!r}: {err}") from err
-    return Arm(spec.strip(), real=False, semantics=semantics, families=families)
+    return Arm(base, real=False, semantics=semantics, families=families)
 
 
 @dataclass(frozen=True)
@@ -381,7 +407,8 @@ class RunJob:
             device=device,
         )
         say(f"[bench transfer] {self.arm.spec} seed {self.seed}: training on {self.train} ({device})")
-        env = make_env(self.train, tcfg.n_actors, device, self.seed, task=tcfg.task)
+        reward = dict(self.arm.reward) or None
+        env = make_env(self.train, tcfg.n_actors, device, self.seed, task=tcfg.task, reward=reward)
         result = train(
             env,
             tcfg,
@@ -747,7 +774,7 @@ def bench_transfer(
             cfg,
             corpora.train[arm.key],
             corpora.unseen[arm.key],
-            out / "runs" / f"{arm.key}-seed{seed}",
+            out / "runs" / f"{arm.run_key}-seed{seed}",
             floors,
         )
         for seed in cfg.seeds

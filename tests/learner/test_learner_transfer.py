@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import pytest
 import torch
@@ -42,7 +43,16 @@ def test_arms_parse_and_bad_ones_are_refused() -> None:
         "procedural-surface-arena+maze",
     )
     assert parse_arm("procedural:object:rooms+arena@4").families == ("rooms", "arena@4")
+    lever = parse_arm("procedural:surface:arena+maze/structure_weight=0,blind_weight=0.1")
+    assert lever.reward == (("structure_weight", 0.0), ("blind_weight", 0.1))
+    assert lever.key == arm.key  # the same corpus as the arm without the reward
+    assert lever.run_key == "procedural-surface-arena+maze-structure_weight=0-blind_weight=0.1"
+    assert lever.spec == "procedural:surface:arena+maze/structure_weight=0,blind_weight=0.1"
+    assert parse_arm("openarena/collision_weight=5").reward == (("collision_weight", 5.0),)
     for bad, why in (
+        ("procedural/", "name KEY=NUMBER after /"),
+        ("procedural/structure=0", "unknown reward weight"),
+        ("procedural/structure_weight", "KEY=NUMBER"),
         ("quake", "expected openarena or procedural"),
         ("procedural:texture", "semantics must be one of"),
         ("procedural:object:castle", "unknown family 'castle'"),
@@ -128,14 +138,26 @@ def test_the_bar_on_real_maps() -> None:
     assert not verdict(row | {"collisions_per_episode": 2.0}, greedy, "pointgoal")
 
 
-def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
-    """Two procedural arms (one family each, object and surface semantics, the second scaled by up to 2), one
-    seed, no OpenArena package: the job says so, builds each arm's corpora, runs the untimed warm-up once,
-    flies the baselines and each final checkpoint on the unseen procedural scenes, and its summary and
+def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two procedural arms (one family each, object and surface semantics, the second scaled by up to 2 and
+    trained with a reward weight replaced), one seed, no OpenArena package: the job says so, builds each
+    arm's corpora, runs the untimed warm-up once, trains each arm with its own reward, flies the baselines
+    and each final checkpoint on the unseen procedural scenes and the open floor, and its summary and
     report hold exactly those runs."""
+    import navi_bench.transfer as transfer
+
+    rewards: list[object] = []  # the reward replaced in each training env, in order
+
+    def make_env(*args: Any, **kwargs: Any) -> Any:
+        if kwargs.get("episode_steps", 0) == 0:  # a training env (evaluation envs set their episodes)
+            rewards.append(kwargs.get("reward"))
+        return real_make_env(*args, **kwargs)
+
+    real_make_env = transfer.make_env
+    monkeypatch.setattr(transfer, "make_env", make_env)
     train: TrainConfig = learning_recipe(TrainConfig(n_actors=4, rollout_length=16))
     cfg = TransferConfig(
-        arms=(parse_arm("procedural:object:maze"), parse_arm("procedural:surface:maze@2")),
+        arms=(parse_arm("procedural:object:maze"), parse_arm("procedural:surface:maze@2/structure_weight=0")),
         seeds=(3,),
         budget_s=2.0,
         train=train,
@@ -162,8 +184,10 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     }
     assert [(r["arm"], r["seed"]) for r in saved["runs"]] == [
         ("procedural:object:maze", 3),
-        ("procedural:surface:maze@2", 3),
+        ("procedural:surface:maze@2/structure_weight=0", 3),
     ]
+    assert rewards == [None, None, {"structure_weight": 0.0}]  # the warm-up, then each arm's run
+    assert (out / "runs" / "procedural-surface-maze@2-structure_weight=0-seed3").is_dir()
     for run in saved["runs"]:
         assert set(run["final_by_part"]) == {"procedural"} and run["steps"] > 0 and run["train_s"] >= 2.0
         (floor,) = run["open_floor"]  # each final checkpoint flew the probe's one floor and start
@@ -181,7 +205,7 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     assert [(w["device"], w["updates"]) for w in saved["warmups"]] == [("cpu", WARMUP_UPDATES)]
     assert (out / "runs" / "warmup-0").is_dir()  # the untimed updates ran once, ahead of both runs
     report = (out / "report.md").read_text()
-    assert "| procedural:surface:maze@2 |" in report and "| reactive |" in report
+    assert "| procedural:surface:maze@2/structure_weight=0 |" in report and "| reactive |" in report
     assert f"Each worker first ran {WARMUP_UPDATES} untimed updates" in report
     assert "## Open floors" in report and "| procedural:object:maze | " in report
     assert result["summary"]["per_map"] == {} and not (out / "transfer.png").exists()
