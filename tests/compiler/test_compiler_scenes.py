@@ -310,3 +310,31 @@ def test_scenes_generate_command(tmp_path: Path) -> None:
     assert load_scene(surface / "arena_0000.obj").class_names == SURFACE_CLASS_NAMES
     bad = runner.invoke(app, [*args, "texture"])
     assert bad.exit_code == 2 and "texture" in bad.output
+
+
+def floor_only_share(layout: Layout, rng: np.random.Generator, points: int = 2000) -> float:
+    """Share of random points 1-10 m over the floor of a single-box layout with no surface but the floor
+    within 10 m: no wall of the box, no sky, no solid."""
+    grid = air_grid(layout.air)
+    lo = np.array([grid.xs[0], grid.ys[0], grid.zs[0]])  # (3,)
+    hi = np.array([grid.xs[-1], grid.ys[-1], grid.zs[-1]])  # (3,)
+    p = np.column_stack(
+        [rng.uniform(lo[0], hi[0], points), rng.uniform(lo[1], hi[1], points), rng.uniform(1.0, 10.0, points)]
+    )  # (P, 3)
+    walls = np.minimum(
+        np.minimum(p[:, 0] - lo[0], hi[0] - p[:, 0]), np.minimum(p[:, 1] - lo[1], hi[1] - p[:, 1])
+    )
+    other = np.minimum(walls, hi[2] - p[:, 2])  # (P,) to the box's walls and sky
+    for solid in layout.solids:
+        other = np.minimum(other, solid_distance(solid, p))
+    return float((other >= 10.0).mean())
+
+
+def test_the_field_leaves_open_floor_where_the_open_families_do_not() -> None:
+    """The field's reason to be: a third of its air at flying height (1-10 m) has nothing but the floor
+    within 10 m, the drone's view clearance; in the platforms, forest and yard none does."""
+    rng = np.random.default_rng(0)
+    for seed in SEEDS:
+        assert floor_only_share(build_layout(Family.FIELD, seed), rng) > 0.25
+        for family in (Family.PLATFORMS, Family.FOREST, Family.YARD):
+            assert floor_only_share(build_layout(family, seed), rng) < 0.02
