@@ -35,7 +35,7 @@ class Constant:
         self.n = n
 
     def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
-        return self.action.expand(obs.shape[0], 4).clone()  # (N, 4)
+        return self.action.to(obs.device).expand(obs.shape[0], 4).clone()  # (N, 4)
 
 
 @pytest.fixture(scope="module")
@@ -117,3 +117,15 @@ def test_bench_openfloor_flies_a_checkpoint_and_the_avoider(tmp_path: Path) -> N
     goal = REFERENCE.with_name("mamba2-pointgoal.pt")
     bad = CliRunner().invoke(build_app(), ["bench", "openfloor", str(goal), "--scenes", str(tmp_path)])
     assert bad.exit_code != 0 and "trained for pointgoal" in bad.output
+
+
+@pytest.mark.gpu
+def test_the_probe_flies_the_same_on_cuda_as_on_the_cpu(floors: dict[float, Path]) -> None:
+    """The same scripted descent, eager on both devices: the same final heights, floors and contacts."""
+    cfg = replace(CFG, steps=60)
+    sink = Constant("sink", (0.3, -0.5, 0.0, 0.2))
+    cpu = open_floor_probe(sink, open_floor_env(floors, cfg, "cpu"), cfg)
+    cuda = open_floor_probe(sink, open_floor_env(floors, cfg, "cuda"), cfg)
+    for a, b in zip(cpu, cuda, strict=True):
+        assert b.final_by_start == pytest.approx(a.final_by_start, abs=0.02)
+        assert (b.on_floor, b.contacts_per_1k) == pytest.approx((a.on_floor, a.contacts_per_1k), abs=25.0)
