@@ -13,7 +13,6 @@ Shapes: N actors, S scenes (one per width and start height), T steps.
 
 from __future__ import annotations
 
-import statistics
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -122,7 +121,8 @@ class OpenFloorRow:
     final_by_start: list[float]
     """The same median per start height."""
     on_floor: float
-    """Share of the drones in contact with the floor for most of the last `tail` steps."""
+    """Share of the drones pressed to the floor: in contact for most of the last `tail` steps, and lower than
+    two drone radii on average over them."""
     contacts_per_1k: float
     """Contact steps per 1,000 steps, over the whole probe."""
     episodes_ended: int
@@ -148,7 +148,8 @@ def open_floor_probe(policy: EvalPolicy, env: Any, cfg: OpenFloorConfig) -> list
             ended += resets.long()
     tail = max(1, min(cfg.tail, cfg.steps))
     final = height[-tail:].mean(0).cpu().numpy()  # (N,)
-    floor = (contact[-tail:].float().mean(0) > 0.5).cpu().numpy()  # (N,)
+    low = height[-tail:].mean(0) < 2.0 * env.config.drone_radius  # (N,) bool
+    floor = ((contact[-tail:].float().mean(0) > 0.5) & low).cpu().numpy()  # (N,)
     contacts = contact.float().sum(0).cpu().numpy()  # (N,)
     ended_np = ended.cpu().numpy()  # (N,)
     scene = np.arange(n) % s  # (N,) actor i starts at starts[i % S]
@@ -185,9 +186,3 @@ def probe_table(rows: list[OpenFloorRow]) -> str:
             f"| {r.on_floor:.0%} | {r.contacts_per_1k:.0f} |"
         )
     return "\n".join(lines)
-
-
-def widest_on_floor(rows: list[OpenFloorRow]) -> float:
-    """The share of drones on the floor of the widest floor (the number a transfer report carries)."""
-    widest = max(r.width for r in rows)
-    return statistics.fmean(r.on_floor for r in rows if r.width == widest)
