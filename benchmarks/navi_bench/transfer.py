@@ -20,7 +20,8 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
   for point-goal). On `openarena` every collision is classed by the surface it touched (the distance
   field's normal there: floor, ceiling, wall or slope; thin when the solid behind it is thinner than
   THIN_M) and counted per map, and so are the pinned contacts (a drone in contact PINNED_STEPS or more
-  steps in a row).
+  steps in a row), the pinned ones whose command pointed at the nearest surface in view, and the contacts
+  with nothing the view's rays showed (UNSEEN_M).
 - Open floor. Every explore run's final checkpoint also flies the open-floor probe
   (navi_learner.evaluation.open_floor, `navi bench openfloor`): does it hold its height over flat floors
   whose walls lie beyond its view clearance, or sink to the floor as large open maps show?
@@ -71,6 +72,9 @@ NORMAL_STEP_M = 0.05
 PINNED_STEPS = 10
 """A contact is pinned when it is at least the PINNED_STEPS-th step in a row that its drone is in contact
 (1 s at the default 0.1 s step): the drone stays pressed against a surface rather than grazing it."""
+UNSEEN_M = 0.5
+"""A contact is unseen when the shortest ray of the drone's view after the move is longer than the field's
+clearance there by more than this (m): its rays missed what it touched."""
 WARMUP_UPDATES = 3
 """Untimed PPO updates each worker runs before its first timed run (WarmupJob)."""
 SURFACES = ("floor", "ceiling", "wall", "slope")
@@ -318,22 +322,30 @@ def plan_corpora(
     return jobs, finish
 
 
-COUNTS = (*SURFACES, "thin", "pinned")
+COUNTS = (*SURFACES, "thin", "pinned", "pushing", "unseen")
 """What the collision table counts per map: contacts per surface class, those with thin geometry behind,
-and those that were pinned (PINNED_STEPS)."""
+those that were pinned (PINNED_STEPS), the pinned ones whose command pointed at the nearest surface the
+view shows (the drone keeps pushing into what it sees) and those it could not see (UNSEEN_M)."""
 
 
 class CollisionSites:
     """An `evaluate` observer that keeps where each collision happened, (scene, position) per contact, and
-    how many steps in a row its drone had been in contact by then (a new episode starts a new run)."""
+    how many steps in a row its drone had been in contact by then (a new episode starts a new run). Given
+    the env's `config` (an EnvConfig: sensor, horizon, speeds), it also reads each contact's view and
+    command: whether the commanded body velocity pointed at the view's shortest ray, and whether that ray
+    was longer than the field's clearance by more than UNSEEN_M."""
 
-    def __init__(self) -> None:
+    def __init__(self, config: EnvConfig | None = None) -> None:
+        self.config = config
         self.scene: list[torch.Tensor] = []
         self.position: list[torch.Tensor] = []
         self.run: list[torch.Tensor] = []
+        self.toward: list[torch.Tensor] = []
+        self.unseen: list[torch.Tensor] = []
         self.streak: torch.Tensor | None = None  # (N,) contact steps in a row, up to the last step
+        self.rays: torch.Tensor | None = None  # (R, 3) body-frame ray directions of the view
 
-    def __call__(self, out: StepLike) -> None:
+    def __call__(self, out: StepLike, action: torch.Tensor | None = None) -> None:
         hit = out.info["collision"].bool()  # (N,)
         if self.streak is None:
             self.streak = torch.zeros(hit.shape[0], dtype=torch.long, device=hit.device)  # (N,)
@@ -341,7 +353,27 @@ class CollisionSites:
         self.scene.append(out.info["scene_id"].long()[hit])  # (C_t,)
         self.position.append(out.info["position"].float()[hit])  # (C_t, 3)
         self.run.append(self.streak[hit])  # (C_t,) 1 for a first contact
+        if self.config is not None and action is not None:
+            toward, unseen = self._view(out, action)  # (N,) bool each
+            self.toward.append(toward[hit])  # (C_t,)
+            self.unseen.append(unseen[hit])  # (C_t,)
         self.streak = self.streak * ~(out.done | out.truncated)  # (N,) the next episode starts afresh
+
+    def _view(self, out: StepLike, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per drone (N,) bool each: the command points at the view's nearest surface; the view's
+        shortest ray is longer than the field's clearance by more than UNSEEN_M."""
+        from navi_env.rays import ray_pattern
+        from navi_env.sim.physics import body_velocity, dot
+
+        assert self.config is not None
+        n, _, az, el = out.obs.shape  # (N, C, Az, El)
+        if self.rays is None:
+            self.rays = ray_pattern(az, el, self.config.sensor, out.obs.device)  # (R, 3) body frame
+        near, ray = out.obs[:, 0].reshape(n, az * el).float().min(dim=1)  # (N,), (N,) depth / horizon
+        velocity, _ = body_velocity(action.float(), self.config)  # (N, 3) body m/s
+        toward = (dot(velocity, self.rays[ray]) > 0.0) & (near < 1.0)  # (N,) a miss shows no surface
+        unseen = near * self.config.horizon > out.info["clearance"].float() + UNSEEN_M  # (N,)
+        return toward, unseen
 
     def classify(self, env: Any, names: tuple[str, ...]) -> dict[str, dict[str, int]]:
         """Per scene name (and "all"): contacts per surface class (SURFACES), how many were thin and how
@@ -351,6 +383,9 @@ class CollisionSites:
         scene = torch.cat(self.scene) if self.scene else torch.zeros(0, dtype=torch.long)  # (C,)
         pos = torch.cat(self.position) if self.position else torch.zeros(0, 3)  # (C, 3)
         run = torch.cat(self.run) if self.run else torch.zeros(0, dtype=torch.long)  # (C,)
+        seen_view = bool(self.toward) and len(self.toward) == len(self.run)
+        toward = torch.cat(self.toward) if seen_view else torch.zeros_like(run, dtype=torch.bool)  # (C,)
+        unseen = torch.cat(self.unseen) if seen_view else torch.zeros_like(run, dtype=torch.bool)  # (C,)
         out: dict[str, dict[str, int]] = {"all": dict.fromkeys(COUNTS, 0)}
         if scene.numel() == 0:
             return out
@@ -376,6 +411,8 @@ class CollisionSites:
             row = {s: int(((surface == i) & mine).sum()) for i, s in enumerate(SURFACES)}
             row["thin"] = int((thin & mine).sum())
             row["pinned"] = int(((run >= PINNED_STEPS) & mine).sum())
+            row["pushing"] = int(((run >= PINNED_STEPS) & toward & mine).sum())
+            row["unseen"] = int((unseen & mine).sum())
             if name == "all" or any(row.values()):
                 out[name] = row
         return out
@@ -422,7 +459,7 @@ class RunJob:
         collisions: dict[str, dict[str, int]] = {}
         for part, corpus in self.unseen.items():
             env = eval_env(corpus, self.cfg, device)
-            sites = CollisionSites() if part == "openarena" else None
+            sites = CollisionSites(env.config) if part == "openarena" else None
             p = self.cfg.protocol
             metrics = evaluate(env, trained, p.steps, p.seed, by_scene=part == "openarena", observe=sites)
             metrics.policy = f"{self.arm.spec} seed {self.seed}"
@@ -509,7 +546,7 @@ class BaselineJob:
         out: dict[str, Any] = {}
         rows = []
         for policy in baseline_policies(env, p):
-            sites = CollisionSites() if self.part == "openarena" else None
+            sites = CollisionSites(env.config) if self.part == "openarena" else None
             metrics = evaluate(env, policy, p.steps, p.seed, by_scene=sites is not None, observe=sites)
             metrics.per_actor = {}
             rows.append(metrics)
@@ -621,12 +658,10 @@ def summarise(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]], 
                     row[arm] = {m: statistics.median(x[m] for x in mine) for m in metrics}
             out["per_map"][name] = row
         for arm in dict.fromkeys(r["arm"] for r in runs):
-            total = dict.fromkeys(COUNTS, 0)
-            for r in runs:
-                if r["arm"] == arm:
-                    for k in total:
-                        total[k] += r["collisions_by_surface"].get("all", {}).get(k, 0)
-            out["surfaces"][arm] = total
+            rows = [r["collisions_by_surface"].get("all", {}) for r in runs if r["arm"] == arm]
+            out["surfaces"][arm] = {
+                k: sum(row.get(k, 0) for row in rows) for k in COUNTS if any(k in row for row in rows)
+            }  # a count no run kept (results saved before it was counted) stays out of the table
         for name, b in baselines["openarena"].items():
             out["surfaces"][name] = b.get("collisions_by_surface", {}).get("all", {})
     return out

@@ -26,6 +26,8 @@ from navi_bench.transfer import (
     verdict,
 )
 from navi_compiler.dag.build import build_gmdag
+from navi_env.config import EnvConfig
+from navi_env.rays import ray_pattern
 from navi_env.tracer.analytic_scenes import AnalyticScene, Box, Room
 from navi_env.tracer.scene import load_corpus
 from navi_learner.config import TrainConfig, learning_recipe
@@ -88,10 +90,14 @@ def test_collisions_are_classed_by_the_surface_touched_and_what_lies_behind_it()
             "slope": 0,
             "thin": 1,
             "pinned": 0,
+            "pushing": 0,
+            "unseen": 0,
         }
     )
-    assert set(rows["all"]) == {*SURFACES, "thin", "pinned"}
-    assert CollisionSites().classify(env, ("room",))["all"] == dict.fromkeys((*SURFACES, "thin", "pinned"), 0)
+    assert set(rows["all"]) == {*SURFACES, "thin", "pinned", "pushing", "unseen"}
+    assert CollisionSites().classify(env, ("room",))["all"] == dict.fromkeys(
+        (*SURFACES, "thin", "pinned", "pushing", "unseen"), 0
+    )
 
 
 def step(hit: torch.Tensor, points: torch.Tensor, ends: torch.Tensor | None = None) -> SimpleNamespace:
@@ -118,6 +124,36 @@ def test_a_contact_is_pinned_from_the_tenth_step_in_a_row_and_a_new_episode_star
     rows = sites.classify(env, ("room",))
     assert rows["all"]["floor"] == 14 + 9 + 18
     assert rows["all"]["pinned"] == 14 - (PINNED_STEPS - 1) == 5
+
+
+def test_a_pinned_drone_pushing_into_the_floor_it_sees_and_a_contact_no_ray_showed() -> None:
+    """Three drones 0.32 m over the room's floor, in contact for 12 steps (3 pinned contacts each): the
+    first sees the floor straight below and commands full descent (pushing), the second sees it too but
+    commands a climb (pinned, not pushing), the third commands descent while every ray of its view reads
+    the horizon (12 unseen contacts; a view with no hit shows nothing to push into)."""
+    room = Room((1.0, 1.0, 1.0), (5.4, 5.4, 4.0))
+    scene = AnalyticScene((room,), resolution=64, voxel_size=0.1)
+    gmdag = build_gmdag(scene.lattice(), origin=(0.0, 0.0, 0.0), voxel_size=0.1, bounds=(room.lo, room.hi))
+    env = SimpleNamespace(corpus=load_corpus([gmdag], "cpu"))
+    config = EnvConfig()
+    az, el = 8, 6
+    rays = ray_pattern(az, el, config.sensor)  # (R, 3) body frame
+    down = int(rays[:, 2].argmin())  # the ray nearest straight down
+    obs = torch.ones(3, 3, az, el)  # (N, C, Az, El) every ray a miss
+    obs[:2, 0].view(2, az * el)[:, down] = 0.32 / config.horizon  # the floor below drones 0 and 1
+    action = torch.tensor([[0.0, -1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0]])  # (3, 4)
+    points = torch.tensor([[2.0, 2.0, 1.32], [3.0, 2.0, 1.32], [4.0, 2.0, 1.32]])  # (3, 3)
+    sites = CollisionSites(config)
+    for _ in range(12):
+        out = step(torch.ones(3, dtype=torch.bool), points)
+        out.obs = obs
+        out.info["clearance"] = torch.full((3,), 0.32)
+        sites(out, action)
+    rows = sites.classify(env, ("room",))
+    assert rows["all"]["floor"] == 36
+    assert rows["all"]["pinned"] == 3 * (12 - (PINNED_STEPS - 1)) == 9
+    assert rows["all"]["unseen"] == 12
+    assert rows["all"]["pushing"] == 3  # drone 0 only: drone 1 climbs away, drone 2's view shows nothing
 
 
 def test_the_bar_on_real_maps() -> None:

@@ -258,11 +258,12 @@ def evaluate(
     seed: int = 0,
     progress: bool = False,
     by_scene: bool = False,
-    observe: Callable[[StepLike], None] | None = None,
+    observe: Callable[[StepLike, torch.Tensor], None] | None = None,
 ) -> EvalMetrics:
     """Run `steps` batched steps from env.reset(seed) and summarise (one host read at the end). With
     `by_scene` the result also holds per-scene values (EvalMetrics.per_scene; the env's info "scene_id"
-    and its capabilities' scene names); `observe` sees every step's output (analyses that record more)."""
+    and its capabilities' scene names); `observe` sees every step's output and the actions (N, 4) that made
+    it (analyses that record more)."""
     n, device = env.n_actors, env.device
     policy.reset(n, device)
     obs = env.reset(seed=seed)
@@ -295,9 +296,10 @@ def evaluate(
     first_scene: torch.Tensor | None = None  # (N,) int64 the scene each actor flew first
     t0 = time.perf_counter()
     for i in range(steps):
-        out = env.step(policy.act(obs, resets))
+        action = policy.act(obs, resets)  # (N, 4)
+        out = env.step(action)
         if observe is not None:
-            observe(out)
+            observe(out, action)
         if by_scene and first_scene is None:
             if "scene_id" not in out.info:
                 raise ValueError("by_scene needs an env whose info has scene_id (the drone env)")
