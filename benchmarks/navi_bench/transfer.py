@@ -9,9 +9,10 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
     up to S);
   - `openarena`: the OpenArena maps outside the held-out fifth (every fifth map by name, as `navi bench
     learn` holds out): the upper reference, a drone that has seen real maps;
-  - either followed by `/KEY=NUMBER[,KEY=NUMBER...]`: the arm trains with those RewardConfig fields
-    replaced (`procedural/structure_weight=0`), on the same corpus as the arm without them, so that a
-    reward lever is measured beside the recipe in one job; evaluation never reads the reward.
+  - either followed by `/KEY=VALUE[,KEY=VALUE...]`: the arm trains with those RewardConfig fields
+    replaced (`procedural/structure_weight=0`) or a fresh engine with those EngineConfig fields
+    (`procedural/action_input=1`), on the same corpus as the arm without them, so that a reward or engine
+    lever is measured beside the recipe in one job; evaluation never reads the reward.
 - Evaluation. Every arm's final checkpoint flies (EvalProtocol, deterministic, same env seed) on:
   - `openarena`: all OpenArena maps, per map too (no procedural arm has seen any of them);
   - `openarena-held-out`: the held-out fifth, which no arm has seen: the parity comparison;
@@ -39,7 +40,7 @@ import statistics
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -92,6 +93,8 @@ class Arm:
     families: tuple[str, ...] = ()
     reward: tuple[tuple[str, float], ...] = ()
     """RewardConfig fields the arm's training replaces (name, value)."""
+    engine: tuple[tuple[str, Any], ...] = ()
+    """EngineConfig fields of the arm's fresh engine (name, value), on top of the job's engine."""
 
     @property
     def key(self) -> str:
@@ -102,25 +105,32 @@ class Arm:
 
     @property
     def run_key(self) -> str:
-        """A folder-safe name of its runs: the corpus's, and the reward it replaces."""
-        return "-".join([self.key, *(f"{k}={v:g}" for k, v in self.reward)])
+        """A folder-safe name of its runs: the corpus's, and the reward and engine fields it replaces."""
+        engine = [f"{k}={int(v) if isinstance(v, bool) else v:g}" for k, v in self.engine]
+        return "-".join([self.key, *(f"{k}={v:g}" for k, v in self.reward), *engine])
 
 
 def parse_arm(spec: str) -> Arm:
     """An Arm from `openarena` or `procedural[:SEMANTICS[:FAMILY+FAMILY...]]` (an entry FAMILY@S scales its
     scenes by up to S, navi_compiler.ingest.procedural.parse_entry), either followed by
-    `/KEY=NUMBER[,KEY=NUMBER...]` (RewardConfig fields); ValueError on anything else."""
+    `/KEY=VALUE[,KEY=VALUE...]` (RewardConfig fields, numbers; or EngineConfig fields of a fresh engine,
+    e.g. action_input=1); ValueError on anything else."""
+    from navi_learner.config import EngineConfig, engine_overrides
     from navi_learner.envs.factory import parse_reward_overrides
 
     base, slash, overrides = spec.strip().partition("/")
+    items = [o for o in overrides.split(",") if o.strip()]
+    engine_fields = {f.name for f in fields(EngineConfig)}
+    to_engine = [o for o in items if o.partition("=")[0].strip() in engine_fields]
     try:
-        reward = tuple(parse_reward_overrides([o for o in overrides.split(",") if o.strip()]).items())
+        reward = tuple(parse_reward_overrides([o for o in items if o not in to_engine]).items())
+        engine = tuple(engine_overrides(to_engine).items())
     except (TypeError, ValueError) as err:
         raise ValueError(f"arm {spec!r}: {err}") from err
-    if slash and not reward:
-        raise ValueError(f"arm {spec!r}: name KEY=NUMBER after /")
+    if slash and not (reward or engine):
+        raise ValueError(f"arm {spec!r}: name KEY=VALUE after /")
     arm = _parse_corpus_arm(base, spec)
-    return replace(arm, spec=spec.strip(), reward=reward)
+    return replace(arm, spec=spec.strip(), reward=reward, engine=engine)
 
 
 def _parse_corpus_arm(base: str, spec: str) -> Arm:
@@ -443,6 +453,8 @@ class RunJob:
             seed=self.seed,
             device=device,
         )
+        if self.arm.engine:
+            tcfg = replace(tcfg, engine=replace(tcfg.engine, **dict(self.arm.engine)))
         say(f"[bench transfer] {self.arm.spec} seed {self.seed}: training on {self.train} ({device})")
         reward = dict(self.arm.reward) or None
         env = make_env(self.train, tcfg.n_actors, device, self.seed, task=tcfg.task, reward=reward)
@@ -658,9 +670,9 @@ def summarise(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]], 
                     row[arm] = {m: statistics.median(x[m] for x in mine) for m in metrics}
             out["per_map"][name] = row
         for arm in dict.fromkeys(r["arm"] for r in runs):
-            rows = [r["collisions_by_surface"].get("all", {}) for r in runs if r["arm"] == arm]
+            kept = [r["collisions_by_surface"].get("all", {}) for r in runs if r["arm"] == arm]
             out["surfaces"][arm] = {
-                k: sum(row.get(k, 0) for row in rows) for k in COUNTS if any(k in row for row in rows)
+                k: sum(c.get(k, 0) for c in kept) for k in COUNTS if any(k in c for c in kept)
             }  # a count no run kept (results saved before it was counted) stays out of the table
         for name, b in baselines["openarena"].items():
             out["surfaces"][name] = b.get("collisions_by_surface", {}).get("all", {})

@@ -691,8 +691,9 @@ def bench_transfer_cmd(
             "--arm",
             help="What a run trains on (repeatable): procedural[:SEMANTICS[:FAMILY+FAMILY...]] (procedural "
             "scenes of seed 0; SEMANTICS object or surface; FAMILY@S scales that entry's scenes by up to S) or "
-            "openarena (the maps outside the held-out fifth); either may end in /KEY=NUMBER[,KEY=NUMBER...]: "
-            "train with those RewardConfig weights replaced, on the same corpus. Default: procedural and openarena.",
+            "openarena (the maps outside the held-out fifth); either may end in /KEY=VALUE[,KEY=VALUE...]: "
+            "train with those RewardConfig weights (or a fresh engine with those EngineConfig fields, e.g. "
+            "action_input=1) replaced, on the same corpus. Default: procedural and openarena.",
         ),
     ] = None,
     seeds: Annotated[

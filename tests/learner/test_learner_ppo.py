@@ -69,9 +69,12 @@ def test_ppo_loss_advantage_normalisation() -> None:
     assert abs(float(m1["policy_loss"])) < 1e-6
 
 
-def tiny_setup(core: TemporalCoreName = "mamba2") -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
+def tiny_setup(
+    core: TemporalCoreName = "mamba2", action_input: bool = False
+) -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
     eng = EngineConfig(
         temporal_core=core,
+        action_input=action_input,
         embed_dim=16,
         patch_size=4,
         encoder_layers=1,
@@ -223,16 +226,18 @@ def test_update_adapts_the_rate_once_per_minibatch(fused: bool) -> None:
     assert float(metrics["lr"]) == pytest.approx(mean_rate, rel=1e-5)
 
 
-@pytest.mark.parametrize("core", ["mamba2", "gru"])
-def test_the_compiled_objective_updates_as_the_eager_one_does(core: TemporalCoreName) -> None:
+@pytest.mark.parametrize(("core", "action_input"), [("mamba2", False), ("gru", False), ("mamba2", True)])
+def test_the_compiled_objective_updates_as_the_eager_one_does(
+    core: TemporalCoreName, action_input: bool
+) -> None:
     """`--compile-update` traces each minibatch's objective (sequence pass, PPO and RND losses; one graph
-    with mamba2, the gru's per-episode segments break it) and its backward: traced here with the
-    aot_eager backend (the CPU runs the same graphs without code generation), one update (2 minibatches)
-    leaves the same weights and metrics as eager."""
+    with mamba2, the gru's per-episode segments break it) and its backward, also with the previous action
+    as an input: traced here with the aot_eager backend (the CPU runs the same graphs without code
+    generation), one update (2 minibatches) leaves the same weights and metrics as eager."""
     results = []
     for compiled in (False, True):
         torch.manual_seed(0)
-        policy, buf, cfg = tiny_setup(core)
+        policy, buf, cfg = tiny_setup(core, action_input)
         objective = ppo_objective(policy, cfg, norm_adv=True)
         if compiled:
             objective = compile_graph(objective, backend="aot_eager", fullgraph=core == "mamba2")

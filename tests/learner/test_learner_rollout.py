@@ -128,13 +128,15 @@ def test_default_rollout_is_64_steps_at_8192_actors_in_20_gb() -> None:
     assert resolve(TrainConfig(n_actors=8192, device="cpu"), shape, compact=False).rollout_length == 16
 
 
-@pytest.mark.parametrize("core", ["mamba2", "gru"])
-def test_the_compiled_rollout_step_collects_what_the_eager_one_does(core: TemporalCoreName) -> None:
+@pytest.mark.parametrize(("core", "action_input"), [("mamba2", False), ("gru", False), ("mamba2", True)])
+def test_the_compiled_rollout_step_collects_what_the_eager_one_does(
+    core: TemporalCoreName, action_input: bool
+) -> None:
     """`--compile-rollout` traces the rollout's policy step whole (act, RND, memory; fullgraph), with
-    either temporal core: traced here with the aot_eager backend (the CPU runs the same graph without
-    code generation), two rollouts fill the storage, the RND normaliser and the episodic memory bit for
-    bit as the eager step does, same seeds."""
-    engine = replace(EngineConfig.tiny(), temporal_core=core)
+    either temporal core and with the previous action as an input: traced here with the aot_eager backend
+    (the CPU runs the same graph without code generation), two rollouts fill the storage, the RND
+    normaliser and the episodic memory bit for bit as the eager step does, same seeds."""
+    engine = replace(EngineConfig.tiny(), temporal_core=core, action_input=action_input)
     cfg = TrainConfig(n_actors=ACTORS, rollout_length=T_LEN, engine=engine, ppo=PPOConfig(bptt_chunk=CHUNK))
     cpu = torch.device("cpu")
     filled = []
@@ -142,6 +144,8 @@ def test_the_compiled_rollout_step_collects_what_the_eager_one_does(core: Tempor
         torch.manual_seed(0)
         env = small_env("cpu")
         policy = CognitiveMambaPolicy(env.obs_shape, engine).eval()
+        if policy.action_embed is not None:
+            torch.nn.init.normal_(policy.action_embed.weight)  # the input matters, as after training
         buf = RolloutStorage(
             T_LEN, ACTORS, env.obs_shape, policy.initial_state(ACTORS, cpu), CHUNK, cpu, True
         )
@@ -195,12 +199,16 @@ def test_the_rollout_step_is_compiled_by_default_on_cuda_only() -> None:
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_the_inductor_compiled_rollout_step_matches_the_eager_one_on_cuda() -> None:
-    """On CUDA, with bf16 autocast, the compiled step's deterministic outputs and state match eager."""
+@pytest.mark.parametrize("action_input", [False, True])
+def test_the_inductor_compiled_rollout_step_matches_the_eager_one_on_cuda(action_input: bool) -> None:
+    """On CUDA, with bf16 autocast, the compiled step's deterministic outputs and state match eager, also
+    with the previous action as an input."""
     torch.manual_seed(0)
     dev = torch.device("cuda")
-    engine = EngineConfig()
+    engine = EngineConfig(action_input=action_input)
     policy = CognitiveMambaPolicy((3, 256, 48), engine).to(dev).eval()
+    if policy.action_embed is not None:
+        torch.nn.init.normal_(policy.action_embed.weight, std=0.1)  # the input matters, as after training
     policy.amp = True
     n = 256
     memories = [
@@ -223,3 +231,34 @@ def test_the_inductor_compiled_rollout_step_matches_the_eager_one_on_cuda() -> N
     torch.testing.assert_close(got_loop, want_loop, atol=2e-2, rtol=2e-2)
     for g, w in zip(got.state, want.state, strict=True):
         torch.testing.assert_close(g, w, atol=2e-2, rtol=2e-2)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_an_engine_reading_its_previous_action_gets_it_back_from_the_stored_rollout(device: str) -> None:
+    """With EngineConfig.action_input the state carries the previous action: every minibatch's PPO pass
+    (from each chunk's stored state, over the stored actions) gives back the log-probabilities and values
+    the rollout recorded, across episode starts inside the rollout and across the rollout boundary."""
+    torch.manual_seed(0)
+    dev = torch.device(device)
+    env = small_env(device)
+    engine = EngineConfig.tiny(action_input=True)
+    cfg = TrainConfig(n_actors=ACTORS, rollout_length=T_LEN, engine=engine, ppo=PPOConfig(bptt_chunk=CHUNK))
+    policy = CognitiveMambaPolicy(env.obs_shape, engine).to(dev)
+    assert policy.action_embed is not None
+    torch.nn.init.normal_(policy.action_embed.weight)  # as training would leave it: the input matters
+    buf = RolloutStorage(
+        T_LEN, ACTORS, env.obs_shape, policy.initial_state(ACTORS, dev), CHUNK, dev, compact=True
+    )
+    memory = EpisodicMemory(ACTORS, engine.memory_slots, engine.embed_dim, engine.memory_threshold, dev)
+    stats, timers = EpisodeStats(ACTORS, dev), StageTimers(False)
+    starts = torch.ones(ACTORS, dtype=torch.bool, device=dev)  # (N,)
+    carry = (env.reset(seed=1), starts, policy.initial_state(ACTORS, dev))
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(2):
+        carry, _ = collect(policy, env, buf, memory, stats, cfg, carry, timers)
+        assert bool(buf.resets[1:].any())  # episodes start inside the rollout
+        for mb in buf.minibatches(2, gen):
+            with torch.no_grad():
+                ev = policy.evaluate(mb.obs, mb.resets, mb.state, mb.actions)
+            torch.testing.assert_close(ev.logp, mb.logp, atol=1e-4, rtol=1e-4)
+            torch.testing.assert_close(ev.value, mb.values, atol=1e-4, rtol=1e-4)

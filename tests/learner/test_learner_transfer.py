@@ -33,6 +33,7 @@ from navi_env.tracer.scene import load_corpus
 from navi_learner.config import TrainConfig, learning_recipe
 from navi_learner.evaluation.competence import EvalProtocol
 from navi_learner.evaluation.open_floor import OpenFloorConfig
+from navi_learner.serving.checkpoint import read_meta
 
 
 def test_arms_parse_and_bad_ones_are_refused() -> None:
@@ -46,13 +47,17 @@ def test_arms_parse_and_bad_ones_are_refused() -> None:
     )
     assert parse_arm("procedural:object:rooms+arena@4").families == ("rooms", "arena@4")
     lever = parse_arm("procedural:surface:arena+maze/structure_weight=0,blind_weight=0.1")
-    assert lever.reward == (("structure_weight", 0.0), ("blind_weight", 0.1))
+    assert lever.reward == (("structure_weight", 0.0), ("blind_weight", 0.1)) and lever.engine == ()
+    engine = parse_arm("procedural/action_input=1,structure_weight=0")
+    assert engine.engine == (("action_input", True),) and engine.reward == (("structure_weight", 0.0),)
+    assert engine.run_key == "procedural-object-all-structure_weight=0-action_input=1"
     assert lever.key == arm.key  # the same corpus as the arm without the reward
     assert lever.run_key == "procedural-surface-arena+maze-structure_weight=0-blind_weight=0.1"
     assert lever.spec == "procedural:surface:arena+maze/structure_weight=0,blind_weight=0.1"
     assert parse_arm("openarena/collision_weight=5").reward == (("collision_weight", 5.0),)
     for bad, why in (
-        ("procedural/", "name KEY=NUMBER after /"),
+        ("procedural/", "name KEY=VALUE after /"),
+        ("procedural/action_input=maybe", "expects 1 or 0"),
         ("procedural/structure=0", "unknown reward weight"),
         ("procedural/structure_weight", "KEY=NUMBER"),
         ("quake", "expected openarena or procedural"),
@@ -193,7 +198,10 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
     monkeypatch.setattr(transfer, "make_env", make_env)
     train: TrainConfig = learning_recipe(TrainConfig(n_actors=4, rollout_length=16))
     cfg = TransferConfig(
-        arms=(parse_arm("procedural:object:maze"), parse_arm("procedural:surface:maze@2/structure_weight=0")),
+        arms=(
+            parse_arm("procedural:object:maze"),
+            parse_arm("procedural:surface:maze@2/structure_weight=0,action_input=1"),
+        ),
         seeds=(3,),
         budget_s=2.0,
         train=train,
@@ -220,10 +228,12 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
     }
     assert [(r["arm"], r["seed"]) for r in saved["runs"]] == [
         ("procedural:object:maze", 3),
-        ("procedural:surface:maze@2/structure_weight=0", 3),
+        ("procedural:surface:maze@2/structure_weight=0,action_input=1", 3),
     ]
     assert rewards == [None, None, {"structure_weight": 0.0}]  # the warm-up, then each arm's run
-    assert (out / "runs" / "procedural-surface-maze@2-structure_weight=0-seed3").is_dir()
+    engines = [read_meta(Path(r["checkpoint"])).config["engine"]["action_input"] for r in saved["runs"]]
+    assert engines == [False, True]  # only the second arm's fresh engine reads its previous action
+    assert (out / "runs" / "procedural-surface-maze@2-structure_weight=0-action_input=1-seed3").is_dir()
     for run in saved["runs"]:
         assert set(run["final_by_part"]) == {"procedural"} and run["steps"] > 0 and run["train_s"] >= 2.0
         (floor,) = run["open_floor"]  # each final checkpoint flew the probe's one floor and start
@@ -241,7 +251,10 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
     assert [(w["device"], w["updates"]) for w in saved["warmups"]] == [("cpu", WARMUP_UPDATES)]
     assert (out / "runs" / "warmup-0").is_dir()  # the untimed updates ran once, ahead of both runs
     report = (out / "report.md").read_text()
-    assert "| procedural:surface:maze@2/structure_weight=0 |" in report and "| reactive |" in report
+    assert (
+        "| procedural:surface:maze@2/structure_weight=0,action_input=1 |" in report
+        and "| reactive |" in report
+    )
     assert f"Each worker first ran {WARMUP_UPDATES} untimed updates" in report
     assert "## Open floors" in report and "| procedural:object:maze | " in report
     assert result["summary"]["per_map"] == {} and not (out / "transfer.png").exists()

@@ -78,12 +78,15 @@ def _detach(state: CoreState) -> CoreState:
 
 
 def policy_mean(
-    policy: CognitiveMambaPolicy, obs: torch.Tensor, resets: torch.Tensor, state: CoreState
+    policy: CognitiveMambaPolicy,
+    obs: torch.Tensor,
+    resets: torch.Tensor,
+    state: CoreState,
+    actions: torch.Tensor,
 ) -> tuple[torch.Tensor, CoreState]:
-    """Action mean over a sequence: obs (T, N, 3, Az, El), resets (T, N) -> (T, N, 4) and the final state."""
-    t_len, n = obs.shape[:2]
-    emb = policy.encode(obs.flatten(0, 1))  # (T·N, D)
-    feat, state = policy.core(emb.view(t_len, n, -1), resets, state)  # (T, N, D)
+    """Action mean over a sequence: obs (T, N, 3, Az, El), resets (T, N), the demonstrated actions (T, N, 4)
+    (an engine with action_input reads each step's predecessor) -> (T, N, 4) and the final state."""
+    feat, _, state = policy.sequence(obs, resets, state, actions)  # (T, N, D)
     mean, _ = policy.heads(feat)  # (T, N, 4)
     return mean, state
 
@@ -112,7 +115,9 @@ def train_bc(
         total, count = 0.0, 0
         for start in range(0, length, config.bptt):
             end = min(start + config.bptt, length)
-            mean, state = policy_mean(policy, data.obs[start:end], data.resets[start:end], state)
+            mean, state = policy_mean(
+                policy, data.obs[start:end], data.resets[start:end], state, data.actions[start:end]
+            )
             loss = bc_loss(mean, data.actions[start:end])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -133,7 +138,7 @@ def action_error(policy: CognitiveMambaPolicy, demos: list[Demo], device: torch.
     errors, steps = 0.0, 0
     for demo in demos:
         data = to_sequences([demo], 1, device)
-        mean, _ = policy_mean(policy, data.obs, data.resets, policy.initial_state(1, device))
+        mean, _ = policy_mean(policy, data.obs, data.resets, policy.initial_state(1, device), data.actions)
         errors += float(bc_loss(mean.clamp(-1.0, 1.0), data.actions)) * demo.steps
         steps += demo.steps
     return errors / steps

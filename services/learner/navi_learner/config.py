@@ -77,6 +77,11 @@ class EngineConfig:
     """K: episodic-memory ring-buffer length per actor."""
     memory_threshold: float = 0.9
     """Cosine similarity above which a revisit is penalised (penalty ramps linearly from it to 1)."""
+    action_input: bool = False
+    """The temporal core also reads the action taken one step earlier (clipped to [-1, 1], zero where an
+    episode starts), embedded and added to the encoder's embedding. A drone whose move was blocked sees the
+    same view after commanding motion, which only its own action tells apart from hovering. Its weights
+    start at zero, so a fresh engine acts as one without it until training moves them."""
 
     @classmethod
     def tiny(cls, **overrides: Any) -> EngineConfig:
@@ -133,6 +138,12 @@ def engine_overrides(items: Sequence[str]) -> dict[str, Any]:
             if value not in choices:
                 raise ValueError(f"--engine {key} expects one of {', '.join(choices)}, got {value!r}")
             out[key] = value
+            continue
+        if types[key] is bool:
+            flags = {"1": True, "true": True, "on": True, "0": False, "false": False, "off": False}
+            if value.lower() not in flags:
+                raise ValueError(f"--engine {key} expects 1 or 0 (true or false), got {value!r}")
+            out[key] = flags[value.lower()]
             continue
         cast = int if types[key] is int else float
         try:

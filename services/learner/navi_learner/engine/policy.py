@@ -3,6 +3,10 @@
 The encoder runs once over the flat (T·N) batch, then the temporal core over (T, N), then the heads
 (sample-factory style). `act` is the rollout path (one recurrent step), `evaluate` the PPO path
 (a sequence pass with the stored initial state of each BPTT chunk).
+
+With EngineConfig.action_input the core's input is the embedding plus an embedding of the previous
+action, and the state is the core's state followed by that action (N, 4): the rollout stores it with
+the core's, so each BPTT chunk starts from the action that preceded it.
 """
 
 from __future__ import annotations
@@ -17,6 +21,9 @@ from navi_learner.engine.encoder import RayViTEncoder
 from navi_learner.engine.heads import ActorCriticHeads, gaussian_entropy, gaussian_log_prob
 from navi_learner.engine.rnd import RND
 from navi_learner.engine.temporal import CoreState, TemporalCore, make_core
+
+ACTION_DIM = 4
+"""[forward, vertical, lateral, yaw_rate] (navi_env.sim.physics)."""
 
 
 @dataclass
@@ -51,11 +58,35 @@ class CognitiveMambaPolicy(nn.Module):
         self.rnd = RND(cfg.embed_dim, cfg.rnd_dim)
         self.core: TemporalCore = make_core(cfg)
         self.heads = ActorCriticHeads(cfg.embed_dim, cfg.head_hidden, cfg.init_log_std)
+        self.action_embed: nn.Linear | None = None
+        if cfg.action_input:
+            self.action_embed = nn.Linear(ACTION_DIM, cfg.embed_dim)
+            nn.init.zeros_(self.action_embed.weight)  # a fresh engine acts as one without the input
+            nn.init.zeros_(self.action_embed.bias)
         self.amp = False
 
     def initial_state(self, n: int, device: torch.device) -> CoreState:
-        """Zero recurrent state for n actors."""
-        return self.core.initial_state(n, device)
+        """Zero recurrent state for n actors (and a zero previous action with action_input)."""
+        state = self.core.initial_state(n, device)
+        if self.action_embed is None:
+            return state
+        return (*state, torch.zeros(n, ACTION_DIM, device=device))  # (N, 4) previous action
+
+    def _split(self, state: CoreState) -> tuple[CoreState, torch.Tensor | None]:
+        """The core's part of a state and the previous action (N, 4) (None without action_input)."""
+        if self.action_embed is None:
+            return state, None
+        return state[:-1], state[-1]
+
+    def core_input(
+        self, emb: torch.Tensor, previous: torch.Tensor | None, resets: torch.Tensor
+    ) -> torch.Tensor:
+        """The temporal core's input: the embedding (..., D), plus with action_input the embedding of the
+        previous action (..., 4) clipped to [-1, 1] and zeroed where resets (...) marks an episode start."""
+        if self.action_embed is None or previous is None:
+            return emb
+        prev = previous.clamp(-1.0, 1.0) * ~resets[..., None]  # (..., 4)
+        return emb + self.action_embed(prev)  # (..., D)
 
     def encode(self, obs: torch.Tensor) -> torch.Tensor:
         """obs (B, 3, Az, El) -> embedding (B, D) float32; bf16 autocast on CUDA when amp is set."""
@@ -67,19 +98,39 @@ class CognitiveMambaPolicy(nn.Module):
     ) -> ActOut:
         """Rollout step: obs (N, 3, Az, El), resets (N,) bool (episode starts here) -> ActOut."""
         emb = self.encode(obs)  # (N, D)
-        feat, state = self.core.step(emb, resets, state)  # (N, D)
+        core_state, previous = self._split(state)
+        feat, core_state = self.core.step(
+            self.core_input(emb, previous, resets), resets, core_state
+        )  # (N, D)
         mean, value = self.heads(feat)  # (N, 4), (N,)
         log_std = self.heads.log_std  # (4,)
         action = mean if deterministic else mean + torch.randn_like(mean) * log_std.exp()  # (N, 4)
-        return ActOut(action, gaussian_log_prob(action, mean, log_std), value, emb, state)
+        if previous is not None:
+            core_state = (*core_state, action.detach().clamp(-1.0, 1.0))  # (N, 4) what the env flies
+        return ActOut(action, gaussian_log_prob(action, mean, log_std), value, emb, core_state)
+
+    def sequence(
+        self, obs: torch.Tensor, resets: torch.Tensor, state: CoreState, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, CoreState]:
+        """Core features over a sequence: obs (T, N, 3, Az, El), resets (T, N), state at t=0, the actions
+        taken (T, N, 4) -> features (T, N, D), embedding (T·N, D) and the state after step T-1."""
+        t_len, n = obs.shape[:2]
+        emb = self.encode(obs.flatten(0, 1))  # (T·N, D)
+        core_state, first = self._split(state)
+        x = emb.view(t_len, n, -1)  # (T, N, D)
+        if first is not None:
+            previous = torch.cat((first[None], actions[:-1]), dim=0)  # (T, N, 4) the action before each step
+            x = self.core_input(x, previous, resets)  # (T, N, D)
+        feat, core_state = self.core(x, resets, core_state)  # (T, N, D)
+        if first is not None:
+            core_state = (*core_state, actions[-1].detach().clamp(-1.0, 1.0))  # (N, 4)
+        return feat, emb, core_state
 
     def evaluate(
         self, obs: torch.Tensor, resets: torch.Tensor, state: CoreState, actions: torch.Tensor
     ) -> EvalOut:
         """PPO pass: obs (T, N, 3, Az, El), resets (T, N), state at t=0, actions (T, N, 4) -> EvalOut."""
-        t_len, n = obs.shape[:2]
-        emb = self.encode(obs.flatten(0, 1))  # (T·N, D)
-        feat, _ = self.core(emb.view(t_len, n, -1), resets, state)  # (T, N, D)
+        feat, emb, _ = self.sequence(obs, resets, state, actions)  # (T, N, D), (T·N, D)
         mean, value = self.heads(feat)  # (T, N, 4), (T, N)
         log_std = self.heads.log_std  # (4,)
         return EvalOut(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std), value, emb)
