@@ -229,8 +229,11 @@ def test_the_inductor_compiled_rollout_step_matches_the_eager_one_on_cuda(action
     torch.testing.assert_close(got.value, want.value, atol=2e-2, rtol=2e-2)
     torch.testing.assert_close(got.emb, want.emb, atol=2e-2, rtol=2e-2)
     torch.testing.assert_close(got_loop, want_loop, atol=2e-2, rtol=2e-2)
-    for g, w in zip(got.state, want.state, strict=True):
+    core = len(want.state) - int(action_input)  # the core's state; then the sampled action, if read
+    for g, w in zip(got.state[:core], want.state[:core], strict=True):
         torch.testing.assert_close(g, w, atol=2e-2, rtol=2e-2)
+    for out in (got, want)[: int(action_input) * 2]:  # each carries the action it drew (its own RNG)
+        assert torch.equal(out.state[-1], out.action.clamp(-1.0, 1.0))
 
 
 @pytest.mark.parametrize("device", DEVICES)
