@@ -423,11 +423,22 @@ def evaluate_cmd(
             help="explore or pointgoal (default: the task the checkpoint learned; explore for a baseline).",
         ),
     ] = None,
+    collisions: Annotated[
+        bool,
+        typer.Option(
+            "--collisions",
+            help="Also count the collisions per scene (drone env): the surface touched (floor, ceiling, wall, "
+            "slope), thin geometry behind it, pinned (the 10th or later contact step in a row), pushing (pinned "
+            "while commanding into the nearest surface in view) and unseen (no ray of the view showed it).",
+        ),
+    ] = False,
 ) -> None:
     """Evaluate a checkpoint or a baseline: return, collisions (with moving obstacles among them),
     clearance, coverage, distance, starvation; point-goal episodes add success, SPL, soft SPL,
     collisions per episode and time to goal."""
-    from navi_learner.evaluation.evaluate import evaluate
+    from navi_learner.envs.protocol import capabilities
+    from navi_learner.evaluation.collisions import CollisionSites, collision_table
+    from navi_learner.evaluation.evaluate import comparison_table, evaluate, jsonable
 
     if (checkpoint is None) == (policy is None):
         raise typer.BadParameter(f"give exactly one of CHECKPOINT or --policy {'|'.join(BASELINES)}")
@@ -439,7 +450,19 @@ def evaluate_cmd(
         env, corpus, actors, dev, seed, obstacles=obstacles, squad=squad, task=chosen_task
     )
     chosen = eval_policy(policy or str(checkpoint), dev, seed, True, environment)
-    print_metrics([evaluate(environment, chosen, steps, seed, progress=True)], as_json)
+    config = getattr(environment, "config", None)
+    if collisions and config is None:
+        raise typer.BadParameter("--collisions needs the drone env (--env sdfdag)")
+    sites = CollisionSites(config) if collisions else None
+    metrics = evaluate(environment, chosen, steps, seed, progress=True, observe=sites)
+    if sites is None:
+        print_metrics([metrics], as_json)
+        return
+    table = sites.classify(environment, capabilities(environment).scenes)
+    if as_json:
+        typer.echo(json.dumps({"results": jsonable([asdict(metrics)]), "collisions": table}))
+    else:
+        typer.echo(comparison_table([metrics]) + "\n\n" + collision_table(table))
 
 
 @app.command(rich_help_panel=PANEL)
