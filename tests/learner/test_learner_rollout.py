@@ -60,6 +60,24 @@ def small_env(device: str) -> SdfDagEnv:
     return SdfDagEnv(corpus, ACTORS, device, cfg, seed=5)
 
 
+Parts = tuple[
+    RolloutStorage, EpisodicMemory, EpisodeStats, StageTimers, tuple[torch.Tensor, torch.Tensor, CoreState]
+]
+
+
+def rollout_parts(
+    env: SdfDagEnv, policy: CognitiveMambaPolicy, engine: EngineConfig, dev: torch.device
+) -> Parts:
+    """Compact storage, episodic memory, statistics, timers and the first carry of a collection."""
+    buf = RolloutStorage(
+        T_LEN, ACTORS, env.obs_shape, policy.initial_state(ACTORS, dev), CHUNK, dev, compact=True
+    )
+    memory = EpisodicMemory(ACTORS, engine.memory_slots, engine.embed_dim, engine.memory_threshold, dev)
+    starts = torch.ones(ACTORS, dtype=torch.bool, device=dev)  # (N,)
+    carry = (env.reset(seed=1), starts, policy.initial_state(ACTORS, dev))
+    return buf, memory, EpisodeStats(ACTORS, dev), StageTimers(False), carry
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_minibatches_rebuild_exactly_what_the_policy_saw(device: str) -> None:
     torch.manual_seed(0)
@@ -79,14 +97,8 @@ def test_minibatches_rebuild_exactly_what_the_policy_saw(device: str) -> None:
 
     policy.act = recording_act  # type: ignore[method-assign]
     assert compact_storage(cfg, env.compact_obs)
-    buf = RolloutStorage(
-        T_LEN, ACTORS, env.obs_shape, policy.initial_state(ACTORS, dev), CHUNK, dev, compact=True
-    )
+    buf, memory, stats, timers, carry = rollout_parts(env, policy, engine, dev)
     assert buf.depth16.dtype == torch.float16 and buf.semantic.dtype == torch.uint8
-    memory = EpisodicMemory(ACTORS, engine.memory_slots, engine.embed_dim, engine.memory_threshold, dev)
-    stats, timers = EpisodeStats(ACTORS, dev), StageTimers(False)
-    starts = torch.ones(ACTORS, dtype=torch.bool, device=dev)  # (N,)
-    carry = (env.reset(seed=1), starts, policy.initial_state(ACTORS, dev))
     gen = torch.Generator().manual_seed(0)
     for rollout in range(2):
         seen.clear()
@@ -249,13 +261,7 @@ def test_an_engine_reading_its_previous_action_gets_it_back_from_the_stored_roll
     policy = CognitiveMambaPolicy(env.obs_shape, engine).to(dev)
     assert policy.action_embed is not None
     torch.nn.init.normal_(policy.action_embed.weight)  # as training would leave it: the input matters
-    buf = RolloutStorage(
-        T_LEN, ACTORS, env.obs_shape, policy.initial_state(ACTORS, dev), CHUNK, dev, compact=True
-    )
-    memory = EpisodicMemory(ACTORS, engine.memory_slots, engine.embed_dim, engine.memory_threshold, dev)
-    stats, timers = EpisodeStats(ACTORS, dev), StageTimers(False)
-    starts = torch.ones(ACTORS, dtype=torch.bool, device=dev)  # (N,)
-    carry = (env.reset(seed=1), starts, policy.initial_state(ACTORS, dev))
+    buf, memory, stats, timers, carry = rollout_parts(env, policy, engine, dev)
     gen = torch.Generator().manual_seed(0)
     for _ in range(2):
         carry, _ = collect(policy, env, buf, memory, stats, cfg, carry, timers)
