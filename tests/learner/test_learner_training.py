@@ -41,9 +41,13 @@ def config(total: int, **kw: Any) -> TrainConfig:
     )
 
 
-def test_ppo_beats_random_on_the_toy_env(tmp_path: Path) -> None:
-    """24,576 steps of PPO on the toy env earn clearly more reward per step than random actions."""
-    result = train(ToyEnv(32, seed=1), config(24_576), run_dir=tmp_path / "run", progress=False)
+@pytest.mark.parametrize("action_input", [False, True])
+def test_ppo_beats_random_on_the_toy_env(tmp_path: Path, action_input: bool) -> None:
+    """24,576 steps of PPO on the toy env earn clearly more reward per step than random actions, with
+    or without the previous action as an input of the temporal core."""
+    cfg = replace(config(24_576), engine=replace(ENGINE, action_input=action_input))
+    result = train(ToyEnv(32, seed=1), cfg, run_dir=tmp_path / "run", progress=False)
+    assert (load_checkpoint(result.final_checkpoint).meta.config["engine"]["action_input"]) is action_input
     trained = evaluate(
         ToyEnv(16, seed=5), CheckpointPolicy(result.final_checkpoint, torch.device("cpu")), 200, seed=5
     )

@@ -67,8 +67,9 @@ UNSEEN_SEED = 1000
 """Seed of the procedural scenes the main job evaluates on (the default corpus uses seed 0)."""
 
 UNSEEN_SCENES = 8
-"""Unseen scenes: one of each procedural kind (rooms, corridors, hall, maze, caves, forest, building,
-yard), as in `navi bench learn`'s procedural-unseen split."""
+"""Unseen scenes: the first eight default entries, one each of rooms, corridors, hall, maze, caves, forest,
+building and yard, as in `navi bench learn`'s procedural-unseen split. Arenas, platforms and the scaled
+open entries are judged by `navi bench transfer`, whose unseen procedural part holds every family."""
 
 CPU_TRAIN_SCENES = 4
 """Scenes of the default corpus the CPU path builds and fine-tunes on (16 on CUDA)."""
