@@ -91,8 +91,12 @@ class Arm:
     @property
     def run_key(self) -> str:
         """A folder-safe name of its runs: the corpus's, and the reward and engine fields it replaces."""
-        engine = [f"{k}={int(v) if isinstance(v, bool) else v:g}" for k, v in self.engine]
-        return "-".join([self.key, *(f"{k}={v:g}" for k, v in self.reward), *engine])
+        return "-".join([self.key, *(f"{k}={_value(v)}" for k, v in (*self.reward, *self.engine))])
+
+
+def _value(v: Any) -> str:
+    """A field's value in a folder name: 1 or 0 for a flag, a number as %g, a named choice as named."""
+    return str(int(v)) if isinstance(v, bool) else v if isinstance(v, str) else f"{v:g}"
 
 
 def parse_arm(spec: str) -> Arm:

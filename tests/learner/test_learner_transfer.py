@@ -41,6 +41,9 @@ def test_arms_parse_and_bad_ones_are_refused() -> None:
     engine = parse_arm("procedural/action_input=1,structure_weight=0")
     assert engine.engine == (("action_input", True),) and engine.reward == (("structure_weight", 0.0),)
     assert engine.run_key == "procedural-object-all-structure_weight=0-action_input=1"
+    assert parse_arm("procedural/attention=explicit,patch_el=8").run_key == (
+        "procedural-object-all-attention=explicit-patch_el=8"
+    )
     assert lever.key == arm.key  # the same corpus as the arm without the reward
     assert lever.run_key == "procedural-surface-arena+maze-structure_weight=0-blind_weight=0.1"
     assert lever.spec == "procedural:surface:arena+maze/structure_weight=0,blind_weight=0.1"
