@@ -200,14 +200,21 @@ def resume_choice(checkpoint: Path | None, fresh: bool, cfg: TrainConfig) -> tup
     return path, replace(cfg, engine=EngineConfig.from_dict(meta.config["engine"]))
 
 
-def print_metrics(rows: list[EvalMetrics], as_json: bool) -> None:
-    """One JSON object, or a markdown table."""
+def print_metrics(
+    rows: list[EvalMetrics], as_json: bool, collisions: dict[str, dict[str, int]] | None = None
+) -> None:
+    """One JSON object, or a markdown table; with `collisions` (CollisionSites.classify rows) also the
+    collision table, under "collisions" in the JSON."""
+    from navi_learner.evaluation.collisions import collision_table
     from navi_learner.evaluation.evaluate import comparison_table, jsonable
 
     if as_json:
-        typer.echo(json.dumps({"results": jsonable([asdict(r) for r in rows])}))
+        extra = {} if collisions is None else {"collisions": collisions}
+        typer.echo(json.dumps({"results": jsonable([asdict(r) for r in rows]), **extra}))
     else:
-        typer.echo(comparison_table(rows))
+        typer.echo(
+            comparison_table(rows) + ("" if collisions is None else "\n\n" + collision_table(collisions))
+        )
 
 
 BASELINES = ("random", "reactive", "greedy", "oracle")
@@ -437,8 +444,8 @@ def evaluate_cmd(
     clearance, coverage, distance, starvation; point-goal episodes add success, SPL, soft SPL,
     collisions per episode and time to goal."""
     from navi_learner.envs.protocol import capabilities
-    from navi_learner.evaluation.collisions import CollisionSites, collision_table
-    from navi_learner.evaluation.evaluate import comparison_table, evaluate, jsonable
+    from navi_learner.evaluation.collisions import CollisionSites
+    from navi_learner.evaluation.evaluate import evaluate
 
     if (checkpoint is None) == (policy is None):
         raise typer.BadParameter(f"give exactly one of CHECKPOINT or --policy {'|'.join(BASELINES)}")
@@ -455,14 +462,8 @@ def evaluate_cmd(
         raise typer.BadParameter("--collisions needs the drone env (--env sdfdag)")
     sites = CollisionSites(config) if collisions else None
     metrics = evaluate(environment, chosen, steps, seed, progress=True, observe=sites)
-    if sites is None:
-        print_metrics([metrics], as_json)
-        return
-    table = sites.classify(environment, capabilities(environment).scenes)
-    if as_json:
-        typer.echo(json.dumps({"results": jsonable([asdict(metrics)]), "collisions": table}))
-    else:
-        typer.echo(comparison_table([metrics]) + "\n\n" + collision_table(table))
+    table = None if sites is None else sites.classify(environment, capabilities(environment).scenes)
+    print_metrics([metrics], as_json, table)
 
 
 @app.command(rich_help_panel=PANEL)

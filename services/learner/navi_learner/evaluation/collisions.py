@@ -82,8 +82,8 @@ class CollisionSites:
         return toward, unseen
 
     def classify(self, env: Any, names: tuple[str, ...]) -> dict[str, dict[str, int]]:
-        """Per scene name (and "all"): contacts per surface class (SURFACES), how many were thin and how
-        many were pinned."""
+        """Per scene name (and "all"): contacts per surface class (SURFACES), how many were thin, pinned,
+        pinned and pushing, and unseen (COUNTS; pushing and unseen stay 0 where the view was not read)."""
         from navi_env.tracer.trace import sample_distance
 
         scene = torch.cat(self.scene) if self.scene else torch.zeros(0, dtype=torch.long)  # (C,)
