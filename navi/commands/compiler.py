@@ -249,6 +249,14 @@ def compile_cmd(
             "(default NAVI_MAX_SOURCE_BYTES, 256 MiB). With --remote the worker's own limit applies.",
         ),
     ] = None,
+    keep_detached: Annotated[
+        bool,
+        typer.Option(
+            "--keep-detached",
+            help="Keep the parts of the scene that no seed reaches (scenery outside a sealed level); by "
+            "default they are dropped so that the cube fits the level, unless the level then leaks.",
+        ),
+    ] = False,
     mesh_out: Annotated[
         Path | None,
         typer.Option(
@@ -283,6 +291,7 @@ def compile_cmd(
         threads=threads,
         progress=_progress(show),
         device=device,
+        detached=not keep_detached,
     )
     if not out.parent.exists():
         raise fail(f"output folder {out.parent} does not exist")
@@ -305,7 +314,13 @@ def compile_cmd(
         f"  resolution {stats.resolution}^3, voxel {stats.voxel_size:.4f} m, "
         f"{stats.node_count} nodes, {stats.brick_count} bricks\n"
         f"  leak check: {leak}\n"
-        f"  time: {stats.seconds_total + load_seconds:.1f} s (load {load_seconds:.1f}, "
+        + (
+            f"  dropped {stats.detached_parts} detached part(s), {stats.detached_triangles} triangles that no "
+            "seed reaches (--keep-detached keeps them)\n"
+            if stats.detached_parts
+            else ""
+        )
+        + f"  time: {stats.seconds_total + load_seconds:.1f} s (load {load_seconds:.1f}, "
         f"sdf {stats.seconds_sdf:.1f}, dag {stats.seconds_dag:.1f}; engine {stats.engine})"
     )
 

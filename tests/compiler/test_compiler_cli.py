@@ -142,3 +142,28 @@ def test_bench_compile_prints_one_json_object(tmp_path: Path, monkeypatch: pytes
     same = ("voxel_size", "origin", "triangles", "node_count", "brick_count", "file_bytes", "payload_bytes")
     assert {k: data[k] for k in same} == {k: compiled[k] for k in same}
     assert data["file_bytes"] == out.stat().st_size
+
+
+def test_compile_drops_detached_scenery_unless_told_to_keep_it(tmp_path: Path) -> None:
+    """A closed 20 m room with a seed inside and a box 200 m away: `navi compile` fits the cube to the
+    room and says what it dropped; `--keep-detached` compiles both, in a cube ten times wider."""
+    walls = []
+    for axis in range(3):
+        for side in (-1, 1):
+            ext, centre = [20.5] * 3, [0.0, 0.0, 0.0]
+            ext[axis], centre[axis] = 0.5, side * 10.0
+            walls.append(trimesh.creation.box(ext, trimesh.transformations.translation_matrix(centre)))
+    far = trimesh.creation.box((6.0, 6.0, 6.0), trimesh.transformations.translation_matrix((200.0, 0.0, 0.0)))
+    src = tmp_path / "room.obj"
+    trimesh.util.concatenate([*walls, far]).export(src)
+    out = tmp_path / "room.gmdag"
+    base = ["compile", str(src), "-o", str(out), "--resolution", "32", "--seed", "2,3,1"]
+    fit = runner.invoke(build_app(), [*base, "--json"])
+    assert fit.exit_code == 0, fit.output
+    fitted = json.loads(fit.stdout)
+    assert fitted["detached_parts"] == 1 and fitted["detached_triangles"] == 12 and not fitted["leaked"]
+    assert read_gmdag(out).voxel_size == fitted["voxel_size"] < 0.8
+    kept = json.loads(runner.invoke(build_app(), [*base, "--keep-detached", "--json"]).stdout)
+    assert kept["detached_parts"] == 0 and kept["voxel_size"] > 6.0
+    human = runner.invoke(build_app(), base)
+    assert "dropped 1 detached part(s), 12 triangles that no seed reaches" in human.stdout

@@ -63,3 +63,20 @@ def test_oa_dm7_is_sealed_by_its_slime_stained_brick_walls() -> None:
         dense = dense_lattice(g)  # (R+1, R+1, R+1)
         corners = dense[[0, -1]][:, [0, -1]][:, :, [0, -1]]
         assert (corners < 0).all()  # outside the map is solid
+
+
+def test_oa_dm3_fits_its_cube_to_the_level_not_its_distant_scenery() -> None:
+    """oa_dm3's vertices span about 630 m (a hull brush round the level and scenery far outside it) for a
+    level under 80 m across. The compile drops what no spawn reaches: at 256³ the voxel is 0.31 m, not
+    2.5 m, and the fill from every spawn stays inside; the whole scene at that voxel leaks."""
+    scene = load_scene(PK3, map_name="oa_dm3")
+    lo, hi = scene.bounds
+    assert (hi - lo).max() > 600.0
+    g, stats = compile_scene(scene, resolution=256)
+    assert stats.detached_parts >= 2 and stats.voxel_size < 0.32
+    assert not stats.leaked and g.flags == FLAG_INSIDE_SEEDS and stats.seeds_used == len(scene.seeds)
+    dense = dense_lattice(g)  # (257, 257, 257)
+    idx = np.round((g.spawns - np.array(g.origin)) / g.voxel_size).astype(np.int64)  # (S, 3)
+    assert (dense[idx[:, 0], idx[:, 1], idx[:, 2]] > 0).all()  # every spawn point is free
+    _, whole = compile_scene(scene, resolution=256, detached=False)
+    assert whole.voxel_size > 2.0 and whole.leaked

@@ -11,13 +11,14 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
 from navi_compiler.dag.build import DagArrays, build_dag, make_gmdag
 from navi_compiler.gmdag import FLAG_LEAK_FALLBACK, Gmdag, encode_gmdag, payload_bytes, quant_step_for
+from navi_compiler.ingest.detached import drop_detached
 from navi_compiler.scene import Scene
 from navi_compiler.sdf.grid import place, to_voxels
 from navi_compiler.sdf.reference import SdfInput, SdfResult, signed_field_ref
@@ -54,6 +55,8 @@ class CompileStats:
     seconds_total: float
     stage_seconds: dict[str, float]  # signed-field stages (distance, ..., classes; torch: + upload, dag)
     engine: str  # "cpp", "ref" or "torch"
+    detached_parts: int = 0  # parts dropped as unreachable (navi_compiler.ingest.detached)
+    detached_triangles: int = 0  # their drawn and barrier triangles
 
 
 def _corners(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -122,6 +125,7 @@ def compile_scene(
     threads: int = 0,
     progress: Progress | None = None,
     device: str = "cpu",
+    detached: bool = True,
 ) -> tuple[Gmdag, CompileStats]:
     """Compile a scene into a validated Gmdag.
 
@@ -133,13 +137,56 @@ def compile_scene(
     seeds: extra known-free points (meters) added to scene.seeds. engine: "cpp", "ref" or "torch".
     threads: C++ worker threads (0: all cores; the output does not depend on it).
     progress: called with (stage, fraction done). device: torch device of engine="torch".
+    detached: first drop the parts no seed can reach (navi_compiler.ingest.detached), so that the cube
+    fits the level; if the fill from the seeds then reaches the smaller cube's border, the whole scene
+    is compiled instead. The stats say what was dropped.
     """
+    all_seeds = np.concatenate([scene.seeds, np.asarray(seeds, np.float64).reshape(-1, 3)])  # (S, 3) meters
+    t0 = time.perf_counter()
+    kept, dropped = drop_detached(scene, all_seeds) if detached else (scene, None)
+    args = (resolution, padding, band, min_band_m, all_seeds, engine, threads, progress, device)
+    if dropped is not None:
+        g, stats = _compile_one(kept, *args)
+        if not stats.leaked:
+            log.info(
+                "scene %r: dropped %d detached part(s) (%d drawn, %d barrier triangles) that no seed "
+                "reaches; the cube's longest side %.1f -> %.1f m",
+                scene.name,
+                dropped.parts,
+                dropped.faces,
+                dropped.barrier_faces,
+                float((dropped.bounds_before[1] - dropped.bounds_before[0]).max()),
+                float((dropped.bounds_after[1] - dropped.bounds_after[0]).max()),
+            )
+            return g, replace(
+                stats,
+                detached_parts=dropped.parts,
+                detached_triangles=dropped.faces + dropped.barrier_faces,
+                seconds_total=time.perf_counter() - t0,
+            )
+        log.info("scene %r: without its detached parts the fill leaks; compiling the whole scene", scene.name)
+    g, stats = _compile_one(scene, *args)
+    return g, replace(stats, seconds_total=time.perf_counter() - t0)
+
+
+def _compile_one(
+    scene: Scene,
+    resolution: int,
+    padding: int,
+    band: float,
+    min_band_m: float,
+    all_seeds: np.ndarray,
+    engine: Engine,
+    threads: int,
+    progress: Progress | None,
+    device: str,
+) -> tuple[Gmdag, CompileStats]:
+    """compile_scene on exactly this scene and these seeds ((S, 3) meters)."""
     report = progress or (lambda stage, frac: None)
     t0 = time.perf_counter()
     lo, hi = scene.bounds
     placement = place(lo, hi, resolution, padding)
     band = band_for(band, min_band_m, placement.voxel_size)
-    all_seeds = np.concatenate([scene.seeds, np.asarray(seeds, np.float64).reshape(-1, 3)])  # (S, 3) meters
     inp = SdfInput(
         resolution=placement.resolution,
         drawn=to_voxels(_corners(scene.vertices, scene.faces), placement),
