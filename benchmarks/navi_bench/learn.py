@@ -119,12 +119,23 @@ def prepare_splits(
     the train corpus until about that share of its scenes (so of the actors' time) is procedural."""
     if not 0.0 <= procedural_share < 1.0:
         raise ValueError(f"procedural_share must be in [0, 1), got {procedural_share}")
-    from navi_env.corpus.folder import build_corpus, build_default_corpus, merge_corpora, read_manifest
+    from navi_env.corpus.folder import (
+        build_corpus,
+        build_default_corpus,
+        corpus_is_current,
+        merge_corpora,
+        read_manifest,
+    )
 
-    def part(name: str, build: Callable[[Path], object]) -> Path:
+    have_pk3 = pk3 is not None and pk3.is_file()
+
+    def part(name: str, build: Callable[[Path], object], real: bool = False) -> Path:
+        """The corpus folder `name`, built unless it is there (a real-map one is rebuilt where its cubes
+        were fitted under older compiler rules and the pk3 is at hand)."""
         folder = root / f"{name}-{resolution}"
-        if not (folder / "manifest.json").is_file():
-            say(f"[bench learn] building {folder}")
+        stale = real and have_pk3 and (folder / "manifest.json").is_file() and not corpus_is_current(folder)
+        if stale or not (folder / "manifest.json").is_file():
+            say(f"[bench learn] {'rebuilding' if stale else 'building'} {folder}")
             build(folder)
         return folder
 
@@ -147,18 +158,20 @@ def prepare_splits(
     built = all(
         (root / f"openarena-{k}-{resolution}" / "manifest.json").is_file() for k in ("train", "unseen")
     )
-    if built or (pk3 is not None and pk3.is_file()):
-        maps = openarena_maps(pk3) if pk3 is not None and pk3.is_file() else []
+    if built or have_pk3:
+        maps = openarena_maps(pk3) if pk3 is not None and have_pk3 else []
         train_maps, held = split_openarena(maps)
         train_parts["openarena"] = part(
             "openarena-train",
             lambda f: build_corpus(
                 [f"{pk3}:{m}" for m in train_maps], f, resolution, device, progress=progress
             ),
+            real=True,
         )
         unseen_parts["openarena"] = part(
             "openarena-unseen",
             lambda f: build_corpus([f"{pk3}:{m}" for m in held], f, resolution, device, progress=progress),
+            real=True,
         )
     else:
         notes.append(f"OpenArena maps not found at {pk3}: the splits hold procedural scenes only")

@@ -186,9 +186,16 @@ class BuildJob:
         self.out, self.kind, self.args, self.share = out, kind, args, share
 
     def __call__(self, device: str, say: Say) -> None:
-        from navi_env.corpus.folder import build_corpus, build_default_corpus, compile_workers
+        from navi_env.corpus.folder import (
+            build_corpus,
+            build_default_corpus,
+            compile_workers,
+            corpus_is_current,
+        )
 
-        if (self.out / "manifest.json").is_file():
+        if (self.out / "manifest.json").is_file() and (
+            self.kind != "openarena" or corpus_is_current(self.out)
+        ):
             return
         count = len(self.args["sources"]) if self.kind == "openarena" else self.args["count"]
         workers = compile_workers(self.args["resolution"], count, self.share)
@@ -228,7 +235,7 @@ def plan_corpora(
     the OpenArena parts and returns the Corpora. For point-goal episodes the OpenArena parts keep only the
     maps where a goal can be posed (pointgoal_scenes on `device`); each map left out is noted."""
     from navi_compiler.ingest.procedural import FAMILIES
-    from navi_env.corpus.folder import merge_corpora, read_manifest, subset_corpus
+    from navi_env.corpus.folder import corpus_is_current, merge_corpora, read_manifest, subset_corpus
 
     jobs: list[BuildJob] = []
     notes: list[str] = []
@@ -285,7 +292,7 @@ def plan_corpora(
             train_maps, held = split_openarena(maps)
             names = {m: Path(m).stem for m in maps}
             merged = root / f"openarena-{len(maps)}maps-all-{resolution}"
-            if not (merged / "manifest.json").is_file():
+            if not corpus_is_current(merged):
                 merge_corpora(chunks, merged, by_name=True)
             by_name = {s.name: s for s in read_manifest(merged).scenes}
             tag = f"{len(maps)}maps"
@@ -296,13 +303,13 @@ def plan_corpora(
                     tag += f"-pointgoal{len(posable)}"
                     every = merged
                     merged = root / f"openarena-{tag}-all-{resolution}"
-                    if not (merged / "manifest.json").is_file():
+                    if not corpus_is_current(merged):
                         subset_corpus(every, posable, merged)
                 by_name = {name: by_name[name] for name in posable}
             for part, chosen in (("train", train_maps), ("held-out", held)):
                 folder = root / f"openarena-{tag}-{part}-{resolution}"
                 keep = [names[m] for m in chosen if names[m] in by_name]
-                if not (folder / "manifest.json").is_file():
+                if not corpus_is_current(folder):
                     subset_corpus(merged, keep, folder)
                 real[part] = folder
             real["all"] = merged

@@ -323,6 +323,36 @@ def test_a_corpus_built_in_pieces_merges_the_same_however_it_was_dealt(tmp_path:
         assert (tmp_path / "a" / sa.file).read_bytes() == (tmp_path / "b" / sb.file).read_bytes()
 
 
+def test_a_corpus_records_how_its_cubes_were_fitted_and_older_ones_read_as_stale(
+    sources: Path, tmp_path: Path
+) -> None:
+    """A new manifest carries the compiler's FIT_RULES and reads as current; a manifest written before
+    the field existed reads as rules 1, stale, and so does every merge that holds it; a missing or
+    broken corpus is not current either."""
+    from navi_compiler.compile import FIT_RULES
+    from navi_env.corpus.folder import corpus_is_current, merge_corpora, subset_corpus
+
+    new = tmp_path / "new"
+    built = build_corpus(find_sources(sources), new, resolution=32)
+    assert built.fit_rules == FIT_RULES >= 2
+    assert json.loads((new / "manifest.json").read_text())["fit_rules"] == FIT_RULES
+    assert corpus_is_current(new)
+    old = tmp_path / "old"
+    build_corpus(find_sources(sources), old, resolution=32)
+    raw = json.loads((old / "manifest.json").read_text())
+    del raw["fit_rules"]
+    (old / "manifest.json").write_text(json.dumps(raw))
+    assert read_manifest(old).fit_rules == 1 and not corpus_is_current(old)
+    assert merge_corpora([new, old], tmp_path / "both").fit_rules == 1
+    assert not corpus_is_current(tmp_path / "both")
+    assert subset_corpus(old, ["room_a"], tmp_path / "sub").fit_rules == 1
+    assert merge_corpora([new, new], tmp_path / "twice").fit_rules == FIT_RULES
+    assert not corpus_is_current(tmp_path / "missing")
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "manifest.json").write_text("{")
+    assert not corpus_is_current(tmp_path / "broken")
+
+
 def test_scenes_declare_moving_obstacles_through_sidecar_and_manifest(tmp_path: Path) -> None:
     """A mesh's sidecar "obstacles" reaches the manifest and the env: that scene gets its declared count
     and speeds, a scene that declares nothing keeps the env's default (none)."""

@@ -43,6 +43,7 @@ from navi_learner.evaluation.main_job import (
     cuda_config,
     judge,
     main_job,
+    real_map_corpus,
 )
 from navi_learner.serving.checkpoint import load_checkpoint
 
@@ -243,3 +244,37 @@ def test_main_job_judges_the_drone_on_held_out_real_maps_in_a_section_of_their_o
     report = main_job(missing)
     assert "no verdict on real maps" in capsys.readouterr().out
     assert "real_maps" not in json.loads((report.parent / "evaluation.json").read_text())
+
+
+@pytest.mark.data
+@pytest.mark.skipif(
+    not OPENARENA_PK3.is_file(),
+    reason=f"OpenArena maps pk3 not found at {OPENARENA_PK3} (run tests/data/fetch_openarena.sh or set NAVI_OPENARENA_PK3)",
+)
+def test_main_job_rebuilds_real_maps_compiled_under_older_fit_rules(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The held-out real maps are built once and reused; a folder whose manifest predates the compiler's
+    cube rules (no fit_rules) is rebuilt, and says so. (At 64³ here, for time.)"""
+    import navi_learner.evaluation.main_job as main_job_module
+
+    monkeypatch.setattr(main_job_module, "CORPUS_RESOLUTION", 64)
+    job = MainJobConfig(
+        tmp_path / "train",
+        tmp_path / "unseen",
+        tmp_path / "models",
+        "cpu",
+        openarena=OPENARENA_PK3,
+        real_maps=1,
+    )
+    folder = real_map_corpus(job, torch.device("cpu"))
+    assert folder is not None and "building 1 held-out OpenArena maps" in capsys.readouterr().out
+    manifest = folder / "manifest.json"
+    first = json.loads(manifest.read_text())
+    assert real_map_corpus(job, torch.device("cpu")) == folder
+    assert "OpenArena" not in capsys.readouterr().out and json.loads(manifest.read_text()) == first
+    del first["fit_rules"]
+    manifest.write_text(json.dumps(first))
+    assert real_map_corpus(job, torch.device("cpu")) == folder
+    assert "rebuilding (cubes fitted under older compiler rules)" in capsys.readouterr().out
+    assert "fit_rules" in json.loads(manifest.read_text())

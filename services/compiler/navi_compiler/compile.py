@@ -100,6 +100,11 @@ def _compile_torch(inp: SdfInput, device: str) -> tuple[SdfResult, DagArrays]:
     return sdf, out.arrays
 
 
+FIT_RULES = 2
+"""How compile_scene fits its cube round a scene: 1, round every vertex; 2, round what is left once the
+parts no seed reaches are dropped (detached=True). Corpus manifests record it, and the commands that
+reuse a corpus folder of real maps rebuild one made under other rules."""
+
 EXACT_DISTANCE_M = 0.5
 """Meters from every surface within which a compiled field is exact by default: the drone physics must
 tell a 0.3 m contact apart and certify a full-speed 0.5 m step (navi_env.sim.physics), which a far cube's

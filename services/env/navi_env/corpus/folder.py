@@ -1,8 +1,9 @@
 """Training corpora: a folder of .gmdag scenes with a manifest, built transactionally.
 
 Layout of a corpus folder:
-  manifest.json    {"format": "navi-corpus", "version": 1, "created_at", "resolution", "scenes": [...],
-                    "rejected": [...]}; each scene: name, file, source, resolution, voxel_size, bytes,
+  manifest.json    {"format": "navi-corpus", "version": 1, "created_at", "resolution", "fit_rules",
+                    "scenes": [...], "rejected": [...]}; fit_rules: how the compiler fitted the scenes'
+                    cubes (navi_compiler.compile.FIT_RULES; 1 where absent); each scene: name, file, source, resolution, voxel_size, bytes,
                     qualification (navi_env.space.qualify.Qualification as JSON, with the viable spawns
                     and the trace cost),
                     obstacles (moving obstacles it declares, from a mesh's sidecar or edited in; may be
@@ -36,6 +37,7 @@ from pathlib import Path
 
 import torch
 
+from navi_compiler.compile import FIT_RULES
 from navi_env.space.qualify import Qualification, QualifyConfig, qualify_scene
 from navi_env.tracer.scene import SceneCorpus, load_corpus
 
@@ -89,6 +91,7 @@ class CorpusManifest:
     resolution: int
     scenes: tuple[SceneEntry, ...]
     rejected: tuple[dict[str, str], ...] = field(default_factory=tuple)  # {"source", "reason"}
+    fit_rules: int = FIT_RULES  # how the compiler fitted the scenes' cubes (navi_compiler.compile.FIT_RULES)
 
     def to_json(self) -> dict[str, object]:
         return {
@@ -96,6 +99,7 @@ class CorpusManifest:
             "version": VERSION,
             "created_at": self.created_at,
             "resolution": self.resolution,
+            "fit_rules": self.fit_rules,
             "scenes": [asdict(s) for s in self.scenes],
             "rejected": list(self.rejected),
         }
@@ -119,6 +123,15 @@ class CorpusManifest:
         }
 
 
+def corpus_is_current(corpus_dir: str | os.PathLike[str]) -> bool:
+    """`corpus_dir` holds a readable corpus whose cubes were fitted under the compiler's current rules
+    (FIT_RULES): what the commands that reuse a corpus folder of real maps check before reusing it."""
+    try:
+        return read_manifest(corpus_dir).fit_rules == FIT_RULES
+    except CorpusError:
+        return False
+
+
 def read_manifest(corpus_dir: str | os.PathLike[str]) -> CorpusManifest:
     """Read and check `corpus_dir/manifest.json`."""
     path = Path(corpus_dir) / MANIFEST
@@ -134,8 +147,9 @@ def read_manifest(corpus_dir: str | os.PathLike[str]) -> CorpusManifest:
             resolution=int(raw["resolution"]),
             scenes=scenes,
             rejected=tuple(raw.get("rejected", [])),
+            fit_rules=int(raw.get("fit_rules", 1)),
         )
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise CorpusError(f"{path}: malformed manifest ({exc})") from exc
 
 
@@ -479,9 +493,11 @@ def merge_corpora(
         rejected: list[dict[str, str]] = []
         taken: set[str] = set()
         resolution = 0
+        fit_rules = FIT_RULES
         for part in parts:
             manifest = read_manifest(part)
             resolution = resolution or manifest.resolution
+            fit_rules = min(fit_rules, manifest.fit_rules)
             rejected += manifest.rejected
             for scene in manifest.scenes:
                 name = _scene_name(scene.name, taken)
@@ -494,6 +510,7 @@ def merge_corpora(
             resolution=resolution,
             scenes=tuple(scenes),
             rejected=tuple(rejected),
+            fit_rules=fit_rules,
         )
         _write_manifest(work, merged)
     return merged

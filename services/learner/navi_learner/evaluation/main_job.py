@@ -120,14 +120,19 @@ def real_map_corpus(job: MainJobConfig, device: torch.device) -> Path | None:
             flush=True,
         )
         return None
-    from navi_env.corpus.folder import build_corpus
+    from navi_env.corpus.folder import build_corpus, corpus_is_current
     from navi_env.corpus.openarena import openarena_maps, split_openarena
 
     held = split_openarena(openarena_maps(job.openarena))[1][: job.real_maps or None]
     folder = job.unseen.parent / f"openarena-held-out-{len(held)}-{CORPUS_RESOLUTION}"
-    if not (folder / "manifest.json").is_file():
+    if not corpus_is_current(folder):
+        what = (
+            "rebuilding (cubes fitted under older compiler rules)"
+            if (folder / "manifest.json").is_file()
+            else "building"
+        )
         print(
-            f"[navi run] building {len(held)} held-out OpenArena maps ({CORPUS_RESOLUTION}^3) into {folder}",
+            f"[navi run] {what} {len(held)} held-out OpenArena maps ({CORPUS_RESOLUTION}^3) into {folder}",
             flush=True,
         )
         build_corpus(
