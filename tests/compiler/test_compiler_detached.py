@@ -4,8 +4,10 @@ a level that does not close without it is compiled whole."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import numpy as np
+import pytest
 import trimesh
 
 from navi_compiler.compile import compile_scene
@@ -110,16 +112,21 @@ def test_geometry_inside_the_level_stays_however_far_from_its_walls() -> None:
     assert dropped is None and out is scene
 
 
-def test_a_level_that_leaks_without_the_dropped_part_is_compiled_whole() -> None:
+def test_a_level_that_leaks_without_the_dropped_part_is_compiled_whole(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     """The room's +x side is open and only a far hull closes it: without the hull the fill reaches the
     smaller cube's border, so the compile falls back to the whole scene (the same bytes as without the
     rule), and reports nothing dropped."""
     scene = _scene(_room(open_side=True), barrier=_hull(400.0))
     _, dropped = drop_detached(scene)
     assert dropped is not None and dropped.parts == 1
-    g, stats = compile_scene(scene, resolution=64)
+    with caplog.at_level(logging.INFO, logger="navi_compiler.compile"):
+        g, stats = compile_scene(scene, resolution=64)
+    assert "without its detached parts the fill leaks" in caplog.text
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]  # the scene itself does not leak
     g_whole, stats_whole = compile_scene(scene, resolution=64, detached=False)
-    assert stats.detached_parts == 0 and not stats_whole.leaked
+    assert stats.detached_parts == 0 and not stats.leaked and not stats_whole.leaked
     assert encode_gmdag(g) == encode_gmdag(g_whole)
 
 

@@ -151,7 +151,7 @@ def compile_scene(
     kept, dropped = drop_detached(scene, all_seeds) if detached else (scene, None)
     args = (resolution, padding, band, min_band_m, all_seeds, engine, threads, progress, device)
     if dropped is not None:
-        g, stats = _compile_one(kept, *args)
+        g, stats = _compile_one(kept, *args, trial=True)
         if not stats.leaked:
             log.info(
                 "scene %r: dropped %d detached part(s) (%d drawn, %d barrier triangles) that no seed "
@@ -169,7 +169,6 @@ def compile_scene(
                 detached_triangles=dropped.faces + dropped.barrier_faces,
                 seconds_total=time.perf_counter() - t0,
             )
-        log.info("scene %r: without its detached parts the fill leaks; compiling the whole scene", scene.name)
     g, stats = _compile_one(scene, *args)
     return g, replace(stats, seconds_total=time.perf_counter() - t0)
 
@@ -185,8 +184,10 @@ def _compile_one(
     threads: int,
     progress: Progress | None,
     device: str,
+    trial: bool = False,
 ) -> tuple[Gmdag, CompileStats]:
-    """compile_scene on exactly this scene and these seeds ((S, 3) meters)."""
+    """compile_scene on exactly this scene and these seeds ((S, 3) meters). trial: the scene without its
+    detached parts, which compile_scene replaces by the whole scene if it leaks (no leak warning then)."""
     report = progress or (lambda stage, frac: None)
     t0 = time.perf_counter()
     lo, hi = scene.bounds
@@ -205,7 +206,9 @@ def _compile_one(
         sdf, arrays = _compile_torch(inp, device)
     else:
         sdf = _signed_field_cpp(inp, threads) if engine == "cpp" else signed_field_ref(inp)
-    if sdf.flags & FLAG_LEAK_FALLBACK:
+    if sdf.flags & FLAG_LEAK_FALLBACK and trial:
+        log.info("scene %r: without its detached parts the fill leaks; compiling the whole scene", scene.name)
+    elif sdf.flags & FLAG_LEAK_FALLBACK:
         log.warning(
             "scene %r: the fill from %d inside seed(s) reached the cube border (the scene leaks); "
             "fell back to filling from outside the cube",
