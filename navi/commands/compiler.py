@@ -297,7 +297,9 @@ def compile_cmd(
         raise fail(f"output folder {out.parent} does not exist")
     write_gmdag(g, out)
     if mesh_out is not None:
-        write_surface_mesh(scene, mesh_out)
+        from navi_compiler.ingest.detached import drop_detached
+
+        write_surface_mesh(drop_detached(scene)[0] if stats.detached_parts else scene, mesh_out)
     summary = compile_summary(asdict(stats), str(out), load_seconds)
     if json_out:
         typer.echo(json.dumps(summary))

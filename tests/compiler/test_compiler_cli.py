@@ -165,5 +165,7 @@ def test_compile_drops_detached_scenery_unless_told_to_keep_it(tmp_path: Path) -
     assert read_gmdag(out).voxel_size == fitted["voxel_size"] < 0.8
     kept = json.loads(runner.invoke(build_app(), [*base, "--keep-detached", "--json"]).stdout)
     assert kept["detached_parts"] == 0 and kept["voxel_size"] > 6.0
-    human = runner.invoke(build_app(), base)
+    human = runner.invoke(build_app(), [*base, "--mesh-out", str(tmp_path / "room.npz")])
     assert "dropped 1 detached part(s), 12 triangles that no seed reaches" in human.stdout
+    with np.load(tmp_path / "room.npz") as mesh:  # the surfaces the field measures: the room alone
+        assert len(mesh["triangles"]) == 6 * 12 and mesh["vertices"][:, 0].max() < 11.0
