@@ -13,7 +13,9 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
     replaced (`procedural/structure_weight=0`) or a fresh engine with those EngineConfig fields
     (`procedural/action_input=1`), on the same corpus as the arm without them, so that a reward or engine
     lever is measured beside the recipe in one job; evaluation never reads the reward.
-- Evaluation. Every arm's final checkpoint flies (EvalProtocol, deterministic, same env seed) on:
+- Evaluation. Every arm's final checkpoint flies (EvalProtocol, deterministic, same env seed; and once
+  more per `action_noise` scale S > 0, its actions sampled with S times its learned std, a row of its own
+  named `ARM, sampled xS`) on:
   - `openarena`: all OpenArena maps, per map too (no procedural arm has seen any of them);
   - `openarena-held-out`: the held-out fifth, which no arm has seen: the parity comparison;
   - `procedural`: procedural scenes of seed 1000, every family, in the arm's semantics.
@@ -164,6 +166,14 @@ class TransferConfig:
     """Use only the first this many OpenArena maps by name (0: all; small jobs and tests)."""
     open_floor: OpenFloorConfig | None = field(default_factory=OpenFloorConfig)
     """The open-floor probe each explore run's final checkpoint flies (None: none)."""
+    action_noise: tuple[float, ...] = (0.0,)
+    """Every final checkpoint flies once per scale: 0 its mean action, S > 0 its actions sampled with S
+    times its learned std (the sampled actions follow the protocol's seed)."""
+
+
+def flown_as(spec: str, noise: float) -> str:
+    """The row of an arm's checkpoints flown with `noise` (0: the mean action, the arm's own name)."""
+    return spec if noise == 0 else f"{spec}, sampled x{noise:g}"
 
 
 @dataclass(frozen=True)
@@ -330,7 +340,7 @@ def plan_corpora(
 
 @dataclass(frozen=True)
 class RunJob:
-    """One (arm, seed) run: train, then evaluate on the arm's unseen parts."""
+    """One (arm, seed) run: train, then evaluate on the arm's unseen parts (once per action noise)."""
 
     arm: Arm
     seed: int
@@ -341,8 +351,8 @@ class RunJob:
     floors: dict[float, Path] = field(default_factory=dict)
     """The open-floor probe's scenes by width (empty: no probe)."""
 
-    def __call__(self, device: str, say: Say) -> dict[str, Any]:
-        from navi_learner.evaluation.evaluate import CheckpointPolicy
+    def __call__(self, device: str, say: Say) -> list[dict[str, Any]]:
+        """One row per action noise (TransferConfig.action_noise), each of the same trained checkpoint."""
         from navi_learner.ppo.train import train
 
         dev = torch.device(device)
@@ -366,31 +376,41 @@ class RunJob:
             progress=False,
         )
         del env
-        trained = CheckpointPolicy(result.final_checkpoint, dev)
+        return [self._fly(result, noise, device, say) for noise in self.cfg.action_noise]
+
+    def _fly(self, result: Any, noise: float, device: str, say: Say) -> dict[str, Any]:
+        """The run's row for one action noise: its final checkpoint flown on every unseen part (and the
+        open floor), its mean action at 0, sampled with `noise` times its learned std above."""
+        from navi_learner.evaluation.evaluate import CheckpointPolicy
+
+        name = flown_as(self.arm.spec, noise)
+        trained = CheckpointPolicy(result.final_checkpoint, torch.device(device), noise == 0, noise)
         finals: dict[str, Any] = {}
         collisions: dict[str, dict[str, int]] = {}
+        p = self.cfg.protocol
         for part, corpus in self.unseen.items():
             env = eval_env(corpus, self.cfg, device)
             sites = CollisionSites(env.config) if part == "openarena" else None
-            p = self.cfg.protocol
+            torch.manual_seed(p.seed)  # sampled actions follow the protocol's seed
             metrics = evaluate(env, trained, p.steps, p.seed, by_scene=part == "openarena", observe=sites)
-            metrics.policy = f"{self.arm.spec} seed {self.seed}"
+            metrics.policy = f"{name} seed {self.seed}"
             metrics.per_actor = {}
             finals[part] = asdict(metrics)
             if sites is not None:
                 collisions = sites.classify(env, _names(env))
-            say(
-                f"[bench transfer] {self.arm.spec} seed {self.seed} on {part}:\n{comparison_table([metrics])}"
-            )
+            say(f"[bench transfer] {name} seed {self.seed} on {part}:\n{comparison_table([metrics])}")
         floor: list[dict[str, Any]] = []
         probe = self.cfg.open_floor
         if self.floors and probe is not None:
-            trained.name = f"{self.arm.spec} seed {self.seed}"
+            trained.name = f"{name} seed {self.seed}"
+            torch.manual_seed(p.seed)
             rows = open_floor_probe(trained, open_floor_env(self.floors, probe, device), probe)
             floor = [asdict(r) for r in rows]
-            say(f"[bench transfer] {self.arm.spec} seed {self.seed} on the open floors:\n{probe_table(rows)}")
+            say(f"[bench transfer] {name} seed {self.seed} on the open floors:\n{probe_table(rows)}")
         return {
-            "arm": self.arm.spec,
+            "arm": name,
+            "trained_arm": self.arm.spec,
+            "action_noise": noise,
             "seed": self.seed,
             "checkpoint": str(result.final_checkpoint),
             "steps": result.step_id,
@@ -736,7 +756,7 @@ def bench_transfer(
     done = run_spread([*base_jobs, *warm_jobs, *run_jobs], device, cfg.gpus)
     baselines = {d["part"]: d["baselines"] for d in done[: len(base_jobs)]}
     warmups = list(done[len(base_jobs) : len(base_jobs) + len(warm_jobs)])
-    runs = list(done[len(base_jobs) + len(warm_jobs) :])
+    runs = [row for rows in done[len(base_jobs) + len(warm_jobs) :] for row in rows]
     result: dict[str, Any] = {
         "device": (torch.cuda.get_device_name() if device.startswith("cuda") else "cpu")
         + (f" x {cfg.gpus} (one run per GPU at a time)" if cfg.gpus > 0 else ""),

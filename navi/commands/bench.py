@@ -732,6 +732,15 @@ def bench_transfer_cmd(
         Path | None, typer.Option("--out", help="Result folder (default artifacts/bench/transfer/<time>).")
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False,
+    action_noise: Annotated[
+        list[float] | None,
+        typer.Option(
+            "--action-noise",
+            min=0.0,
+            help="Fly every final checkpoint once per value (repeatable): 0 its mean action, S > 0 its actions "
+            "sampled with S times its learned std, in a row of its own ('ARM, sampled xS'). Default: 0.",
+        ),
+    ] = None,
     record: RecordOpt = None,
     engine: EngineOpt = None,
 ) -> None:
@@ -758,6 +767,7 @@ def bench_transfer_cmd(
         gpus=gpus,
         procedural_train=procedural_train,
         openarena_maps=openarena_maps,
+        action_noise=tuple(dict.fromkeys(action_noise or [0.0])),
     )
     folder = out or Path("artifacts/bench/transfer") / time.strftime("%Y%m%d-%H%M%S")
     try:

@@ -118,3 +118,25 @@ def test_the_flag_is_an_engine_override_and_old_checkpoints_read_it_as_off() -> 
     assert EngineConfig.from_dict(stored).action_input is True
     stored.pop("action_input")  # a checkpoint written before the field existed
     assert EngineConfig.from_dict(stored).action_input is False
+
+
+def test_sampled_actions_spread_by_the_noise_scale_and_the_state_keeps_what_was_flown() -> None:
+    """With the same random draws, an action sampled at noise S lies S times as far from the mean as one
+    sampled at the training spread (1), at 0 it is the mean, and the previous-action state holds the
+    action actually taken (clipped), not the mean."""
+    policy = trained_looking(CognitiveMambaPolicy(OBS, engine()), 3).eval()
+    g = torch.Generator().manual_seed(4)
+    obs = torch.rand(N, *OBS, generator=g)  # (N, 3, Az, El)
+    resets = torch.ones(N, dtype=torch.bool)  # (N,)
+    state = policy.initial_state(N, torch.device("cpu"))
+    with torch.no_grad():
+        mean = policy.act(obs, resets, state, deterministic=True).action  # (N, 4)
+        flown = {}
+        for noise in (1.0, 0.5, 0.0):
+            torch.manual_seed(7)
+            flown[noise] = policy.act(obs, resets, state, noise=noise)
+    full = flown[1.0].action - mean  # (N, 4)
+    assert float(full.abs().min()) > 0.0
+    torch.testing.assert_close(flown[0.5].action - mean, 0.5 * full)
+    torch.testing.assert_close(flown[0.0].action, mean)
+    torch.testing.assert_close(flown[0.5].state[-1], flown[0.5].action.clamp(-1.0, 1.0))

@@ -71,10 +71,14 @@ the reactive baseline has no collisions at all (half of none would demand none).
 class ModulePolicy:
     """A CognitiveMambaPolicy (live or loaded) driven step by step with its recurrent state."""
 
-    def __init__(self, policy: CognitiveMambaPolicy, name: str, deterministic: bool = True) -> None:
+    def __init__(
+        self, policy: CognitiveMambaPolicy, name: str, deterministic: bool = True, noise: float = 1.0
+    ) -> None:
         self.policy = policy
         self.name = name
         self.deterministic = deterministic
+        self.noise = noise
+        """Sampled actions (not deterministic) spread by this many times the learned std."""
         self.state: CoreState = ()
 
     def reset(self, n: int, device: torch.device) -> None:
@@ -82,15 +86,18 @@ class ModulePolicy:
 
     def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
-            out = self.policy.act(obs, resets, self.state, self.deterministic)
+            out = self.policy.act(obs, resets, self.state, self.deterministic, self.noise)
         self.state = out.state
         return out.action.clamp(-1.0, 1.0)  # (N, 4)
 
 
 class CheckpointPolicy(ModulePolicy):
-    """A trained checkpoint (no PPO, no reward shaping); the mean action unless deterministic=False."""
+    """A trained checkpoint (no PPO, no reward shaping); the mean action unless deterministic=False, then
+    sampled with `noise` times its learned std."""
 
-    def __init__(self, path: Path, device: torch.device, deterministic: bool = True) -> None:
+    def __init__(
+        self, path: Path, device: torch.device, deterministic: bool = True, noise: float = 1.0
+    ) -> None:
         ckpt = load_checkpoint(path, device)
         shape = ckpt.meta.obs_shape
         self.obs_shape = (int(shape[0]), int(shape[1]), int(shape[2]))
@@ -99,7 +106,7 @@ class CheckpointPolicy(ModulePolicy):
         )
         policy.load_state_dict(ckpt.model)
         policy.eval()
-        super().__init__(policy, str(path), deterministic)
+        super().__init__(policy, str(path), deterministic, noise)
 
 
 @dataclass
