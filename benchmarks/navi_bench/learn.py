@@ -6,8 +6,8 @@ Protocol (docs/TRAINING.md, "The learning benchmark"):
   split, with every scene name, is written into the result. Without the OpenArena package the
   OpenArena parts are left out and the result says why.
 - For every temporal core and seed: train from scratch on the train split; every `eval_every_s`
-  seconds of training evaluate the live policy deterministically on the unseen split (EvalProtocol)
-  and record a curve point; stop at competence (at most half the reactive baseline's collisions per
+  seconds of training evaluate the live policy, flown as its task is (ACTION_NOISE), on the unseen split
+  (EvalProtocol) and record a curve point; stop at competence (at most half the reactive baseline's collisions per
   1,000 steps and at least 1.5x its coverage) or at the time budget.
 - Report per run the training time and env steps to competence (null if never), the final metrics
   per unseen part with 95% bootstrap intervals, and per core the median over seeds.
@@ -256,7 +256,7 @@ def run_one(
     )
     if monitor is None:
         return {}
-    trained = CheckpointPolicy(result.final_checkpoint, dev)
+    trained = CheckpointPolicy(result.final_checkpoint, dev, seed=cfg.protocol.seed)
     if (
         not monitor.curve or monitor.curve[-1]["step"] != result.step_id
     ):  # the budget ended between evaluations

@@ -13,9 +13,10 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
     replaced (`procedural/structure_weight=0`) or a fresh engine with those EngineConfig fields
     (`procedural/action_input=1`), on the same corpus as the arm without them, so that a reward or engine
     lever is measured beside the recipe in one job; evaluation never reads the reward.
-- Evaluation. Every arm's final checkpoint flies (EvalProtocol, deterministic, same env seed; and once
-  more per `action_noise` scale S > 0, its actions sampled with S times its learned std, a row of its own
-  named `ARM, sampled xS`) on:
+- Evaluation. Every arm's final checkpoint flies (EvalProtocol, same env seed; as its task is flown
+  everywhere, ACTION_NOISE, or once per `action_noise` scale S: its mean action at 0, its actions sampled
+  with S times its learned std above, each scale but the task's a row of its own, `ARM, mean action` or
+  `ARM, sampled xS`) on:
   - `openarena`: all OpenArena maps, per map too (no procedural arm has seen any of them);
   - `openarena-held-out`: the held-out fifth, which no arm has seen: the parity comparison;
   - `procedural`: procedural scenes of seed 1000, every family, in the arm's semantics.
@@ -53,7 +54,13 @@ from navi_learner.config import TrainConfig, learning_recipe, learning_size
 from navi_learner.envs.factory import corpus_summary, make_env
 from navi_learner.evaluation.collisions import COUNTS, PINNED_STEPS, CollisionSites
 from navi_learner.evaluation.competence import EvalProtocol, baseline_policies
-from navi_learner.evaluation.evaluate import COLLISION_FLOOR_PER_1K, comparison_table, evaluate, jsonable
+from navi_learner.evaluation.evaluate import (
+    COLLISION_FLOOR_PER_1K,
+    action_noise,
+    comparison_table,
+    evaluate,
+    jsonable,
+)
 from navi_learner.evaluation.open_floor import (
     OpenFloorConfig,
     build_open_floors,
@@ -166,14 +173,21 @@ class TransferConfig:
     """Use only the first this many OpenArena maps by name (0: all; small jobs and tests)."""
     open_floor: OpenFloorConfig | None = field(default_factory=OpenFloorConfig)
     """The open-floor probe each explore run's final checkpoint flies (None: none)."""
-    action_noise: tuple[float, ...] = (0.0,)
+    action_noise: tuple[float, ...] = ()
     """Every final checkpoint flies once per scale: 0 its mean action, S > 0 its actions sampled with S
-    times its learned std (the sampled actions follow the protocol's seed)."""
+    times its learned std, drawn from the protocol's seed (empty: the task's ACTION_NOISE alone)."""
+
+    def noises(self) -> tuple[float, ...]:
+        """The scales every final checkpoint flies with."""
+        return self.action_noise or (action_noise(self.train.task),)
 
 
-def flown_as(spec: str, noise: float) -> str:
-    """The row of an arm's checkpoints flown with `noise` (0: the mean action, the arm's own name)."""
-    return spec if noise == 0 else f"{spec}, sampled x{noise:g}"
+def flown_as(spec: str, noise: float, task: str) -> str:
+    """The row of an arm's checkpoints flown with `noise`: the arm's own name when its task flies so
+    (ACTION_NOISE), else named after the mean action (0) or the spread."""
+    if noise == action_noise(task):
+        return spec
+    return f"{spec}, mean action" if noise == 0 else f"{spec}, sampled x{noise:g}"
 
 
 @dataclass(frozen=True)
@@ -376,22 +390,21 @@ class RunJob:
             progress=False,
         )
         del env
-        return [self._fly(result, noise, device, say) for noise in self.cfg.action_noise]
+        return [self._fly(result, noise, device, say) for noise in self.cfg.noises()]
 
     def _fly(self, result: Any, noise: float, device: str, say: Say) -> dict[str, Any]:
         """The run's row for one action noise: its final checkpoint flown on every unseen part (and the
         open floor), its mean action at 0, sampled with `noise` times its learned std above."""
         from navi_learner.evaluation.evaluate import CheckpointPolicy
 
-        name = flown_as(self.arm.spec, noise)
-        trained = CheckpointPolicy(result.final_checkpoint, torch.device(device), noise == 0, noise)
+        p = self.cfg.protocol
+        name = flown_as(self.arm.spec, noise, self.cfg.train.task)
+        trained = CheckpointPolicy(result.final_checkpoint, torch.device(device), noise, p.seed)
         finals: dict[str, Any] = {}
         collisions: dict[str, dict[str, int]] = {}
-        p = self.cfg.protocol
         for part, corpus in self.unseen.items():
             env = eval_env(corpus, self.cfg, device)
             sites = CollisionSites(env.config) if part == "openarena" else None
-            torch.manual_seed(p.seed)  # sampled actions follow the protocol's seed
             metrics = evaluate(env, trained, p.steps, p.seed, by_scene=part == "openarena", observe=sites)
             metrics.policy = f"{name} seed {self.seed}"
             metrics.per_actor = {}
@@ -403,7 +416,6 @@ class RunJob:
         probe = self.cfg.open_floor
         if self.floors and probe is not None:
             trained.name = f"{name} seed {self.seed}"
-            torch.manual_seed(p.seed)
             rows = open_floor_probe(trained, open_floor_env(self.floors, probe, device), probe)
             floor = [asdict(r) for r in rows]
             say(f"[bench transfer] {name} seed {self.seed} on the open floors:\n{probe_table(rows)}")

@@ -738,7 +738,9 @@ def bench_transfer_cmd(
             "--action-noise",
             min=0.0,
             help="Fly every final checkpoint once per value (repeatable): 0 its mean action, S > 0 its actions "
-            "sampled with S times its learned std, in a row of its own ('ARM, sampled xS'). Default: 0.",
+            "sampled with S times its learned std; each value but the task's own in a row of its own ('ARM, "
+            "mean action', 'ARM, sampled xS'). Default: as the task is evaluated everywhere (explore 1, "
+            "point-goal 0).",
         ),
     ] = None,
     record: RecordOpt = None,
@@ -767,7 +769,7 @@ def bench_transfer_cmd(
         gpus=gpus,
         procedural_train=procedural_train,
         openarena_maps=openarena_maps,
-        action_noise=tuple(dict.fromkeys(action_noise or [0.0])),
+        action_noise=tuple(dict.fromkeys(action_noise or [])),
     )
     folder = out or Path("artifacts/bench/transfer") / time.strftime("%Y%m%d-%H%M%S")
     try:

@@ -221,9 +221,10 @@ BASELINES = ("random", "reactive", "greedy", "oracle")
 """Policies `evaluate --policy` and `compare` know by name; greedy and oracle fly point-goal episodes."""
 
 
-def eval_policy(spec: str, device: str, seed: int, deterministic: bool, env: object = None) -> EvalPolicy:
+def eval_policy(spec: str, device: str, seed: int, noise: float | None, env: object = None) -> EvalPolicy:
     """'random', 'reactive' (tuned to env's horizon and ray pattern), 'greedy' or 'oracle' (point-goal),
-    or a checkpoint path / registry version."""
+    or a checkpoint path / registry version, flown with `noise` times its learned std (0: its mean action;
+    None: as its task flies, ACTION_NOISE), the draws seeded by `seed`."""
     import torch
 
     from navi_learner.evaluation.baselines import RandomPolicy, goal_seeker_for_env, reactive_for_env
@@ -249,7 +250,7 @@ def eval_policy(spec: str, device: str, seed: int, deterministic: bool, env: obj
                 f"{spec} is neither {', '.join(BASELINES)}, a checkpoint file nor a registry version"
             ) from err
     try:
-        return CheckpointPolicy(path, torch.device(device), deterministic)
+        return CheckpointPolicy(path, torch.device(device), noise, seed)
     except CheckpointError as err:
         raise fail(str(err)) from err
 
@@ -366,7 +367,10 @@ def train(
 @app.command(rich_help_panel=PANEL)
 def infer(
     checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Checkpoint to run.")],
-    deterministic: Annotated[bool, typer.Option("--deterministic", help="Use the mean action.")] = False,
+    deterministic: Annotated[
+        bool,
+        typer.Option("--deterministic", help="Use the mean action (default: sampled with the learned std)."),
+    ] = False,
     total_steps: Annotated[int, typer.Option("--total-steps", help="Batched steps to run.")] = 1000,
     corpus: CorpusOpt = None,
     actors: Annotated[int, typer.Option("--actors", help="Parallel actors.")] = 4,
@@ -384,26 +388,22 @@ def infer(
     ] = False,
 ) -> None:
     """Run a checkpoint (no PPO) in-process, or against a remote env service, and report its metrics."""
-    import torch
-
     from navi_learner.evaluation.evaluate import evaluate
 
     dev = pick_device(device)
     if remote:
         from navi_learner.envs.remote import RemoteEnv, RemoteEnvError
 
-        policy = eval_policy(str(checkpoint), dev, seed, deterministic)
+        policy = eval_policy(str(checkpoint), dev, seed, 0.0 if deterministic else 1.0)
         try:
             remote_env = RemoteEnv(actors, dev)
-            torch.manual_seed(seed)  # the sampled actions (without --deterministic) follow --seed
             metrics = evaluate(remote_env, policy, total_steps, seed, progress=True)
         except RemoteEnvError as err:
             raise fail(str(err)) from err
         print_metrics([metrics], as_json)
         return
     environment = build_env(env, corpus, actors, dev, seed, task=checkpoint_task(str(checkpoint)))
-    policy = eval_policy(str(checkpoint), dev, seed, deterministic, environment)
-    torch.manual_seed(seed)  # the sampled actions (without --deterministic) follow --seed
+    policy = eval_policy(str(checkpoint), dev, seed, 0.0 if deterministic else 1.0, environment)
     print_metrics([evaluate(environment, policy, total_steps, seed, progress=True)], as_json)
 
 
@@ -428,6 +428,15 @@ def evaluate_cmd(
         typer.Option(
             "--task",
             help="explore or pointgoal (default: the task the checkpoint learned; explore for a baseline).",
+        ),
+    ] = None,
+    action_noise: Annotated[
+        float | None,
+        typer.Option(
+            "--action-noise",
+            min=0.0,
+            help="A checkpoint's actions sampled with this many times its learned std, 0 its mean action "
+            "(default: as its task is evaluated everywhere: explore 1, point-goal 0).",
         ),
     ] = None,
     collisions: Annotated[
@@ -456,7 +465,7 @@ def evaluate_cmd(
     environment = build_env(
         env, corpus, actors, dev, seed, obstacles=obstacles, squad=squad, task=chosen_task
     )
-    chosen = eval_policy(policy or str(checkpoint), dev, seed, True, environment)
+    chosen = eval_policy(policy or str(checkpoint), dev, seed, action_noise, environment)
     config = getattr(environment, "config", None)
     if collisions and config is None:
         raise typer.BadParameter("--collisions needs the drone env (--env sdfdag)")
@@ -490,7 +499,7 @@ def compare(
     rows = []
     for spec in policies:
         environment = build_env(env, corpus, actors, dev, seed, task=task)
-        chosen = eval_policy(spec, dev, seed, True, environment)
+        chosen = eval_policy(spec, dev, seed, None, environment)
         rows.append(evaluate(environment, chosen, steps, seed, progress=True))
     print_metrics(rows, as_json)
 

@@ -74,7 +74,7 @@ def test_bc_clones_the_reactive_controller_and_rl_fine_tunes_it(tmp_path: Path) 
     assert meta.obs_shape == [3, 16, 8] and meta.temporal_core == "mamba2"
     assert float(summary["final_loss"]) < float(summary["first_loss"])
 
-    clone_flight = evaluate(ToyEnv(16, seed=5), CheckpointPolicy(ckpt, torch.device("cpu")), 150, seed=5)
+    clone_flight = evaluate(ToyEnv(16, seed=5), CheckpointPolicy(ckpt, torch.device("cpu"), 0.0), 150, seed=5)
     random_flight = evaluate(ToyEnv(16, seed=5), RandomPolicy(5), 150, seed=5)
     assert clone_flight.reward_per_step > random_flight.reward_per_step + 0.2, (clone_flight, random_flight)
 

@@ -148,7 +148,8 @@ def test_navi_run_fine_tunes_promotes_and_reports_the_unseen_comparison(
 
     # the row labelled trained is the promoted checkpoint, flown again in-process on the same spawns
     env = make_env(unseen, SMALL.actors, "cpu", SMALL.seed, episode_steps=SMALL.episode_steps)
-    again = evaluate(env, CheckpointPolicy(latest, torch.device("cpu")), SMALL.steps, SMALL.seed)
+    flown = CheckpointPolicy(latest, torch.device("cpu"), seed=SMALL.seed)  # sampled, as explore flies
+    again = evaluate(env, flown, SMALL.steps, SMALL.seed)
     assert in_process(again) | {"policy": trained.policy} == without_timing(data["results"][0])
 
 
@@ -211,7 +212,7 @@ def test_navi_infer_prints_what_the_checkpoint_does_in_process(
     (row,) = json.loads(done.stdout)["results"]
     assert row["policy"] == str(REFERENCE) and (row["steps"], row["actors"]) == (INFER_STEPS, INFER_ACTORS)
     env = make_env(train, INFER_ACTORS, "cpu", INFER_SEED)
-    want = evaluate(env, CheckpointPolicy(REFERENCE, torch.device("cpu")), INFER_STEPS, INFER_SEED)
+    want = evaluate(env, CheckpointPolicy(REFERENCE, torch.device("cpu"), 0.0), INFER_STEPS, INFER_SEED)
     assert without_timing(row) == in_process(want)
     rand = evaluate(env, RandomPolicy(INFER_SEED), INFER_STEPS, INFER_SEED)
     assert (rand.distance_per_1k, rand.mean_clearance) != (want.distance_per_1k, want.mean_clearance)
@@ -233,10 +234,9 @@ def test_navi_infer_samples_actions_from_its_seed(corpora: tuple[Path, Path], tm
         rows.append(without_timing(json.loads(result.stdout)["results"][0]))
     assert rows[0] == rows[1]
     env = make_env(train, INFER_ACTORS, "cpu", INFER_SEED)
-    sampled = CheckpointPolicy(REFERENCE, torch.device("cpu"), deterministic=False)
-    torch.manual_seed(INFER_SEED)
+    sampled = CheckpointPolicy(REFERENCE, torch.device("cpu"), 1.0, INFER_SEED)
     assert rows[0] == in_process(evaluate(env, sampled, INFER_STEPS, INFER_SEED))
-    mean = evaluate(env, CheckpointPolicy(REFERENCE, torch.device("cpu")), INFER_STEPS, INFER_SEED)
+    mean = evaluate(env, CheckpointPolicy(REFERENCE, torch.device("cpu"), 0.0), INFER_STEPS, INFER_SEED)
     assert rows[0]["distance_per_1k"] != mean.distance_per_1k
 
 

@@ -1,10 +1,11 @@
 """The reference checkpoints shipped with Navi, and the CPU path of the main job that fine-tunes them.
 
 The references (navi_learner/reference/mamba2.pt for explore, mamba2-pointgoal.pt for point-goal) were
-made by Navi on a GPU; their JSONs name the command. The CPU path fine-tunes it and then flies it live on the eight unseen procedural scenes (seed
-1000, one of each family, at 512^3 as `navi run` builds them) with the CPU protocol (48 actors x 500
-steps, episodes of 250: 96 episodes), deterministic actions: its verdict must hold with the intervals,
-paired over the same spawns, not only on the point estimates.
+made by Navi on a GPU; their JSONs name the command. The CPU path fine-tunes one and then flies it live on
+the eight unseen procedural scenes (seed 1000, one of each family, at 512^3 as `navi run` builds them)
+with the CPU protocol (48 actors x 500 steps, episodes of 250: 96 episodes), as its task flies
+(ACTION_NOISE: explore sampled with its std, point-goal its mean action): its verdict must hold with the
+intervals, paired over the same spawns, not only on the point estimates.
 """
 
 from __future__ import annotations

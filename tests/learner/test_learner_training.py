@@ -49,7 +49,7 @@ def test_ppo_beats_random_on_the_toy_env(tmp_path: Path, action_input: bool) -> 
     result = train(ToyEnv(32, seed=1), cfg, run_dir=tmp_path / "run", progress=False)
     assert (load_checkpoint(result.final_checkpoint).meta.config["engine"]["action_input"]) is action_input
     trained = evaluate(
-        ToyEnv(16, seed=5), CheckpointPolicy(result.final_checkpoint, torch.device("cpu")), 200, seed=5
+        ToyEnv(16, seed=5), CheckpointPolicy(result.final_checkpoint, torch.device("cpu"), 0.0), 200, seed=5
     )
     rand = evaluate(ToyEnv(16, seed=5), RandomPolicy(5), 200, seed=5)
     assert abs(rand.reward_per_step) < 0.1

@@ -85,8 +85,8 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
     """Two procedural arms (one family each, object and surface semantics, the second scaled by up to 2 and
     trained with a reward weight replaced), one seed, no OpenArena package: the job says so, builds each
     arm's corpora, runs the untimed warm-up once, trains each arm with its own reward, flies the baselines
-    and each final checkpoint on the unseen procedural scenes and the open floor, with its mean action and
-    sampled (a row of its own, the same checkpoint flying elsewhere), and its summary and report hold
+    and each final checkpoint on the unseen procedural scenes and the open floor, sampled as explore flies
+    and, in a row of its own, with its mean action (the same checkpoint flying elsewhere), and its summary and report hold
     exactly those runs."""
     import navi_bench.transfer as transfer
 
@@ -114,7 +114,7 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
         open_floor=OpenFloorConfig(
             widths=(15.0,), heights=(1.0,), actors_per_start=1, steps=5, resolution=64
         ),
-        action_noise=(0.0, 0.5),
+        action_noise=(1.0, 0.0),
     )
     out = tmp_path / "out"
     result = bench_transfer(
@@ -132,17 +132,17 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
     }
     second = "procedural:surface:maze@2/structure_weight=0,action_input=1"
     assert [(r["arm"], r["action_noise"], r["seed"]) for r in saved["runs"]] == [
-        ("procedural:object:maze", 0.0, 3),
-        ("procedural:object:maze, sampled x0.5", 0.5, 3),
-        (second, 0.0, 3),
-        (f"{second}, sampled x0.5", 0.5, 3),
+        ("procedural:object:maze", 1.0, 3),
+        ("procedural:object:maze, mean action", 0.0, 3),
+        (second, 1.0, 3),
+        (f"{second}, mean action", 0.0, 3),
     ]
     assert rewards == [None, None, {"structure_weight": 0.0}]  # the warm-up, then each arm's run
     engines = [read_meta(Path(r["checkpoint"])).config["engine"]["action_input"] for r in saved["runs"]]
     assert engines == [False, False, True, True]  # only the second arm's fresh engine reads its action
-    for mean, sampled in zip(saved["runs"][::2], saved["runs"][1::2], strict=True):
-        assert sampled["trained_arm"] == mean["arm"] and sampled["checkpoint"] == mean["checkpoint"]
-        flew = [r["final_by_part"]["procedural"]["distance_per_1k"] for r in (mean, sampled)]
+    for sampled, mean in zip(saved["runs"][::2], saved["runs"][1::2], strict=True):
+        assert mean["trained_arm"] == sampled["arm"] and mean["checkpoint"] == sampled["checkpoint"]
+        flew = [r["final_by_part"]["procedural"]["distance_per_1k"] for r in (sampled, mean)]
         assert flew[0] != flew[1]  # the same drone, flown its own mean and sampled, went elsewhere
     assert (out / "runs" / "procedural-surface-maze@2-structure_weight=0-action_input=1-seed3").is_dir()
     for run in saved["runs"]:

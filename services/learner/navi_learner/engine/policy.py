@@ -100,10 +100,12 @@ class CognitiveMambaPolicy(nn.Module):
         state: CoreState,
         deterministic: bool = False,
         noise: float = 1.0,
+        generator: torch.Generator | None = None,
     ) -> ActOut:
         """Rollout step: obs (N, 3, Az, El), resets (N,) bool (episode starts here) -> ActOut. The action is
         the mean when deterministic, else the mean plus Gaussian noise of `noise` times the learned std
-        (training samples at 1; an evaluation may fly a narrower spread)."""
+        (training samples at 1; an evaluation may fly another spread), drawn from `generator` where given
+        (an evaluation's own stream) or torch's default one."""
         emb = self.encode(obs)  # (N, D)
         core_state, previous = self._split(state)
         feat, core_state = self.core.step(
@@ -112,7 +114,15 @@ class CognitiveMambaPolicy(nn.Module):
         mean, value = self.heads(feat)  # (N, 4), (N,)
         log_std = self.heads.log_std  # (4,)
         std = log_std.exp() if noise == 1.0 else log_std.exp() * noise  # (4,)
-        action = mean if deterministic else mean + torch.randn_like(mean) * std  # (N, 4)
+        if deterministic:
+            action = mean  # (N, 4)
+        else:
+            eps = (
+                torch.randn_like(mean)
+                if generator is None
+                else torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
+            )  # (N, 4)
+            action = mean + eps * std  # (N, 4)
         if previous is not None:
             core_state = (*core_state, action.detach().clamp(-1.0, 1.0))  # (N, 4) what the env flies
         return ActOut(action, gaussian_log_prob(action, mean, log_std), value, emb, core_state)

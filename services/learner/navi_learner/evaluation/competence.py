@@ -1,8 +1,8 @@
 """Learning measured on unseen scenes: the evaluation protocol, the competence bar, and a training
 monitor that evaluates the live policy every so often and records the learning curve.
 
-Competence (docs/TRAINING.md): on the unseen scenes, with the same seed and deterministic actions,
-at most half the reactive baseline's collisions per 1,000 steps (0.5 where it has none) and at least
+Competence (docs/TRAINING.md): on the unseen scenes, with the same seed, the policy flown as its task is
+(ACTION_NOISE), at most half the reactive baseline's collisions per 1,000 steps (0.5 where it has none) and at least
 1.5x its coverage. For point-goal episodes (docs/TASKS.md): a success rate of at least 0.9, SPL of at
 least 0.75 and fewer collisions per episode than the map-less greedy baseline.
 """
@@ -20,7 +20,14 @@ import torch
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.protocol import BatchedEnv, capabilities
 from navi_learner.evaluation.baselines import EvalPolicy, RandomPolicy, goal_seeker_for_env, reactive_for_env
-from navi_learner.evaluation.evaluate import EvalMetrics, ModulePolicy, competent, evaluate, goal_competent
+from navi_learner.evaluation.evaluate import (
+    EvalMetrics,
+    ModulePolicy,
+    action_noise,
+    competent,
+    evaluate,
+    goal_competent,
+)
 
 CURVE_KEYS = (
     "collisions_per_1k",
@@ -140,11 +147,13 @@ class CompetenceMonitor:
         self.status = bar_status(None, self.baselines)
 
     def evaluate_policy(self, policy: CognitiveMambaPolicy, name: str = "trained") -> EvalMetrics:
-        """Deterministic evaluation of `policy` on the unseen env (train mode restored afterwards)."""
+        """Evaluation of `policy` on the unseen env, flown as its task is (ACTION_NOISE; train mode restored
+        afterwards)."""
         was_training = policy.training
         policy.eval()
+        flown = ModulePolicy(policy, name, action_noise(capabilities(self.env).task), self.protocol.seed)
         try:
-            return evaluate(self.env, ModulePolicy(policy, name), self.protocol.steps, self.protocol.seed)
+            return evaluate(self.env, flown, self.protocol.steps, self.protocol.seed)
         finally:
             policy.train(was_training)
 
@@ -253,6 +262,6 @@ def per_scene(
                        scene=s, reward=reward)  # fmt: skip
         policies: list[EvalPolicy] = [reactive_for_env(env)]
         if checkpoint is not None:
-            policies.append(CheckpointPolicy(checkpoint, env.device))
+            policies.append(CheckpointPolicy(checkpoint, env.device, seed=protocol.seed))
         rows.append({p.name: evaluate(env, p, protocol.steps, protocol.seed) for p in policies})
     return rows

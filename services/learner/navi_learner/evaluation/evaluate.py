@@ -63,50 +63,77 @@ BOOTSTRAP_SAMPLES = 1000
 PAIRED_SUMS = ("steps", "cells", "collision")
 """The per-actor sums an evaluation keeps for paired comparisons of two policies flown on the same seed."""
 
+ACTION_NOISE: dict[str, float] = {"explore": 1.0, "pointgoal": 0.0}
+"""How a trained policy flies each task wherever Navi evaluates it (the main job, the benchmarks, `navi
+evaluate`): its actions sampled with this many times its learned std, or at 0 its mean action. Explore
+samples, as it trained: flown on its mean action a drone pressed against a surface sees the same view and
+pushes again, and on real maps never seen it collides several times as often (docs/TRAINING.md, "Sampled
+actions"). Point-goal flies its mean action: sampled, it reaches fewer goals by longer paths."""
+
+
+def action_noise(task: str) -> float:
+    """ACTION_NOISE of a task; ValueError for an unknown one."""
+    if task not in ACTION_NOISE:
+        raise ValueError(f"unknown task {task!r}: expected one of {', '.join(ACTION_NOISE)}")
+    return ACTION_NOISE[task]
+
+
+def flown_by(task: str) -> str:
+    """How a trained policy of `task` flies, in words for reports."""
+    noise = action_noise(task)
+    if noise == 0:
+        return "the trained policy's mean actions"
+    return "the trained policy's actions sampled with " + (
+        "its learned std" if noise == 1 else f"{noise:g} times its learned std"
+    )
+
+
 COLLISION_FLOOR_PER_1K = 0.5
 """Collisions per 1,000 steps below which two policies count as equally safe: the competence bar where
 the reactive baseline has no collisions at all (half of none would demand none)."""
 
 
 class ModulePolicy:
-    """A CognitiveMambaPolicy (live or loaded) driven step by step with its recurrent state."""
+    """A CognitiveMambaPolicy (live or loaded) driven step by step with its recurrent state; its mean action
+    at noise 0, else its actions sampled with `noise` times its learned std from a stream of its own
+    (seeded by `seed` at every reset, so an evaluation flies the same draws each time)."""
 
-    def __init__(
-        self, policy: CognitiveMambaPolicy, name: str, deterministic: bool = True, noise: float = 1.0
-    ) -> None:
+    def __init__(self, policy: CognitiveMambaPolicy, name: str, noise: float = 0.0, seed: int = 0) -> None:
+        if noise < 0:
+            raise ValueError(f"action noise must be >= 0, got {noise}")
         self.policy = policy
         self.name = name
-        self.deterministic = deterministic
         self.noise = noise
-        """Sampled actions (not deterministic) spread by this many times the learned std."""
+        self.seed = seed
         self.state: CoreState = ()
+        self.generator: torch.Generator | None = None
 
     def reset(self, n: int, device: torch.device) -> None:
         self.state = self.policy.initial_state(n, device)
+        self.generator = torch.Generator(device).manual_seed(self.seed) if self.noise > 0 else None
 
     def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
-            out = self.policy.act(obs, resets, self.state, self.deterministic, self.noise)
+            out = self.policy.act(obs, resets, self.state, self.noise == 0, self.noise, self.generator)
         self.state = out.state
         return out.action.clamp(-1.0, 1.0)  # (N, 4)
 
 
 class CheckpointPolicy(ModulePolicy):
-    """A trained checkpoint (no PPO, no reward shaping); the mean action unless deterministic=False, then
-    sampled with `noise` times its learned std."""
+    """A trained checkpoint (no PPO, no reward shaping), flown with `noise` (None: ACTION_NOISE of the task
+    it learned)."""
 
-    def __init__(
-        self, path: Path, device: torch.device, deterministic: bool = True, noise: float = 1.0
-    ) -> None:
+    def __init__(self, path: Path, device: torch.device, noise: float | None = None, seed: int = 0) -> None:
         ckpt = load_checkpoint(path, device)
         shape = ckpt.meta.obs_shape
         self.obs_shape = (int(shape[0]), int(shape[1]), int(shape[2]))
+        self.task = str(ckpt.meta.config.get("task", "explore"))
         policy = CognitiveMambaPolicy(self.obs_shape, EngineConfig.from_dict(ckpt.meta.config["engine"])).to(
             device
         )
         policy.load_state_dict(ckpt.model)
         policy.eval()
-        super().__init__(policy, str(path), deterministic, noise)
+        super().__init__(policy, str(path), action_noise(self.task) if noise is None else noise, seed)
 
 
 @dataclass

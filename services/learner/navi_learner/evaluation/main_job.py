@@ -46,6 +46,7 @@ from navi_learner.evaluation.evaluate import (
     comparison_table,
     competent_supported,
     evaluate,
+    flown_by,
     goal_competent,
     jsonable,
     paired_intervals,
@@ -294,7 +295,7 @@ def main_job(job: MainJobConfig) -> Path:
         f"promoted: {result.promoted or 'no (did not beat the best)'}",
         flush=True,
     )
-    trained = CheckpointPolicy(result.final_checkpoint, dev)
+    trained = CheckpointPolicy(result.final_checkpoint, dev, seed=protocol.seed)
     trained.name = f"trained ({result.run_id})"
     baselines = baseline_policies(unseen_env, protocol)
     rows = [
@@ -378,7 +379,7 @@ def write_evaluation(
     text = (
         f"# navi run: evaluation on unseen scenes ({path_taken} path, task {job.task})\n\n"
         f"{protocol.actors} actors x {protocol.steps} steps on {job.unseen} (procedural seed {UNSEEN_SEED}), "
-        f"episodes of {protocol.episode_steps} steps, env seed {protocol.seed}, deterministic actions; "
+        f"episodes of {protocol.episode_steps} steps, env seed {protocol.seed}, {flown_by(job.task)}; "
         f"95% bootstrap intervals over actors.\n\n{table}\n\n{verdict}\n"
     )
     payload: dict[str, object] = {

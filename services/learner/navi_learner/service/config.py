@@ -41,8 +41,9 @@ class LearnerServiceConfig:
     """infer: a checkpoint path, or a registry version or alias."""
     follow_alias: str = "champion"
     """infer: reload the model when this alias is promoted (empty: never)."""
-    deterministic: bool = True
-    """infer: act with the policy mean."""
+    action_noise: float | None = None
+    """infer: the actions sampled with this many times the policy's learned std (0: its mean action); None:
+    as its task flies wherever Navi evaluates it (navi_learner.evaluation.evaluate.ACTION_NOISE)."""
     infer_steps: int = 0
     """infer: batched steps to run (0: until stopped)."""
     models_dir: Path = Path("artifacts/models")

@@ -120,7 +120,7 @@ def run_inference(
 
     sub = subscribe(sess, MODEL_PROMOTED, on_promoted) if cfg.follow_alias else None
     path = resolve_model(cfg.model, registry)
-    policy = CheckpointPolicy(path, device, cfg.deterministic)
+    policy = CheckpointPolicy(path, device, cfg.action_noise)
     policy.reset(env.n_actors, device)
     obs = env.reset(cfg.train.seed)  # (N, 3, Az, El)
     resets = torch.ones(env.n_actors, dtype=torch.bool, device=device)  # (N,)
@@ -134,7 +134,7 @@ def run_inference(
                 msg = promoted.pop()
                 promoted.clear()
                 path = Path(msg.checkpoint)
-                policy = CheckpointPolicy(path, device, cfg.deterministic)
+                policy = CheckpointPolicy(path, device, cfg.action_noise)
                 policy.reset(env.n_actors, device)
                 resets = torch.ones(env.n_actors, dtype=torch.bool, device=device)  # (N,)
                 log.info("loaded %s (%s -> %s)", path, msg.alias, msg.version)
