@@ -91,9 +91,10 @@ def build_env(
     squad: int = 0,
     task: str = "explore",
     rank_scenes: str = "share",
+    episode_steps: int = 0,
 ) -> Any:
     """The environment for a command (a data-parallel rank: its share of the scenes, or every scene with
-    `rank_scenes` "all"), or exit 2."""
+    `rank_scenes` "all"; episodes of `episode_steps` where > 0, else the task's own), or exit 2."""
     from navi_env.config import TASKS
     from navi_learner.envs.factory import EnvUnavailable, make_env
 
@@ -113,6 +114,7 @@ def build_env(
             squad=squad,
             task=check_choice(task, TASKS, "--task"),
             rank_scenes=rank_scenes,  # checked by train_config and by the corpus loader
+            episode_steps=episode_steps,
         )
     except (EnvUnavailable, ValueError) as err:
         raise fail(str(err)) from err
@@ -430,6 +432,14 @@ def evaluate_cmd(
             help="explore or pointgoal (default: the task the checkpoint learned; explore for a baseline).",
         ),
     ] = None,
+    episode_steps: Annotated[
+        int,
+        typer.Option(
+            "--episode-steps",
+            min=0,
+            help="Episode length in steps (drone env; 0: the task's own). The benchmarks' protocol is 500.",
+        ),
+    ] = 0,
     action_noise: Annotated[
         float | None,
         typer.Option(
@@ -463,7 +473,15 @@ def evaluate_cmd(
     dev = pick_device(device)
     chosen_task = task or (checkpoint_task(checkpoint) if checkpoint is not None else "explore")
     environment = build_env(
-        env, corpus, actors, dev, seed, obstacles=obstacles, squad=squad, task=chosen_task
+        env,
+        corpus,
+        actors,
+        dev,
+        seed,
+        obstacles=obstacles,
+        squad=squad,
+        task=chosen_task,
+        episode_steps=episode_steps,
     )
     chosen = eval_policy(policy or str(checkpoint), dev, seed, action_noise, environment)
     config = getattr(environment, "config", None)

@@ -240,6 +240,29 @@ def test_navi_infer_samples_actions_from_its_seed(corpora: tuple[Path, Path], tm
     assert rows[0]["distance_per_1k"] != mean.distance_per_1k
 
 
+def test_navi_evaluate_flies_explore_sampled_and_any_spread_asked(corpora: tuple[Path, Path]) -> None:
+    """`navi evaluate` flies an explore checkpoint as Navi flies explore everywhere (sampled with its std,
+    the draws seeded by --seed): the same row as that flight in-process; `--action-noise 0` is its mean
+    action, `--action-noise 0.5` a third flight; `--episode-steps` sets the episodes' length."""
+    train, _ = corpora
+    episode = 16
+    args = ["evaluate", str(REFERENCE), "--corpus", str(train), "--device", "cpu", "--json"]
+    sizes = ["--actors", str(INFER_ACTORS), "--steps", str(INFER_STEPS), "--seed", str(INFER_SEED)]
+    rows = {}
+    for noise in (None, 0.0, 0.5):
+        extra = [] if noise is None else ["--action-noise", str(noise)]
+        done = runner.invoke(build_app(), [*args, *sizes, "--episode-steps", str(episode), *extra])
+        assert done.exit_code == 0, done.output[-3000:]
+        rows[noise] = without_timing(json.loads(done.stdout)["results"][0])
+    env = make_env(train, INFER_ACTORS, "cpu", INFER_SEED, episode_steps=episode)
+    for noise in (1.0, 0.0):
+        flown = CheckpointPolicy(REFERENCE, torch.device("cpu"), noise, INFER_SEED)
+        want = in_process(evaluate(env, flown, INFER_STEPS, INFER_SEED))
+        assert rows[None if noise == 1.0 else 0.0] == want
+    assert rows[None]["episodes"] == INFER_ACTORS * INFER_STEPS // episode
+    assert len({r["distance_per_1k"] for r in rows.values()}) == 3  # three spreads, three flights
+
+
 def test_navi_infer_bad_input_is_an_error_and_exit_2(corpora: tuple[Path, Path], tmp_path: Path) -> None:
     """A missing checkpoint, a file that is no checkpoint, and a missing corpus each end `navi infer` with an
     `error:` naming the problem and exit code 2, printing no metrics and no traceback."""
