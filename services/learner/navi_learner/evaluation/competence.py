@@ -25,6 +25,7 @@ from navi_learner.evaluation.evaluate import (
     ModulePolicy,
     action_noise,
     competent,
+    competent_supported,
     evaluate,
     goal_competent,
 )
@@ -86,11 +87,14 @@ def evaluate_baselines(env: BatchedEnv, protocol: EvalProtocol) -> dict[str, Eva
     return {p.name: evaluate(env, p, protocol.steps, protocol.seed) for p in baseline_policies(env, protocol)}
 
 
-def meets_bar(metrics: EvalMetrics, baselines: dict[str, EvalMetrics]) -> bool:
-    """The competence bar of the metrics' task against the baselines of the same evaluation."""
+def meets_bar(metrics: EvalMetrics, baselines: dict[str, EvalMetrics], supported: bool = False) -> bool:
+    """The competence bar of the metrics' task against the baselines of the same evaluation: on point
+    estimates (`navi bench learn`'s stop), or with `supported` an explore bar held across the 95% intervals,
+    paired with the reactive baseline (competent_supported: the rule of the main job's verdict)."""
     if metrics.task == "pointgoal":
         return goal_competent(metrics, baselines["greedy"])
-    return competent(metrics, baselines["reactive"])
+    reactive = baselines["reactive"]
+    return competent_supported(metrics, reactive) if supported else competent(metrics, reactive)
 
 
 def bar_status(metrics: EvalMetrics | None, baselines: dict[str, EvalMetrics]) -> str:
@@ -133,6 +137,9 @@ class CompetenceMonitor:
     every_s: float
     stop_at_competence: bool = True
     say: Callable[[str], None] | None = None
+    supported: bool = False
+    """Competence as the main job's verdict judges it (meets_bar's `supported`): the explore bar held across
+    the intervals, so that the job stops where its final verdict will say yes."""
     baselines: dict[str, EvalMetrics] = field(default_factory=dict)
     curve: list[dict[str, Any]] = field(default_factory=list)
     competence: dict[str, Any] | None = None
@@ -162,7 +169,7 @@ class CompetenceMonitor:
         m = self.evaluate_policy(policy)
         self.latest = m
         point = curve_point(m, step, train_s, time.perf_counter() - self.started)
-        point["competent"] = meets_bar(m, self.baselines)
+        point["competent"] = meets_bar(m, self.baselines, self.supported)
         self.curve.append(point)
         if point["competent"] and self.competence is None:
             self.competence = {"step": step, "train_s": train_s, "wall_s": point["wall_s"]}

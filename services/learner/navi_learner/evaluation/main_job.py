@@ -263,7 +263,11 @@ def main_job(job: MainJobConfig) -> Path:
             flush=True,
         )
         monitor = CompetenceMonitor(
-            unseen_env, protocol, job.eval_every_s, say=lambda line: print(f"\n[navi run] {line}", flush=True)
+            unseen_env,
+            protocol,
+            job.eval_every_s,
+            say=lambda line: print(f"\n[navi run] {line}", flush=True),
+            supported=True,  # stop where the final verdict, with its intervals, says competent
         )
     else:
         assert reference is not None
