@@ -113,10 +113,10 @@ class CognitiveMambaPolicy(nn.Module):
         )  # (N, D)
         mean, value = self.heads(feat)  # (N, 4), (N,)
         log_std = self.heads.log_std  # (4,)
-        std = log_std.exp() if noise == 1.0 else log_std.exp() * noise  # (4,)
         if deterministic:
             action = mean  # (N, 4)
         else:
+            std = log_std.exp() if noise == 1.0 else log_std.exp() * noise  # (4,)
             eps = (
                 torch.randn_like(mean)
                 if generator is None

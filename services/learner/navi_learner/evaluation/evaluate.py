@@ -127,13 +127,13 @@ class CheckpointPolicy(ModulePolicy):
         ckpt = load_checkpoint(path, device)
         shape = ckpt.meta.obs_shape
         self.obs_shape = (int(shape[0]), int(shape[1]), int(shape[2]))
-        self.task = str(ckpt.meta.config.get("task", "explore"))
         policy = CognitiveMambaPolicy(self.obs_shape, EngineConfig.from_dict(ckpt.meta.config["engine"])).to(
             device
         )
         policy.load_state_dict(ckpt.model)
         policy.eval()
-        super().__init__(policy, str(path), action_noise(self.task) if noise is None else noise, seed)
+        task = str(ckpt.meta.config.get("task", "explore"))
+        super().__init__(policy, str(path), action_noise(task) if noise is None else noise, seed)
 
 
 @dataclass
