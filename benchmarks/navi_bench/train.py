@@ -13,7 +13,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -53,11 +52,10 @@ def inference_sps(
     env: BatchedEnv,
     cfg: TrainConfig,
     steps: int,
-    reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    sync: Sync | None = None,
 ) -> float:
     """Steps/s of env + the full rollout-side engine (encoder, RND, memory, core step, heads), no learning;
-    `reduce` (a data-parallel rank: Sync.sum_lagged) pools the RND normaliser over ranks as training
-    does."""
+    on a data-parallel rank (`sync`) the RND normaliser is pooled over ranks as training pools it."""
     device = env.device
     policy = CognitiveMambaPolicy(env.obs_shape, cfg.engine).to(device)
     policy.amp = cfg.amp and device.type == "cuda"
@@ -66,7 +64,7 @@ def inference_sps(
     memory = EpisodicMemory(
         env.n_actors, cfg.engine.memory_slots, cfg.engine.embed_dim, cfg.engine.memory_threshold, device
     )
-    forward = make_forward(policy, memory, cfg, device, reduce)
+    forward = make_forward(policy, memory, cfg, device, sync)
     state = policy.initial_state(env.n_actors, device)
     obs = env.reset(seed=0)
     resets = torch.ones(env.n_actors, dtype=torch.bool, device=device)  # (N,)
@@ -129,9 +127,7 @@ def bench_train(
     out["env_only_sps"] = round(env_only_sps(env, env_steps))
     if sync is not None:
         sync.barrier()
-    out["env_inference_sps"] = round(
-        inference_sps(env, cfg, env_steps, None if sync is None else sync.sum_lagged)
-    )
+    out["env_inference_sps"] = round(inference_sps(env, cfg, env_steps, sync))
     if sync is not None:
         sync.barrier()  # the normaliser's last sums waited for; every rank starts training together
     rows: list[dict[str, float]] = []

@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
 import torch
 import torch.distributed as tdist
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.engine.rnd import RND
-from navi_learner.ppo.compile import Objective, compile_graph, ppo_objective
+from navi_learner.ppo.compile import Objective, compile_graph, ppo_objective, rank_forward
 from navi_learner.ppo.dist import Bucket, Dist, Sync, setup, shutdown
 from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.train import update
@@ -55,11 +57,37 @@ def embeddings() -> torch.Tensor:
     return torch.randn(16, ENGINE.embed_dim, generator=torch.Generator().manual_seed(7))  # (16, D)
 
 
-def step_embeddings() -> torch.Tensor:
-    """LAGGED_STEPS env steps of 16 actors' embeddings, each step's spread different."""
+def step_observations() -> torch.Tensor:
+    """LAGGED_STEPS env steps of 16 actors' observations, each step's spread different."""
     g = torch.Generator().manual_seed(11)
-    scale = torch.linspace(0.5, 2.0, LAGGED_STEPS).reshape(-1, 1, 1)  # (K, 1, 1)
-    return torch.randn(LAGGED_STEPS, 16, ENGINE.embed_dim, generator=g) * scale  # (K, 16, D)
+    scale = torch.linspace(0.5, 2.0, LAGGED_STEPS).reshape(-1, 1, 1, 1, 1)  # (K, 1, 1, 1, 1)
+    return torch.rand(LAGGED_STEPS, 16, *OBS, generator=g) * scale  # (K, 16, 3, Az, El)
+
+
+def lagged_rollout(d: Dist, sync: Sync) -> dict[str, Any]:
+    """LAGGED_STEPS steps of this rank's share of 16 actors through the rollout step a rank trains with
+    (rank_forward: the eager PooledForward), from the parity policy: the novelty and the embeddings of
+    each step, the RND state it started from and the normaliser at the end."""
+    policy = parity_setup()[0]
+    start = {k: v.clone() for k, v in policy.rnd.state_dict().items()}
+    n = 16 // d.world
+    memory = EpisodicMemory(n, ENGINE.memory_slots, ENGINE.embed_dim, ENGINE.memory_threshold, CPU)
+    forward = rank_forward(policy, memory, sync)
+    state, resets = policy.initial_state(n, CPU), torch.ones(n, dtype=torch.bool)  # (N/W,) bool
+    novelty, emb = [], []
+    with torch.no_grad():
+        for obs in step_observations():  # (16, 3, Az, El)
+            out, nov, _ = forward(obs.chunk(d.world)[d.rank], resets, state)  # ActOut, (N/W,), (N/W,)
+            novelty.append(nov)
+            emb.append(out.emb)
+            state, resets = out.state, torch.zeros_like(resets)
+    sync.settle()
+    return {
+        "novelty": torch.stack(novelty),  # (K, N/W)
+        "emb": torch.stack(emb),  # (K, N/W, D)
+        "start": start,
+        "normaliser": dict(policy.rnd.named_buffers()),
+    }
 
 
 def fresh_rnd() -> RND:
@@ -153,7 +181,7 @@ def main(out: Path) -> None:
     which rank 1's loss alone is non-finite; writes the state after the clean update, the skip counts,
     whether the second update left the replica unchanged, this rank's normalised advantages, the state
     and rate after a third update with the adaptive rate, the bucket parities, and the novelty and
-    normaliser of LAGGED_STEPS steps of a fresh RND pooled one step late."""
+    normaliser of LAGGED_STEPS rollout steps whose RND normaliser is pooled one step late."""
     torch.set_num_threads(1)
     d, _ = setup("cpu")
     try:
@@ -177,11 +205,7 @@ def main(out: Path) -> None:
             group["lr"] = torch.tensor(float(group["lr"]))
         update(policy, optimizer, part, cfg, torch.Generator().manual_seed(d.rank), None, sync)
         adaptive = {"state": policy.state_dict(), "lr": float(optimizer.param_groups[0]["lr"])}
-        rnd = fresh_rnd()
-        novelty = [
-            rnd.intrinsic(batch.chunk(d.world)[d.rank], sync.sum_lagged) for batch in step_embeddings()
-        ]  # each (16/W,)
-        sync.settle()
+        lagged = lagged_rollout(d, sync)
         result = {
             "state": after,
             "skipped": [skipped, skipped_bad],
@@ -193,7 +217,7 @@ def main(out: Path) -> None:
                 "eager": bucket_parity(d, part, False),
                 "compiled": bucket_parity(d, part, True),
             },
-            "lagged": {"novelty": torch.stack(novelty), "normaliser": dict(rnd.named_buffers())},
+            "lagged": lagged,
         }
         torch.save(result, out / f"rank{d.rank}.pt")
         sync.barrier()

@@ -10,6 +10,7 @@ its CUDA graph, compiled pack and unpack).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import pytest
@@ -29,9 +30,11 @@ from navi_learner.config import (
     resolve,
 )
 from navi_learner.engine.memory import EpisodicMemory
+from navi_learner.engine.moments import moment_sums
 from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
-from navi_learner.ppo.compile import compile_graph, make_forward, rollout_forward
+from navi_learner.ppo.compile import PooledForward, compile_graph, make_forward, pooled_step, rollout_forward
+from navi_learner.ppo.dist import Dist, Sync
 from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.stats import EpisodeStats
 from navi_learner.ppo.timing import StageTimers
@@ -207,6 +210,87 @@ def test_the_rollout_step_is_compiled_by_default_on_cuda_only() -> None:
         forward = make_forward(policy, memory, cfg, torch.device(device))
         assert forward.__qualname__ == eager.__qualname__ and not compiled_fn(forward)
     assert compiled_fn(make_forward(policy, memory, TrainConfig(), torch.device("cuda")))
+    # a data-parallel rank: the same rule for the step inside its PooledForward (no collective is made)
+    sync = Sync(
+        Dist(rank=0, world=2), [q for q in policy.parameters() if q.requires_grad], torch.device("cpu")
+    )
+    try:
+        for cfg, device, compiled in [
+            (TrainConfig(), "cpu", False),
+            (TrainConfig(compile_rollout=False), "cuda", False),
+            (TrainConfig(), "cuda", True),
+        ]:
+            forward = make_forward(policy, memory, cfg, torch.device(device), sync)
+            assert isinstance(forward, PooledForward) and compiled_fn(forward.step) == compiled
+    finally:
+        sync.release()
+
+
+def one_rank_chain(
+    step: Callable[..., tuple[ActOut, torch.Tensor, torch.Tensor, torch.Tensor]],
+    policy: CognitiveMambaPolicy,
+    obs: torch.Tensor,
+    resets: torch.Tensor,
+    state: CoreState,
+    steps: int,
+) -> list[torch.Tensor]:
+    """`steps` calls of a rank's pooled step, each handed the sums the one before returned (one rank's
+    pooling, one step late); the first is handed its own batch's sums. Returns every output and the
+    normaliser after each call."""
+    with torch.no_grad():
+        pooled = moment_sums(policy.rnd.error(policy.act(obs, resets, state).emb))  # (3,) float64
+        rows = []
+        for _ in range(steps):
+            out, novelty, loop, pooled = step(obs, resets, state, pooled)  # ActOut, (N,), (N,), (3,)
+            rows += [
+                out.value,
+                out.emb,
+                novelty,
+                loop,
+                pooled,
+                policy.rnd.err_mean.clone(),
+                policy.rnd.err_var.clone(),
+            ]
+            state, resets = out.state, torch.zeros_like(resets)
+    return rows
+
+
+def test_the_rnd_step_given_pooled_sums_is_the_step_whose_reduce_returns_them() -> None:
+    """RND.intrinsic_pooled (a rank's compiled step) folds in the sums it is handed exactly as intrinsic
+    folds in what its `reduce` returns, and hands back this batch's own sums."""
+    torch.manual_seed(0)
+    engine = EngineConfig.tiny()
+    rnds = [CognitiveMambaPolicy((3, 16, 8), engine).rnd for _ in "ab"]
+    rnds[1].load_state_dict(rnds[0].state_dict())
+    for k in range(3):
+        emb = torch.randn(10, engine.embed_dim) * (k + 1)  # (N, D)
+        pooled = moment_sums(torch.rand(7) * (k + 2))  # (3,) float64: another batch's sums
+        got, sums = rnds[0].intrinsic_pooled(emb, pooled)  # (N,), (3,)
+        want = rnds[1].intrinsic(emb, lambda t, p=pooled: p)  # (N,)
+        assert torch.equal(got, want)
+        assert torch.equal(sums, moment_sums(rnds[1].error(emb)))
+        for (name, a), b in zip(rnds[0].named_buffers(), rnds[1].buffers(), strict=True):
+            assert torch.equal(a, b), name
+
+
+def test_a_ranks_rollout_step_is_one_graph_around_its_pooled_sums() -> None:
+    """A data-parallel rank's step without its collective compiles whole (fullgraph; AOTAutograd on the
+    CPU) and gives the eager step's outputs, sums and normaliser bit for bit over 3 chained steps."""
+    engine = EngineConfig.tiny()
+    cpu = torch.device("cpu")
+    obs = torch.rand(ACTORS, 3, 32, 8, generator=torch.Generator().manual_seed(1))  # (N, 3, Az, El)
+    resets = torch.ones(ACTORS, dtype=torch.bool)  # (N,)
+    chains = []
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        policy = CognitiveMambaPolicy((3, 32, 8), engine).eval()
+        memory = EpisodicMemory(ACTORS, engine.memory_slots, engine.embed_dim, engine.memory_threshold, cpu)
+        step = pooled_step(policy, memory)
+        if compiled:
+            step = compile_graph(step, backend="aot_eager")
+        chains.append(one_rank_chain(step, policy, obs, resets, policy.initial_state(ACTORS, cpu), 3))
+    for a, b in zip(*chains, strict=True):
+        assert torch.equal(a, b)
 
 
 @pytest.mark.gpu
@@ -246,6 +330,32 @@ def test_the_inductor_compiled_rollout_step_matches_the_eager_one_on_cuda(action
         torch.testing.assert_close(g, w, atol=2e-2, rtol=2e-2)
     for out in (got, want)[: int(action_input) * 2]:  # each carries the action it drew (its own RNG)
         assert torch.equal(out.state[-1], out.action.clamp(-1.0, 1.0))
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_inductor_compiled_step_of_a_rank_matches_the_eager_one_on_cuda() -> None:
+    """On CUDA, with bf16 autocast, a data-parallel rank's step compiled to one graph gives the eager
+    step's values, embeddings, novelty, loop penalty, the sums it hands the ranks and the normaliser."""
+    dev = torch.device("cuda")
+    engine = EngineConfig()
+    n = 256
+    obs = torch.rand(
+        n, 3, 256, 48, device=dev, generator=torch.Generator(dev).manual_seed(1)
+    )  # (N, 3, Az, El)
+    resets = torch.ones(n, dtype=torch.bool, device=dev)  # (N,)
+    chains = []
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        policy = CognitiveMambaPolicy((3, 256, 48), engine).to(dev).eval()
+        policy.amp = True
+        memory = EpisodicMemory(n, engine.memory_slots, engine.embed_dim, engine.memory_threshold, dev)
+        step = pooled_step(policy, memory)
+        if compiled:
+            step = compile_graph(step)
+        chains.append(one_rank_chain(step, policy, obs, resets, policy.initial_state(n, dev), 3))
+    for a, b in zip(*chains, strict=True):
+        torch.testing.assert_close(a, b, atol=2e-2, rtol=2e-2)
 
 
 @pytest.mark.parametrize("device", DEVICES)

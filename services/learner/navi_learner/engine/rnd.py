@@ -11,7 +11,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from navi_learner.engine.moments import pooled_moments
+from navi_learner.engine.moments import moment_sums, moments_of, pooled_moments
 
 
 def mlp(dim_in: int, hidden: int, dim_out: int) -> nn.Sequential:
@@ -55,11 +55,30 @@ class RND(nn.Module):
         else:
             pooled_mean, pooled_var = pooled_moments(err, reduce)  # () float64 each
             mean, var = pooled_mean.float(), pooled_var.float()  # () float32 each
+        self._fold(mean, var)
+        return self._score(err)  # (N,)
+
+    @torch.no_grad()
+    def intrinsic_pooled(self, emb: torch.Tensor, pooled: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The step of a data-parallel rank whose normaliser folds in sums pooled elsewhere: the running
+        stats take in `pooled` (3,) float64 (moment_sums of an earlier batch, summed over ranks), then
+        score this batch's error -> (novelty (N,), this batch's moment_sums (3,) float64, to pool). With
+        `pooled` what intrinsic's `reduce` returns, both give the same novelty and stats."""
+        err = self.error(emb)  # (N,)
+        mean, var = moments_of(pooled)  # () float64 each
+        self._fold(mean.float(), var.float())
+        return self._score(err), moment_sums(err)  # (N,), (3,) float64
+
+    def _fold(self, mean: torch.Tensor, var: torch.Tensor) -> None:
+        """Move the running stats toward a batch's mean and variance () (the first batch sets them)."""
         m = torch.where(self.initialised, torch.full_like(mean, self.momentum), torch.ones_like(mean))  # ()
         delta = mean - self.err_mean  # ()
         self.err_mean.add_(m * delta)
         self.err_var.mul_(1 - m).add_(m * (var + (1 - m) * delta.pow(2)))
         self.initialised.fill_(True)
+
+    def _score(self, err: torch.Tensor) -> torch.Tensor:
+        """err (N,) as a z-score under the running stats, clipped to ±5 -> (N,)."""
         return ((err - self.err_mean) / (self.err_var.sqrt() + 1e-8)).clamp(-5.0, 5.0)  # (N,)
 
     def loss(self, emb: torch.Tensor) -> torch.Tensor:

@@ -13,28 +13,85 @@ from navi_learner.config import TrainConfig
 from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
+from navi_learner.ppo.dist import Collectives, Sync
 from navi_learner.ppo.loss import ppo_loss
 
 Forward = Callable[[torch.Tensor, torch.Tensor, CoreState], tuple[ActOut, torch.Tensor, torch.Tensor]]
 """The rollout's policy step: (obs, resets, state) -> (ActOut, RND novelty (N,), loop penalty (N,))."""
 
 
-def rollout_forward(
-    policy: CognitiveMambaPolicy,
-    memory: EpisodicMemory,
-    act: Callable[..., ActOut] | None = None,
-    reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
-) -> Forward:
-    """The rollout's policy step, eager: `act` (default policy.act), the RND novelty of its embedding
-    (the normaliser updated; `reduce` pools it over ranks) and the episodic memory's loop penalty."""
+def rollout_forward(policy: CognitiveMambaPolicy, memory: EpisodicMemory) -> Forward:
+    """The rollout's policy step of one process, eager: the policy's act, the RND novelty of its embedding
+    (the normaliser updated) and the episodic memory's loop penalty."""
 
     def forward(
         obs: torch.Tensor, resets: torch.Tensor, state: CoreState
     ) -> tuple[ActOut, torch.Tensor, torch.Tensor]:
-        out = (act or policy.act)(obs, resets, state)
-        return out, policy.rnd.intrinsic(out.emb, reduce), memory.step(out.emb, resets)  # ActOut, (N,), (N,)
+        out = policy.act(obs, resets, state)
+        return out, policy.rnd.intrinsic(out.emb), memory.step(out.emb, resets)  # ActOut, (N,), (N,)
 
     return forward
+
+
+PooledStep = Callable[
+    [torch.Tensor, torch.Tensor, CoreState, torch.Tensor],
+    tuple[ActOut, torch.Tensor, torch.Tensor, torch.Tensor],
+]
+"""A data-parallel rank's policy step: (obs, resets, state, the previous step's normaliser sums pooled
+over ranks (3,) float64) -> (ActOut, RND novelty (N,), loop penalty (N,), this step's sums (3,) float64)."""
+
+
+def pooled_step(policy: CognitiveMambaPolicy, memory: EpisodicMemory) -> PooledStep:
+    """A data-parallel rank's policy step without its collective, so it compiles to one graph: act, the RND
+    novelty under the normaliser that has folded in the pooled sums it is handed, the loop penalty, and
+    this step's own sums for the ranks to pool."""
+
+    def step(
+        obs: torch.Tensor, resets: torch.Tensor, state: CoreState, pooled: torch.Tensor
+    ) -> tuple[ActOut, torch.Tensor, torch.Tensor, torch.Tensor]:
+        out = policy.act(obs, resets, state)
+        novelty, sums = policy.rnd.intrinsic_pooled(out.emb, pooled)  # (N,), (3,) float64
+        return out, novelty, memory.step(out.emb, resets), sums  # ActOut, (N,), (N,), (3,)
+
+    return step
+
+
+class PooledForward:
+    """The rollout's policy step of a data-parallel rank: its RND normaliser follows every rank's actors,
+    one step late (ppo.dist). Each step hands `step` (pooled_step, eager or one compiled graph) the sums
+    of the previous step, pooled over ranks and waited for on the device, then launches its own sums'
+    all-reduce, which the next step's graph reads: the collective lies between two graphs, never inside
+    one. The run's first step has no earlier sums: `step` runs with placeholder sums, the normaliser is
+    put back as it was, and the step's own sums, pooled and waited for (Sync.sum_kept), are folded in to
+    score its novelty; the second step folds them in once more, as one process's first batch sets its
+    normaliser. The same graph serves every step."""
+
+    def __init__(
+        self, policy: CognitiveMambaPolicy, memory: EpisodicMemory, sync: Sync, step: PooledStep
+    ) -> None:
+        self.policy, self.memory, self.sync, self.step = policy, memory, sync, step
+
+    def __call__(
+        self, obs: torch.Tensor, resets: torch.Tensor, state: CoreState
+    ) -> tuple[ActOut, torch.Tensor, torch.Tensor]:
+        pooled = self.sync.lagged_previous()  # (3,) float64, or None at the run's first step
+        if pooled is None:
+            return self._first(obs, resets, state)
+        out, novelty, loop, sums = self.step(obs, resets, state, pooled)  # ActOut, (N,), (N,), (3,)
+        self.sync.launch_lagged(sums)
+        return out, novelty, loop
+
+    def _first(
+        self, obs: torch.Tensor, resets: torch.Tensor, state: CoreState
+    ) -> tuple[ActOut, torch.Tensor, torch.Tensor]:
+        rnd = self.policy.rnd
+        before = [b.clone() for b in rnd.buffers()]  # the normaliser as it was
+        placeholder = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=obs.device)  # (3,) float64
+        out, _, loop, sums = self.step(obs, resets, state, placeholder)  # ActOut, (N,), (N,), (3,)
+        for b, kept in zip(rnd.buffers(), before, strict=True):
+            b.copy_(kept)
+        novelty, _ = rnd.intrinsic_pooled(out.emb, self.sync.sum_kept(sums))  # (N,): its own sums, waited
+        return out, novelty, loop
 
 
 def compile_graph(
@@ -44,21 +101,34 @@ def compile_graph(
     return torch.compile(fn, fullgraph=fullgraph, dynamic=False, backend=backend)
 
 
+def rank_forward(
+    policy: CognitiveMambaPolicy,
+    memory: EpisodicMemory,
+    sync: Collectives | None = None,
+    compiled: bool = False,
+) -> Forward:
+    """The rollout's policy step of this process, eager or `compiled` (one graph: act, RND, memory); on a
+    data-parallel rank (`sync` a Sync) the PooledForward around that step, whose normaliser all-reduce
+    runs between the steps' graphs."""
+    if isinstance(sync, Sync):
+        step = pooled_step(policy, memory)
+        return PooledForward(
+            policy, memory, sync, cast(PooledStep, compile_graph(step)) if compiled else step
+        )
+    forward = rollout_forward(policy, memory)
+    return cast(Forward, compile_graph(forward)) if compiled else forward
+
+
 def make_forward(
     policy: CognitiveMambaPolicy,
     memory: EpisodicMemory,
     cfg: TrainConfig,
     device: torch.device,
-    reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    sync: Collectives | None = None,
 ) -> Forward:
-    """The rollout's policy step for a run: eager unless cfg.compile and cfg.compile_rollout ask for it on
-    CUDA; then one graph (act, RND, memory), or, where `reduce` pools the RND normaliser over ranks (a
-    collective the graph cannot hold), the compiled act with RND and memory eager."""
-    if not (cfg.compile and cfg.compile_rollout and device.type == "cuda"):
-        return rollout_forward(policy, memory, reduce=reduce)
-    if reduce is None:
-        return cast(Forward, compile_graph(rollout_forward(policy, memory)))
-    return rollout_forward(policy, memory, act=compile_graph(policy.act), reduce=reduce)
+    """The rollout's policy step for a run (rank_forward): compiled where cfg.compile and
+    cfg.compile_rollout ask for it on CUDA, else eager."""
+    return rank_forward(policy, memory, sync, cfg.compile and cfg.compile_rollout and device.type == "cuda")
 
 
 Objective = Callable[..., tuple[torch.Tensor, dict[str, torch.Tensor]]]

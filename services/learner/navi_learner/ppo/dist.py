@@ -9,12 +9,14 @@ crosses ranks, and when:
   too), so all replicas start identical;
 - every env step: the RND error's sum, sum of squares and count (3 numbers), all-reduced without
   waiting: launched at step t, waited for at step t + 1, whose normaliser update folds them in
-  (Sync.sum_lagged). The novelty normaliser is then the running estimate one process would keep over
-  all actors, one step late, and the same on every rank: every rank folds the same pooled sums in at the
-  same step. A run's first step waits for its own sums (the estimate starts from the first batch); the
-  second folds them in once more, which leaves the estimate where it is (within rounding). Sums kept per
-  rank and pooled once per rollout would instead let the ranks' normalisers drift apart within a rollout,
-  or turn the normaliser's per-step moving average into a per-rollout one; one step late keeps its rule
+  (Sync.launch_lagged and lagged_previous, called by ppo.compile.PooledForward between two steps'
+  graphs, so a rank's rollout step compiles to one graph as a single process's does). The novelty
+  normaliser is then the running estimate one process would keep over all actors, one step late, and
+  the same on every rank: every rank folds the same pooled sums in at the same step. A run's first step
+  waits for its own sums (Sync.sum_kept: the estimate starts from the first batch); the second folds
+  them in once more, which leaves the estimate where it is (within rounding). Sums kept per rank and
+  pooled once per rollout would instead let the ranks' normalisers drift apart within a rollout, or
+  turn the normaliser's per-step moving average into a per-rollout one; one step late keeps its rule
   and identical replicas, and no step waits for the slowest rank's collective of the same step;
 - every minibatch: the advantages' sum, sum of squares and count (global normalisation); then every
   gradient, in buckets as DistributedDataParallel packs them: the parameters in reverse registration
@@ -216,8 +218,8 @@ def collective(d: Dist, what: str, call: Callable[[], T]) -> T:
 
 class Solo:
     """The collectives of a single-process run, Sync's twin: each leaves its values as they are, so the
-    training loop reads the same for one rank and for N. `reduce` and `normaliser_reduce` are None:
-    statistics are taken over this process's batch directly (RND normaliser, episode statistics), and
+    training loop reads the same for one rank and for N. `reduce` is None: statistics are taken over
+    this process's batch directly (RND normaliser, episode statistics), and
     `pools_advantages` is False: the minibatch objective normalises its own advantages."""
 
     active = False
@@ -229,11 +231,6 @@ class Solo:
     @property
     def reduce(self) -> Callable[[torch.Tensor], torch.Tensor] | None:
         """What sums a tensor over ranks in place, for statistics that pool over ranks: none here."""
-        return None
-
-    @property
-    def normaliser_reduce(self) -> Callable[[torch.Tensor], torch.Tensor] | None:
-        """What pools the RND normaliser's sums over ranks at every env step: none here."""
         return None
 
     def sum_(self, t: torch.Tensor) -> torch.Tensor:
@@ -347,33 +344,33 @@ class Sync:
         """What sums a tensor over ranks in place (sum_), for statistics that pool over ranks."""
         return self.sum_
 
-    @property
-    def normaliser_reduce(self) -> Callable[[torch.Tensor], torch.Tensor] | None:
-        """What pools the RND normaliser's sums over ranks at every env step: sum_lagged."""
-        return self.sum_lagged
-
     def sum_(self, t: torch.Tensor) -> torch.Tensor:
         """Sum t over ranks, in place; returns t."""
         return self._all_reduce("all-reduce", t)
 
-    def sum_lagged(self, t: torch.Tensor) -> torch.Tensor:
-        """Launch the sum of t over ranks (in place, not waited for) and return the sums of the previous
-        call, waited for now: one call late, the same on every rank. The run's first call waits for its
-        own sums and returns them (so does the second). Every rank makes the same calls in the same order
-        (the RND normaliser, once per env step); t must not change until the next call."""
-        work = self._launch("normaliser all-reduce", t)
+    def sum_kept(self, t: torch.Tensor) -> torch.Tensor:
+        """Sum t over ranks in place, waited for, and keep it as the normaliser's last pooled sums:
+        lagged_previous hands it back at the next step (a run's first step, which has no earlier sums,
+        pools its own). Returns t."""
+        self._wait("normaliser all-reduce", self._launch("normaliser all-reduce", t))
+        self.lagged = (None, t)
+        return t
+
+    def lagged_previous(self) -> torch.Tensor | None:
+        """The sums last handed to sum_kept or launch_lagged, summed over ranks (waited for now); None
+        before the first. A CUDA wait holds back the current stream only, not the host."""
         if self.lagged is None:
-            self._wait("normaliser all-reduce", work)
-            self.lagged = (None, t)
-            return t
-        previous_work, previous = self.lagged
-        if previous_work is not None:
-            self._wait("normaliser all-reduce", previous_work)
-        self.lagged = (work, t)
-        return previous
+            return None
+        self.settle()
+        return self.lagged[1]
+
+    def launch_lagged(self, t: torch.Tensor) -> None:
+        """Launch the sum of t over ranks, in place and not waited for: lagged_previous hands it back at
+        the next step (every rank makes the same calls in the same order). t must not change until then."""
+        self.lagged = (self._launch("normaliser all-reduce", t), t)
 
     def settle(self) -> None:
-        """Wait for the normaliser's sums in flight, if any (sum_lagged still returns them next)."""
+        """Wait for the normaliser's sums in flight, if any (lagged_previous still hands them back)."""
         if self.lagged is not None and self.lagged[0] is not None:
             self._wait("normaliser all-reduce", self.lagged[0])
             self.lagged = (None, self.lagged[1])

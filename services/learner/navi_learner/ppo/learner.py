@@ -249,7 +249,7 @@ def setup(
         memory=memory,
         stats=EpisodeStats(n, device),
         timers=timers,
-        forward=make_forward(policy, memory, cfg, device, sync.normaliser_reduce),
+        forward=make_forward(policy, memory, cfg, device, sync),
         objective=make_objective(policy, cfg, device, sync.pools_advantages),
         gen=torch.Generator().manual_seed(rank_seed),
         state=st,

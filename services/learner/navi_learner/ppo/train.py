@@ -26,7 +26,7 @@ from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
 from navi_learner.envs.protocol import BatchedEnv
-from navi_learner.ppo.compile import Forward, Objective, ppo_objective, rollout_forward
+from navi_learner.ppo.compile import Forward, Objective, ppo_objective, rank_forward
 from navi_learner.ppo.dist import Collectives, Dist, Solo, write_debug
 from navi_learner.ppo.gae import bootstrap_truncated, gae
 from navi_learner.ppo.learner import Learner, first_carry, setup
@@ -83,12 +83,12 @@ def collect(
     """Fill the storage with one rollout; returns the new (obs, resets, state) carry and the mean
     extrinsic reward per actor-step (a device scalar). With `sync` a Sync (several ranks) the RND
     normaliser follows every rank's actors (3 numbers all-reduced per step, folded in one step later:
-    Sync.sum_lagged). With `check_storage` (a
+    compile.PooledForward). With `check_storage` (a
     run's first rollout) the stored form of step 1's observation is compared with what the policy saw
-    (one host read). `forward` is the rollout's policy step (default: the eager `rollout_forward`;
+    (one host read). `forward` is the rollout's policy step (default: the eager `rank_forward`;
     `make_forward` compiles it)."""
     sync = sync or Solo(env.device)
-    forward = forward or rollout_forward(policy, memory, reduce=sync.normaliser_reduce)
+    forward = forward or rank_forward(policy, memory, sync)
     obs, resets, state = carry
     ext_sum = torch.zeros((), device=env.device)  # () float32
     buf.begin()
