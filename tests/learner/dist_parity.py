@@ -190,7 +190,8 @@ def main(out: Path) -> None:
         sync.broadcast_module(policy)
         part = shard(buf, d.rank, d.world)
         policy.rnd.intrinsic(embeddings().chunk(d.world)[d.rank], sync.sum_)
-        adv = sync.normalize(part.advantages)  # (T, N/W)
+        ids = part.minibatch_ids(2, torch.Generator().manual_seed(4))  # (2, M): this rank's 2 minibatches
+        adv = {"ids": ids, "moments": sync.advantage_moments(part.advantages, ids, part.chunk)}  # (2, 2)
         _, skipped = update(policy, optimizer, part, cfg, torch.Generator().manual_seed(d.rank), None, sync)
         after = {k: v.clone() for k, v in policy.state_dict().items()}
         if d.rank == 1:

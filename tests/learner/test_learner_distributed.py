@@ -31,7 +31,6 @@ from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
 from navi_learner.envs.toy import ToyEnv
 from navi_learner.ppo import timing as timing_module
 from navi_learner.ppo.dist import BUCKET_ENV, Dist, bucket_mb_from_env, bucket_plan, setup, strip_option
-from navi_learner.ppo.loss import normalize
 from navi_learner.ppo.timing import StageTimers
 from navi_learner.ppo.train import train, update
 from navi_learner.serving.checkpoint import load_checkpoint
@@ -258,8 +257,13 @@ def test_one_update_on_two_ranks_equals_one_update_on_the_union(parity_ranks: li
         _, skipped = update(policy, optimizer, buf, cfg, torch.Generator().manual_seed(0))
     finally:
         torch.set_num_threads(before)
-    pooled = torch.cat([r["adv"] for r in ranks], dim=1)  # (T, N) each rank's half, normalised globally
-    torch.testing.assert_close(pooled, normalize(buf.advantages), atol=1e-6, rtol=1e-5)
+    for k in range(2):  # each minibatch's advantage moments over the union of the ranks' minibatches
+        union = torch.cat(
+            [parity.shard(buf, r, 2).minibatch(ranks[r]["adv"]["ids"][k]).advantages for r in (0, 1)]
+        )
+        moments = torch.stack([union.mean(), union.std(unbiased=False)])  # (2,)
+        for r in ranks:
+            torch.testing.assert_close(r["adv"]["moments"][k], moments, atol=1e-6, rtol=1e-5)
     for k, v in policy.state_dict().items():
         assert torch.equal(ranks[0]["state"][k], ranks[1]["state"][k]), k  # replicas bit-identical
         torch.testing.assert_close(ranks[0]["state"][k], v, atol=2e-6, rtol=1e-5, msg=k)  # RND stats too

@@ -18,8 +18,9 @@ crosses ranks, and when:
   pooled once per rollout would instead let the ranks' normalisers drift apart within a rollout, or
   turn the normaliser's per-step moving average into a per-rollout one; one step late keeps its rule
   and identical replicas, and no step waits for the slowest rank's collective of the same step;
-- every minibatch: the advantages' sum, sum of squares and count (global normalisation); then every
-  gradient, in buckets as DistributedDataParallel packs them: the parameters in reverse registration
+- every PPO epoch: each of its minibatches' advantage sums, sums of squares and counts (global
+  normalisation: Sync.advantage_moments, one all-reduce for the epoch);
+- every minibatch: every gradient, in buckets as DistributedDataParallel packs them: the parameters in reverse registration
   order (about the order backward produces their gradients), a bucket closing at NAVI_DIST_BUCKET_MB MiB
   (default 25). A hook on every parameter (register_post_accumulate_grad_hook) counts its gradient in
   during backward, and a bucket is all-reduced without waiting as soon as all its gradients are in and
@@ -71,8 +72,6 @@ from typing import Any, TypeVar, cast
 import torch
 import torch.distributed as tdist
 from torch import nn
-
-from navi_learner.engine.moments import pooled_moments
 
 TIMEOUT_ENV = "NAVI_DIST_TIMEOUT_S"
 """Seconds a collective may wait for the other ranks before the run fails."""
@@ -249,10 +248,6 @@ class Solo:
         process's)."""
         loss.backward()
         return ~torch.isfinite(loss)
-
-    def normalize(self, x: torch.Tensor) -> torch.Tensor:
-        """x as it is: the objective normalises a minibatch's advantages (pools_advantages is False)."""
-        return x
 
     def agree(self, interrupt: bool, stop: bool, ext_mean: torch.Tensor) -> tuple[bool, bool, torch.Tensor]:
         """The flags and the mean extrinsic reward as they are."""
@@ -444,11 +439,18 @@ class Sync:
         if have:
             torch._foreach_copy_([g for _, g in have], [v.view_as(g) for v, g in have])
 
-    def normalize(self, x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
-        """x normalised over the union of every rank's x: zero mean, unit population std (ppo.normalize
-        on the global batch). Moments in float64; one all-reduce of 3 numbers."""
-        mean, var = pooled_moments(x, self.sum_)  # () float64 each
-        return (x - mean.float()) / (var.sqrt().float() + eps)  # same shape as x
+    def advantage_moments(self, adv: torch.Tensor, ids: torch.Tensor, chunk: int) -> torch.Tensor:
+        """The mean and population std of every minibatch's advantages over the union of the ranks'
+        minibatches -> (K, 2) float32, for an epoch's minibatch_ids `ids` (K, M) of sequences of `chunk`
+        steps of `adv` (T, N): per-sequence sums, summed per minibatch (float64), then one all-reduce of
+        3K numbers for the whole epoch rather than one per minibatch."""
+        seq = adv.detach().double().view(adv.shape[0] // chunk, chunk, -1)  # (T/L, L, N) float64
+        s1, s2 = seq.sum(1).reshape(-1), seq.pow(2).sum(1).reshape(-1)  # (S,) each, sequence c·N + a
+        count = torch.full_like(s1[: ids.shape[0]], float(ids.shape[1] * chunk))  # (K,) float64
+        sums = self.sum_(torch.stack([s1[ids].sum(1), s2[ids].sum(1), count], dim=1))  # (K, 3) all ranks
+        mean = sums[:, 0] / sums[:, 2]  # (K,) float64
+        var = (sums[:, 1] / sums[:, 2] - mean.pow(2)).clamp(min=0.0)  # (K,) float64
+        return torch.stack([mean, var.sqrt()], dim=1).float()  # (K, 2)
 
     def agree(self, interrupt: bool, stop: bool, ext_mean: torch.Tensor) -> tuple[bool, bool, torch.Tensor]:
         """Once per update: any rank's interrupt / stop flag (max) and the mean extrinsic reward over

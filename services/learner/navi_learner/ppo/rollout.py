@@ -153,37 +153,45 @@ class RolloutStorage:
             for buf, s in zip(self.states, state, strict=True):
                 buf[t // self.chunk].copy_(s)
 
-    def minibatches(
-        self, num_minibatches: int, generator: torch.Generator | None = None
-    ) -> Iterator[Minibatch]:
-        """Shuffle the (chunk, actor) sequences and yield num_minibatches groups of whole sequences."""
+    def minibatch_ids(self, num_minibatches: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Shuffle the (chunk, actor) sequences into groups of whole sequences: (K, M) int64 sequence ids
+        (c·N + a), K = S // (S // num_minibatches) groups of M = S // num_minibatches (S sequences)."""
         total = self.n_chunks * self.n
         device = self.actions.device
         perm = torch.randperm(total, generator=generator).to(device)  # (S,) int64 sequence ids
         size = max(1, total // num_minibatches)
-        for start in range(0, total - size + 1, size):
-            ids = perm[start : start + size]  # (M,)
-            c, a = ids // self.n, ids % self.n  # (M,) each
+        return perm[: total // size * size].view(-1, size)  # (K, M)
 
-            def seq(buf: torch.Tensor, c: torch.Tensor = c, a: torch.Tensor = a) -> torch.Tensor:
-                return sequences(buf, c, a, self.chunk)  # (L, M, ...)
+    def minibatches(
+        self, num_minibatches: int, generator: torch.Generator | None = None
+    ) -> Iterator[Minibatch]:
+        """Shuffle the (chunk, actor) sequences and yield groups of whole sequences (minibatch_ids)."""
+        for ids in self.minibatch_ids(num_minibatches, generator):
+            yield self.minibatch(ids)
 
-            resets = seq(self.resets)  # (L, M) bool
-            if self.compact:
-                obs = self._gather(
-                    self.depth16, self.semantic, resets, self.table, c, a, self.chunk
-                )  # (L, M, 3, Az, El)
-            else:
-                obs = seq(self.obs)  # (L, M, 3, Az, El)
-            yield Minibatch(
-                obs=obs,
-                actions=seq(self.actions),
-                logp=seq(self.logp),
-                values=seq(self.values),
-                advantages=seq(self.advantages),
-                returns=seq(self.returns),
-                resets=resets,
-                state=tuple(s[c, a] for s in self.states),
-                chunks=c,
-                actors=a,
-            )
+    def minibatch(self, ids: torch.Tensor) -> Minibatch:
+        """The sequences ids (M,) int64 (c·N + a) as a minibatch."""
+        c, a = ids // self.n, ids % self.n  # (M,) each
+
+        def seq(buf: torch.Tensor, c: torch.Tensor = c, a: torch.Tensor = a) -> torch.Tensor:
+            return sequences(buf, c, a, self.chunk)  # (L, M, ...)
+
+        resets = seq(self.resets)  # (L, M) bool
+        if self.compact:
+            obs = self._gather(
+                self.depth16, self.semantic, resets, self.table, c, a, self.chunk
+            )  # (L, M, 3, Az, El)
+        else:
+            obs = seq(self.obs)  # (L, M, 3, Az, El)
+        return Minibatch(
+            obs=obs,
+            actions=seq(self.actions),
+            logp=seq(self.logp),
+            values=seq(self.values),
+            advantages=seq(self.advantages),
+            returns=seq(self.returns),
+            resets=resets,
+            state=tuple(s[c, a] for s in self.states),
+            chunks=c,
+            actors=a,
+        )

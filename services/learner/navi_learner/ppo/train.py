@@ -27,7 +27,7 @@ from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
 from navi_learner.envs.protocol import BatchedEnv
 from navi_learner.ppo.compile import Forward, Objective, ppo_objective, rank_forward
-from navi_learner.ppo.dist import Collectives, Dist, Solo, write_debug
+from navi_learner.ppo.dist import Collectives, Dist, Solo, Sync, write_debug
 from navi_learner.ppo.gae import bootstrap_truncated, gae
 from navi_learner.ppo.learner import Learner, first_carry, setup
 from navi_learner.ppo.promotion import promote
@@ -179,10 +179,15 @@ def update(
     on_device = bool(optimizer.defaults.get("fused"))  # the optimizer skips a step itself on found_inf
     skips = torch.zeros((), device=params[0].device)  # () float32, steps skipped on the device
     for _ in range(p.ppo_epochs):
-        for mb in buf.minibatches(p.num_minibatches, gen):
+        ids = buf.minibatch_ids(p.num_minibatches, gen)  # (K, M) sequences per minibatch
+        pooled = None  # (K, 2) mean and std of each minibatch's advantages over all ranks
+        if isinstance(sync, Sync) and p.norm_adv:
+            pooled = sync.advantage_moments(buf.advantages, ids, buf.chunk)
+        for i, mb_ids in enumerate(ids):
+            mb = buf.minibatch(mb_ids)
             adv = mb.advantages  # (L, M)
-            if sync.pools_advantages and p.norm_adv:
-                adv = sync.normalize(mb.advantages)  # (L, M) over all ranks
+            if pooled is not None:
+                adv = (mb.advantages - pooled[i, 0]) / (pooled[i, 1] + 1e-8)  # (L, M) over all ranks
             total, metrics = objective(
                 mb.obs, mb.resets, mb.state, mb.actions, mb.logp, adv, mb.values, mb.returns
             )  # (), {name: ()}
