@@ -3,9 +3,9 @@
 NanoVDB (OpenVDB's GPU form, Warp's `Volume`) is the standard sparse volume for level sets, so it is
 the peer a user would pick instead of a `.gmdag`. The anchor holds the same distance samples at the
 same lattice as the scene (Navi's samples sit at the corners of its R^3 cells: index (i, j, k) is
-world `origin + voxel * (i, j, k)`, read through `sample_distance`), allocated by 8^3 tiles only
-within `band` voxels of the surface, values clamped to +-band and `band` voxels (meters) outside the
-tiles, float32 (the one value type Warp allocates and writes on the device). A Warp kernel
+world `origin + voxel * (i, j, k)`, read through `sample_distance`), allocated by 8^3 tiles: exactly
+the tiles that hold a sample within `band` voxels of the surface (every sample of every candidate tile
+is tested), values clamped to +-band and `band` voxels (meters) outside the tiles, float32 (the one value type Warp allocates and writes on the device). A Warp kernel
 (`nanovdb_kernel.march`) traces the same world-space rays with trilinear samples and Navi's step and
 hit rules, but without its far-cube skips: in free space it steps by at most the band. That is what a
 narrow-band level set without hierarchical skipping (HDDA) costs. fVDB's HDDA ray query ships as
@@ -47,9 +47,10 @@ class NanoVDBUnavailable(RuntimeError):
     """Warp cannot run this comparison (warp-lang is not installed)."""
 
 
-def band_tiles(corpus: SceneCorpus, band: float) -> np.ndarray:
-    """(T, 3) int32 index-space min corners of the 8^3 tiles of scene 0 that may hold a sample within
-    `band` voxels of the surface (sampled at each tile's centre, with TILE_REACH of slack)."""
+def candidate_tiles(corpus: SceneCorpus, band: float) -> np.ndarray:
+    """(C, 3) int32 index-space min corners of the 8^3 tiles of scene 0 that may hold a sample within
+    `band` voxels of the surface (sampled at each tile's centre, with TILE_REACH of slack): a superset
+    of the band's tiles, cheap to find."""
     info = corpus.infos[0]
     per_axis = info.resolution // TILE + 1  # tiles covering samples 0..R
     axis = torch.arange(per_axis, dtype=torch.float64) * TILE  # (A,) tile min corners, voxels
@@ -64,33 +65,60 @@ def band_tiles(corpus: SceneCorpus, band: float) -> np.ndarray:
     return grid[keep].numpy().astype(np.int32)
 
 
-def build_band(corpus: SceneCorpus, band: float, wp: Any, device: str) -> tuple[Any, int, int]:
-    """The volume of scene 0's samples within `band` voxels: (wp.Volume, tiles T, device bytes)."""
+OFFSETS = np.stack(np.meshgrid(*[np.arange(TILE)] * 3, indexing="ij"), -1).reshape(-1, 3)  # (512, 3)
+"""A tile's voxels relative to its min corner."""
+
+
+def narrow_band(corpus: SceneCorpus, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """The narrow band of scene 0: the 8^3 tiles that hold a sample within `band` voxels of the surface,
+    and no other, (T, 3) int32 index-space min corners, with their samples (T, 512) float32 meters
+    clamped to +-band voxels (OFFSETS order), as a level set's narrow band is built."""
     info = corpus.infos[0]
-    tiles = band_tiles(corpus, band)  # (T, 3)
+    h = info.voxel_size
+    candidates = candidate_tiles(corpus, band)  # (C, 3)
+    per_chunk = max(1, CHUNK // len(OFFSETS))
+    tiles, values = [], []
+    for start in range(0, len(candidates), per_chunk):
+        part = candidates[start : start + per_chunk]  # (C', 3)
+        voxels = (part[:, None, :] + OFFSETS[None]).reshape(-1, 3)  # (C' 512, 3) int
+        pts = torch.from_numpy(info.cube_min + voxels * h).float().to(corpus.device)  # (C' 512, 3) meters
+        ids = torch.zeros(len(pts), dtype=torch.int64, device=corpus.device)  # (C' 512,)
+        d = sample_distance(corpus, ids, pts).cpu().numpy().reshape(len(part), -1)  # (C', 512) meters
+        inside = (voxels <= info.resolution).all(axis=1).reshape(len(part), -1)  # (C', 512) on the lattice
+        near = ((np.abs(d) <= band * h) & inside).any(axis=1)  # (C',) tiles holding a band sample
+        tiles.append(part[near])
+        values.append(np.clip(d[near], -band * h, band * h).astype(np.float32))
+    return np.concatenate(tiles).astype(np.int32), np.concatenate(values)  # (T, 3), (T, 512)
+
+
+def band_tiles(corpus: SceneCorpus, width: float) -> np.ndarray:
+    """(T, 3) int32 index-space min corners of the tiles of scene 0's narrow band of `width` voxels."""
+    return narrow_band(corpus, width)[0]
+
+
+def build_band(corpus: SceneCorpus, width: float, wp: Any, device: str) -> tuple[Any, int, int]:
+    """The volume of scene 0's samples within `width` voxels: (wp.Volume, tiles T, device bytes)."""
+    info = corpus.infos[0]
+    tiles, values = narrow_band(corpus, width)  # (T, 3), (T, 512)
     h = info.voxel_size
     volume = wp.Volume.allocate_by_tiles(
         wp.array(tiles, dtype=wp.int32, device=device),  # (T, 3) voxel coordinates (Warp 1.0 needs int32)
         voxel_size=h,
-        bg_value=float(band * h),
+        bg_value=float(width * h),
         translation=wp.vec3(*(float(c) for c in info.cube_min)),
         device=device,
     )
     fill = fill_kernel(wp)
-    offsets = np.stack(np.meshgrid(*[np.arange(TILE)] * 3, indexing="ij"), -1).reshape(-1, 3)  # (512, 3)
-    per_chunk = max(1, CHUNK // len(offsets))
+    per_chunk = max(1, CHUNK // len(OFFSETS))
     for start in range(0, len(tiles), per_chunk):
-        voxels = (tiles[start : start + per_chunk, None, :] + offsets[None]).reshape(-1, 3)  # (V', 3) int32
-        pts = torch.from_numpy(info.cube_min + voxels * h).float().to(corpus.device)  # (V', 3) meters
-        ids = torch.zeros(len(pts), dtype=torch.int64, device=corpus.device)  # (V',)
-        values = sample_distance(corpus, ids, pts).clamp(-band * h, band * h).cpu().numpy()  # (V',) meters
+        voxels = (tiles[start : start + per_chunk, None, :] + OFFSETS[None]).reshape(-1, 3)  # (V', 3) int32
         wp.launch(
             fill,
             dim=len(voxels),
             inputs=[
                 volume.id,
                 wp.array(voxels.astype(np.int32), dtype=wp.vec3i, device=device),
-                wp.array(values.astype(np.float32), dtype=float, device=device),
+                wp.array(values[start : start + per_chunk].reshape(-1), dtype=float, device=device),
             ],
             device=device,
         )

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from navi_bench.nanovdb import TILE, TILE_REACH, band_tiles
+from navi_bench.nanovdb import TILE, TILE_REACH, band_tiles, candidate_tiles
 from navi_bench.trace import TraceBenchConfig, place_agents
 from navi_compiler.compile import compile_scene
 from navi_compiler.gmdag import write_gmdag
@@ -47,7 +47,8 @@ def reference_depth(corpus: SceneCorpus, cfg: TraceBenchConfig) -> np.ndarray:
 
 
 def test_band_tiles_hold_every_sample_near_the_surface(rooms: Path) -> None:
-    """Every lattice sample within the band lies in an allocated tile, and a wider band allocates more."""
+    """The band's tiles are exactly those holding a lattice sample within the band (fewer than the
+    candidates found from the tiles' centres), and a wider band allocates more."""
     corpus = load_scene(rooms, "cpu")
     info = corpus.infos[0]
     n = info.resolution + 1
@@ -58,6 +59,9 @@ def test_band_tiles_hold_every_sample_near_the_surface(rooms: Path) -> None:
     near = ijk[d.abs() <= 3.0]  # (K, 3) samples in the band
     assert len(near) > 0
     assert all(tuple((v // TILE * TILE).tolist()) in tiles for v in near)
+    # and no other tile: each holds a sample within the band (the candidates' slack is left out)
+    assert tiles == {tuple((v // TILE * TILE).tolist()) for v in near}
+    assert len(candidate_tiles(corpus, 3.0)) > len(tiles)
     assert len(band_tiles(corpus, 8.0)) > len(tiles)
     assert TILE_REACH > (TILE - 1) / 2 * 3**0.5
 
