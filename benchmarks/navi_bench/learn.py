@@ -12,7 +12,7 @@ Protocol (docs/TRAINING.md, "The learning benchmark"):
 - Report per run the training time and env steps to competence (null if never), the final metrics
   per unseen part with 95% bootstrap intervals, and per core the median over seeds.
 - With `nproc` > 1 every run trains data-parallel (DD-PPO, ppo/dist.py) on that many ranks through
-  torchrun, `actors` per rank, each rank on its share of the train scenes; rank 0 runs the monitor and
+  torchrun, `actors` per rank, each rank on every train scene; rank 0 runs the monitor and
   the final evaluation (run_ranks, rank_main), and its clock is the run's training time.
 Output folder: result.json, curves.json, learning_curves.png, report.md.
 """
@@ -221,8 +221,8 @@ def run_one(
     dist: Dist | None = None,
 ) -> dict[str, Any]:
     """Train one (core, seed) from scratch with the competence monitor; returns its result dict. As a
-    rank of a data-parallel run (`dist`), this rank trains its actors on its share of the train scenes;
-    rank 0 alone evaluates and returns the result (the other ranks return {})."""
+    rank of a data-parallel run (`dist`), this rank trains its actors on the train scenes as
+    cfg.train.rank_scenes says (every one by default); rank 0 alone evaluates and returns the result (the other ranks return {})."""
     from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
     from navi_learner.ppo.train import train
 
@@ -232,7 +232,7 @@ def run_one(
     reward = dict(cfg.reward)
     env = make_env(
         splits.train, tcfg.n_actors, device, seed + d.rank, reward=reward, obstacles=cfg.obstacles,
-        squad=cfg.squad, task=cfg.train.task, rank=d.rank, world=d.world,
+        squad=cfg.squad, task=cfg.train.task, rank=d.rank, world=d.world, rank_scenes=tcfg.rank_scenes,
     )  # fmt: skip
     monitor = None
     if d.main:

@@ -90,11 +90,11 @@ def build_env(
     obstacles: int = 0,
     squad: int = 0,
     task: str = "explore",
-    rank_scenes: str = "share",
+    rank_scenes: str = TrainConfig.rank_scenes,
     episode_steps: int = 0,
 ) -> Any:
-    """The environment for a command (a data-parallel rank: its share of the scenes, or every scene with
-    `rank_scenes` "all"; episodes of `episode_steps` where > 0, else the task's own), or exit 2."""
+    """The environment for a command (a data-parallel rank: every scene, or its share with `rank_scenes`
+    "share"; episodes of `episode_steps` where > 0, else the task's own), or exit 2."""
     from navi_env.config import TASKS
     from navi_learner.envs.factory import EnvUnavailable, make_env
 

@@ -19,6 +19,7 @@ from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag, write_gmdag
 from navi_env.config import EnvConfig
 from navi_env.corpus.folder import (
+    DEFAULT_RANK_SCENES,
     CorpusError,
     SceneEntry,
     build_corpus,
@@ -28,6 +29,7 @@ from navi_env.corpus.folder import (
     read_manifest,
 )
 from navi_env.sim.env import SdfDagEnv
+from navi_learner.config import TrainConfig
 
 RES, VOXEL = 32, 0.5
 
@@ -109,19 +111,19 @@ def test_data_parallel_ranks_load_disjoint_shares_of_the_scenes(
     full = build_corpus(find_sources(sources), out, resolution=32)
     costs = [s.trace_cost() for s in full.scenes]
     assert all(1.0 <= c <= EnvConfig().trace_max_steps for c in costs) and costs[0] != costs[1]
-    shares = [load_corpus_folder(out, "cpu", rank, 2) for rank in (0, 1)]
+    shares = [load_corpus_folder(out, "cpu", rank, 2, rank_scenes="share") for rank in (0, 1)]
     assert [len(scenes) for scenes, _ in shares] == [1, 1]
     first = max(range(2), key=lambda i: costs[i])
     assert [m.scenes[0] for _, m in shares] == [full.scenes[first], full.scenes[1 - first]]
     scenes, alone = load_corpus_folder(out, "cpu", scene=1)
     assert len(scenes) == 1 and alone.scenes == (full.scenes[1],)
     with pytest.raises(CorpusError, match="cannot be shared by 3 ranks"):
-        load_corpus_folder(out, "cpu", 0, 3)
+        load_corpus_folder(out, "cpu", 0, 3, rank_scenes="share")
     raw = json.loads((out / "manifest.json").read_text())
     del raw["scenes"][1]["qualification"]["trace_cost"]  # a manifest from before the measurement
     (out / "manifest.json").write_text(json.dumps(raw))
     with caplog.at_level(logging.WARNING, logger="navi_env.corpus.folder"):
-        shares = [load_corpus_folder(out, "cpu", rank, 2) for rank in (0, 1)]
+        shares = [load_corpus_folder(out, "cpu", rank, 2, rank_scenes="share") for rank in (0, 1)]
     assert [m.scenes[0].name for _, m in shares] == ["room_a", "room_b"]  # every 2nd scene from the rank
     assert "no trace cost" in caplog.text and "navi corpus build" in caplog.text
     with pytest.raises(CorpusError, match="scene 2 alone"):
@@ -129,14 +131,16 @@ def test_data_parallel_ranks_load_disjoint_shares_of_the_scenes(
 
 
 def test_with_rank_scenes_all_every_rank_loads_every_scene(sources: Path, tmp_path: Path) -> None:
-    """rank_scenes "all": each of 3 ranks loads both scenes of a 2-scene corpus, in manifest order (more
-    ranks than scenes is no error then), and an env on it spreads its actors over both; an unknown
-    value is refused by name."""
+    """rank_scenes "all" (the default): each of 3 ranks loads both scenes of a 2-scene corpus, in
+    manifest order (more ranks than scenes is no error then), and an env on it spreads its actors over
+    both; an unknown value is refused by name."""
     out = tmp_path / "corpus"
     full = build_corpus(find_sources(sources), out, resolution=32)
     for rank in range(3):
         scenes, manifest = load_corpus_folder(out, "cpu", rank, 3, rank_scenes="all")
         assert manifest.scenes == full.scenes and len(scenes.infos) == 2
+        assert load_corpus_folder(out, "cpu", rank, 3)[1].scenes == full.scenes  # the default
+    assert TrainConfig().rank_scenes == DEFAULT_RANK_SCENES == "all"  # training's default is the loader's
     cfg = EnvConfig(azimuth_bins=16, elevation_bins=4)
     env = SdfDagEnv(scenes, 4, "cpu", cfg, spawns=manifest.spawn_tensors())
     env.reset(seed=1)

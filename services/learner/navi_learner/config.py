@@ -252,10 +252,11 @@ class TrainConfig:
     the update sees bit for bit the observations the policy acted on."""
     rollout_memory_gb: float = 20.0
     """Memory budget for stored observations when rollout_length is 0 (64 steps at 8,192 actors compact)."""
-    rank_scenes: str = "share"
-    """Data-parallel ranks' scenes (navi_env.corpus.folder.RANK_SCENES): share (each rank flies its own
-    share, dealt by the trace cost measured at qualification) or all (every rank flies every scene from
-    its own spawns, so every rank's step costs about the corpus average); one process flies them all."""
+    rank_scenes: str = "all"
+    """Data-parallel ranks' scenes: all (every rank flies every scene from its own spawns, so every
+    rank's step costs what one process's does) or share (each rank flies its own share, dealt by the
+    trace cost measured at qualification); one process flies them all. The same default as
+    navi_env.corpus.folder.DEFAULT_RANK_SCENES."""
     task: str = "explore"
     """What the env's episodes ask (EnvConfig.task): explore or pointgoal; stored so that evaluations of a
     checkpoint fly the task it learned."""

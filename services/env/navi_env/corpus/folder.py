@@ -161,6 +161,10 @@ def costs_recorded(scenes: Sequence[SceneEntry]) -> bool:
 RANK_SCENES = ("share", "all")
 """How data-parallel ranks take a corpus's scenes: `share` (rank_share: disjoint shares, dealt by trace
 cost) or `all` (every rank loads every scene)."""
+DEFAULT_RANK_SCENES = "all"
+"""Every rank flies every scene: each rank's actors spread over the whole corpus, so every rank's step
+costs what one process's does, whatever the scenes (shares dealt by the trace cost measured at
+qualification leave one rank's scenes slower in flight)."""
 
 
 def rank_share(scenes: Sequence[SceneEntry], rank: int, world: int) -> tuple[SceneEntry, ...]:
@@ -189,12 +193,12 @@ def load_corpus_folder(
     rank: int = 0,
     world: int = 1,
     scene: int | None = None,
-    rank_scenes: str = "share",
+    rank_scenes: str = DEFAULT_RANK_SCENES,
 ) -> tuple[SceneCorpus, CorpusManifest]:
     """Load the scenes of a corpus onto `device`, in manifest order, with its manifest.
 
-    With world > 1 (data-parallel training) and rank_scenes "share" only this rank's share (rank_share)
-    is loaded and the returned manifest lists just those; with "all" every rank loads every scene.
+    With world > 1 (data-parallel training) every rank loads every scene (rank_scenes "all", the default),
+    or with "share" only this rank's share (rank_share), and the returned manifest lists just those.
     `scene` loads that one scene (its index in the manifest) alone. Use `manifest.spawn_tensors()` as
     SdfDagEnv's `spawns`.
     """

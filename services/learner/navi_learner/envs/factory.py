@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 
+from navi_learner.config import TrainConfig
 from navi_learner.envs.protocol import BatchedEnv
 from navi_learner.envs.toy import ToyEnv
 
@@ -80,12 +81,12 @@ def make_env(
     obstacles: int = 0,
     squad: int = 0,
     task: str = "explore",
-    rank_scenes: str = "share",
+    rank_scenes: str = TrainConfig.rank_scenes,
 ) -> BatchedEnv:
     """Build N actors of the chosen environment on device (the drone env spawns at the corpus's
     qualified positions). `episode_steps` > 0 sets the drone env's episode length (evaluation). With
-    world > 1 the drone env flies only this rank's scenes (data-parallel training; navi_env's
-    `rank_share`), or every scene with `rank_scenes` "all", and with `scene` that scene of the corpus
+    world > 1 (data-parallel training) the drone env flies every scene (`rank_scenes` "all"), or only
+    this rank's share with "share" (navi_env's `rank_share`), and with `scene` that scene of the corpus
     alone.
     `reward` replaces RewardConfig fields by name (see `reward_config`). `obstacles` > 0 gives every actor
     that many scripted moving obstacles (EnvConfig.obstacles, default motions and sizes); `squad` >= 2

@@ -1,9 +1,10 @@
 """Synchronous data-parallel PPO (DD-PPO) over torch.distributed: one process per device.
 
 Launched by torchrun (`torchrun --standalone --nproc-per-node N -m navi train ...`, or `navi train
---nproc N`, which runs exactly that). Each rank owns its actors, its share of the corpus scenes
-(navi_env.corpus.folder.rank_share: dealt out by trace cost; every scene with TrainConfig.rank_scenes
-"all"), its env, rollout storage and engine copy on its own device (cuda:LOCAL_RANK, or the CPU). What
+--nproc N`, which runs exactly that). Each rank owns its actors, flying every scene of the corpus
+(TrainConfig.rank_scenes "all") or its share of them ("share": navi_env.corpus.folder.rank_share, dealt
+out by trace cost), its env, rollout storage and engine copy on its own device (cuda:LOCAL_RANK, or the
+CPU). What
 crosses ranks, and when:
 - start: the run id and folder, then every parameter and buffer of rank 0 (broadcast; after a resume
   too), so all replicas start identical;
