@@ -7,7 +7,8 @@
 #   tests/gpu_dist.sh [CORPUS_DIR] [NPROC]      # default artifacts/bench-corpus, 2
 #   CORES="mamba2 gru" tests/gpu_dist.sh ...    # temporal cores to measure (default mamba2)
 #   tests/gpu_dist.sh CORPUS 4 --rank-scenes all # further arguments go to `navi bench train`
-# A missing corpus is built first (procedural, 8 scenes at 512^3: 4 per rank with 2 ranks).
+# A missing corpus is built first (procedural, 8 scenes at 512^3; every rank flies all 8 unless
+# --rank-scenes share gives each a share).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 corpus=${1:-artifacts/bench-corpus}; nproc=${2:-2}; cores=${CORES:-mamba2}; shift $(( $# < 2 ? $# : 2 ))
