@@ -6,7 +6,7 @@
 # SPS of env only / env + inference / env + training, scaling efficiency SPS(N) / (N x SPS(1))).
 #   tests/gpu_dist.sh [CORPUS_DIR] [NPROC]      # default artifacts/bench-corpus, 2
 #   CORES="mamba2 gru" tests/gpu_dist.sh ...    # temporal cores to measure (default mamba2)
-#   tests/gpu_dist.sh CORPUS 4 --rank-scenes all # further arguments go to `navi bench train`
+#   tests/gpu_dist.sh CORPUS 4 --rank-scenes share # further arguments go to `navi bench train`
 # A missing corpus is built first (procedural, 8 scenes at 512^3; every rank flies all 8 unless
 # --rank-scenes share gives each a share).
 set -euo pipefail
