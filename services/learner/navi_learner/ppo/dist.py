@@ -447,7 +447,9 @@ class Sync:
         3K numbers for the whole epoch rather than one per minibatch."""
         seq = adv.detach().double().view(adv.shape[0] // chunk, chunk, -1)  # (T/L, L, N) float64
         s1, s2 = seq.sum(1).reshape(-1), seq.pow(2).sum(1).reshape(-1)  # (S,) each, sequence c·N + a
-        count = torch.full_like(s1[: ids.shape[0]], float(ids.shape[1] * chunk))  # (K,) float64
+        count = torch.full(
+            (len(ids),), float(ids.shape[1] * chunk), dtype=torch.float64, device=adv.device
+        )  # (K,)
         sums = self.sum_(torch.stack([s1[ids].sum(1), s2[ids].sum(1), count], dim=1))  # (K, 3) all ranks
         mean = sums[:, 0] / sums[:, 2]  # (K,) float64
         var = (sums[:, 1] / sums[:, 2] - mean.pow(2)).clamp(min=0.0)  # (K,) float64
