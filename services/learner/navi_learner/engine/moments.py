@@ -17,10 +17,10 @@ def moment_sums(x: torch.Tensor) -> torch.Tensor:
 
 
 def moments_of(sums: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean and population variance () float64 of the elements whose moment_sums (3,), summed over
-    ranks, are `sums`."""
-    mean = sums[0] / sums[2]  # () float64
-    return mean, (sums[1] / sums[2] - mean.pow(2)).clamp(min=0.0)
+    """Mean and population variance (...) float64 of the elements whose moment_sums, summed over ranks,
+    are `sums` (..., 3): () each for one set of sums, (K,) each for K."""
+    mean = sums[..., 0] / sums[..., 2]  # (...) float64
+    return mean, (sums[..., 1] / sums[..., 2] - mean.pow(2)).clamp(min=0.0)
 
 
 def pooled_moments(

@@ -4,8 +4,7 @@ Launched by torchrun (`torchrun --standalone --nproc-per-node N -m navi train ..
 --nproc N`, which runs exactly that). Each rank owns its actors, flying every scene of the corpus
 (TrainConfig.rank_scenes "all") or its share of them ("share": navi_env.corpus.folder.rank_share, dealt
 out by trace cost), its env, rollout storage and engine copy on its own device (cuda:LOCAL_RANK, or the
-CPU). What
-crosses ranks, and when:
+CPU). What crosses ranks, and when:
 - start: the run id and folder, then every parameter and buffer of rank 0 (broadcast; after a resume
   too), so all replicas start identical;
 - every env step: the RND error's sum, sum of squares and count (3 numbers), all-reduced without
@@ -21,14 +20,14 @@ crosses ranks, and when:
   and identical replicas, and no step waits for the slowest rank's collective of the same step;
 - every PPO epoch: each of its minibatches' advantage sums, sums of squares and counts (global
   normalisation: Sync.advantage_moments, one all-reduce for the epoch);
-- every minibatch: every gradient, in buckets as DistributedDataParallel packs them: the parameters in reverse registration
-  order (about the order backward produces their gradients), a bucket closing at NAVI_DIST_BUCKET_MB MiB
-  (default 25). A hook on every parameter (register_post_accumulate_grad_hook) counts its gradient in
-  during backward, and a bucket is all-reduced without waiting as soon as all its gradients are in and
-  every bucket before it is launched (the same order on every rank). The last bucket also carries the
-  non-finite-loss flag (a sum: the skip decision is the same on every rank). Before the norm clip every
-  bucket is waited for in order and unpacked (÷ world size) into the gradients, so a bucket's unpack
-  overlaps the later buckets' transfers. The eager backward launches a bucket while backward still
+- every minibatch: every gradient, in buckets as DistributedDataParallel packs them: the parameters in
+  reverse registration order (about the order backward produces their gradients), a bucket closing at
+  NAVI_DIST_BUCKET_MB MiB (default 25). A hook on every parameter (register_post_accumulate_grad_hook)
+  counts its gradient in during backward, and a bucket is all-reduced without waiting as soon as all
+  its gradients are in and every bucket before it is launched (the same order on every rank). The last
+  bucket also carries the non-finite-loss flag (a sum: the skip decision is the same on every rank).
+  Before the norm clip every bucket is waited for in order and unpacked (÷ world size) into the
+  gradients, so a bucket's unpack overlaps the later buckets' transfers. The eager backward launches a bucket while backward still
   computes the gradients of the next ones. The compiled objective (ppo.compile) runs its backward as one
   graph whose gradients reach the parameters together at its end: its buckets are then launched back to
   back and overlap one another's packing and unpacking only. A parameter backward does not reach sends
@@ -73,6 +72,8 @@ from typing import Any, TypeVar, cast
 import torch
 import torch.distributed as tdist
 from torch import nn
+
+from navi_learner.engine.moments import moments_of
 
 TIMEOUT_ENV = "NAVI_DIST_TIMEOUT_S"
 """Seconds a collective may wait for the other ranks before the run fails."""
@@ -451,8 +452,7 @@ class Sync:
             (len(ids),), float(ids.shape[1] * chunk), dtype=torch.float64, device=adv.device
         )  # (K,)
         sums = self.sum_(torch.stack([s1[ids].sum(1), s2[ids].sum(1), count], dim=1))  # (K, 3) all ranks
-        mean = sums[:, 0] / sums[:, 2]  # (K,) float64
-        var = (sums[:, 1] / sums[:, 2] - mean.pow(2)).clamp(min=0.0)  # (K,) float64
+        mean, var = moments_of(sums)  # (K,) float64 each
         return torch.stack([mean, var.sqrt()], dim=1).float()  # (K, 2)
 
     def agree(self, interrupt: bool, stop: bool, ext_mean: torch.Tensor) -> tuple[bool, bool, torch.Tensor]:
