@@ -173,7 +173,7 @@ class RolloutStorage:
         """The sequences ids (M,) int64 (c·N + a) as a minibatch."""
         c, a = ids // self.n, ids % self.n  # (M,) each
 
-        def seq(buf: torch.Tensor, c: torch.Tensor = c, a: torch.Tensor = a) -> torch.Tensor:
+        def seq(buf: torch.Tensor) -> torch.Tensor:
             return sequences(buf, c, a, self.chunk)  # (L, M, ...)
 
         resets = seq(self.resets)  # (L, M) bool
