@@ -5,8 +5,8 @@ the peer a user would pick instead of a `.gmdag`. The anchor holds the same dist
 same lattice as the scene (Navi's samples sit at the corners of its R^3 cells: index (i, j, k) is
 world `origin + voxel * (i, j, k)`, read through `sample_distance`), allocated by 8^3 tiles: exactly
 the tiles that hold a sample within `band` voxels of the surface (every sample of every candidate tile
-is tested), values clamped to +-band and `band` voxels (meters) outside the tiles, float32 (the one value type Warp allocates and writes on the device). A Warp kernel
-(`nanovdb_kernel.march`) traces the same world-space rays with trilinear samples and Navi's step and
+is tested), values clamped to +-band and `band` voxels (meters) outside the tiles, float32 (the one
+value type Warp allocates and writes on the device). A Warp kernel (`nanovdb_kernel.march`) traces the same world-space rays with trilinear samples and Navi's step and
 hit rules, but without its far-cube skips: in free space it steps by at most the band. That is what a
 narrow-band level set without hierarchical skipping (HDDA) costs. fVDB's HDDA ray query ships as
 source only (`fvdb-core`, whose CMake build downloads NanoVDB and its other dependencies), so it is not
@@ -89,11 +89,6 @@ def narrow_band(corpus: SceneCorpus, band: float) -> tuple[np.ndarray, np.ndarra
         tiles.append(part[near])
         values.append(np.clip(d[near], -band * h, band * h).astype(np.float32))
     return np.concatenate(tiles).astype(np.int32), np.concatenate(values)  # (T, 3), (T, 512)
-
-
-def band_tiles(corpus: SceneCorpus, width: float) -> np.ndarray:
-    """(T, 3) int32 index-space min corners of the tiles of scene 0's narrow band of `width` voxels."""
-    return narrow_band(corpus, width)[0]
 
 
 def build_band(corpus: SceneCorpus, width: float, wp: Any, device: str) -> tuple[Any, int, int]:

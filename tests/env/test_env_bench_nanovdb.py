@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from navi_bench.nanovdb import TILE, TILE_REACH, band_tiles, candidate_tiles
+from navi_bench.nanovdb import TILE, TILE_REACH, candidate_tiles, narrow_band
 from navi_bench.trace import TraceBenchConfig, place_agents
 from navi_compiler.compile import compile_scene
 from navi_compiler.gmdag import write_gmdag
@@ -55,14 +55,14 @@ def test_band_tiles_hold_every_sample_near_the_surface(rooms: Path) -> None:
     ijk = torch.stack(torch.meshgrid(*[torch.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)  # (n^3, 3)
     pts = torch.from_numpy(info.cube_min).float() + ijk.float() * info.voxel_size  # (n^3, 3) meters
     d = sample_distance(corpus, torch.zeros(len(pts), dtype=torch.int64), pts) / info.voxel_size  # (n^3,)
-    tiles = {tuple(t) for t in band_tiles(corpus, 3.0).tolist()}
+    tiles = {tuple(t) for t in narrow_band(corpus, 3.0)[0].tolist()}
     near = ijk[d.abs() <= 3.0]  # (K, 3) samples in the band
     assert len(near) > 0
     assert all(tuple((v // TILE * TILE).tolist()) in tiles for v in near)
     # and no other tile: each holds a sample within the band (the candidates' slack is left out)
     assert tiles == {tuple((v // TILE * TILE).tolist()) for v in near}
     assert len(candidate_tiles(corpus, 3.0)) > len(tiles)
-    assert len(band_tiles(corpus, 8.0)) > len(tiles)
+    assert len(narrow_band(corpus, 8.0)[0]) > len(tiles)
     assert TILE_REACH > (TILE - 1) / 2 * 3**0.5
 
 

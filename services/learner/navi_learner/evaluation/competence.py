@@ -3,8 +3,8 @@ monitor that evaluates the live policy every so often and records the learning c
 
 Competence (docs/TRAINING.md): on the unseen scenes, with the same seed, the policy flown as its task is
 (ACTION_NOISE), at most half the reactive baseline's collisions per 1,000 steps (0.5 where it has none)
-and at least 1.5x its coverage. For point-goal episodes (docs/TASKS.md): a success rate of at least 0.9, SPL of at
-least 0.75 and fewer collisions per episode than the map-less greedy baseline.
+and at least 1.5x its coverage. For point-goal episodes (docs/TASKS.md): a success rate of at least
+0.9, SPL of at least 0.75 and fewer collisions per episode than the map-less greedy baseline.
 """
 
 from __future__ import annotations
