@@ -11,8 +11,9 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
     learn` holds out): the upper reference, a drone that has seen real maps;
   - either followed by `/KEY=VALUE[,KEY=VALUE...]`: the arm trains with those RewardConfig fields
     replaced (`procedural/structure_weight=0`) or a fresh engine with those EngineConfig fields
-    (`procedural/action_input=1`), on the same corpus as the arm without them, so that a reward or engine
-    lever is measured beside the recipe in one job; evaluation never reads the reward.
+    (`procedural/action_input=1`), or starting from a checkpoint's weights (`procedural/init_from=explore`:
+    the shipped explore reference), on the same corpus as the arm without them, so that a reward, engine
+    or initialisation lever is measured beside the recipe in one job; evaluation never reads the reward.
 - Evaluation. Every arm's final checkpoint flies (EvalProtocol, same env seed; as its task is flown
   everywhere, ACTION_NOISE, or once per `action_noise` scale S: its mean action at 0, its actions sampled
   with S times its learned std above, each scale but the task's a row of its own, `ARM, mean action` or
@@ -89,6 +90,8 @@ class Arm:
     """RewardConfig fields the arm's training replaces (name, value)."""
     engine: tuple[tuple[str, Any], ...] = ()
     """EngineConfig fields of the arm's fresh engine (name, value), on top of the job's engine."""
+    init_from: str = ""
+    """The weights its runs start from (TrainConfig.init_from: a checkpoint, or a task's reference)."""
 
     @property
     def key(self) -> str:
@@ -100,7 +103,10 @@ class Arm:
     @property
     def run_key(self) -> str:
         """A folder-safe name of its runs: the corpus's, and the reward and engine fields it replaces."""
-        return "-".join([self.key, *(f"{k}={_value(v)}" for k, v in (*self.reward, *self.engine))])
+        fields_ = [f"{k}={_value(v)}" for k, v in (*self.reward, *self.engine)]
+        if self.init_from:
+            fields_.append(f"init_from={Path(self.init_from).stem}")
+        return "-".join([self.key, *fields_])
 
 
 def _value(v: Any) -> str:
@@ -111,13 +117,19 @@ def _value(v: Any) -> str:
 def parse_arm(spec: str) -> Arm:
     """An Arm from `openarena` or `procedural[:SEMANTICS[:FAMILY+FAMILY...]]` (an entry FAMILY@S scales its
     scenes by up to S, navi_compiler.ingest.procedural.parse_entry), either followed by
-    `/KEY=VALUE[,KEY=VALUE...]` (RewardConfig fields, numbers; or EngineConfig fields of a fresh engine,
-    e.g. action_input=1); ValueError on anything else."""
+    `/KEY=VALUE[,KEY=VALUE...]` (RewardConfig fields, numbers; EngineConfig fields of a fresh engine,
+    e.g. action_input=1; or init_from=CHECKPOINT, a task's name for its shipped reference: the weights
+    the runs start from); ValueError on anything else."""
     from navi_learner.config import EngineConfig, engine_overrides
     from navi_learner.envs.factory import parse_reward_overrides
+    from navi_learner.references import checkpoint_path
 
     base, slash, overrides = spec.strip().partition("/")
     items = [o for o in overrides.split(",") if o.strip()]
+    inits = [o.partition("=")[2].strip() for o in items if o.partition("=")[0].strip() == "init_from"]
+    items = [o for o in items if o.partition("=")[0].strip() != "init_from"]
+    if len(inits) > 1 or (inits and not checkpoint_path(inits[0]).is_file()):
+        raise ValueError(f"arm {spec!r}: init_from names one checkpoint file or task reference, got {inits}")
     engine_fields = {f.name for f in fields(EngineConfig)}
     to_engine = [o for o in items if o.partition("=")[0].strip() in engine_fields]
     try:
@@ -125,10 +137,10 @@ def parse_arm(spec: str) -> Arm:
         engine = tuple(engine_overrides(to_engine).items())
     except (TypeError, ValueError) as err:
         raise ValueError(f"arm {spec!r}: {err}") from err
-    if slash and not (reward or engine):
+    if slash and not (reward or engine or inits):
         raise ValueError(f"arm {spec!r}: name KEY=VALUE after /")
     arm = _parse_corpus_arm(base, spec)
-    return replace(arm, spec=spec.strip(), reward=reward, engine=engine)
+    return replace(arm, spec=spec.strip(), reward=reward, engine=engine, init_from=inits[0] if inits else "")
 
 
 def _parse_corpus_arm(base: str, spec: str) -> Arm:
@@ -379,6 +391,8 @@ class RunJob:
         )
         if self.arm.engine:
             tcfg = replace(tcfg, engine=replace(tcfg.engine, **dict(self.arm.engine)))
+        if self.arm.init_from:
+            tcfg = replace(tcfg, init_from=self.arm.init_from)
         say(f"[bench transfer] {self.arm.spec} seed {self.seed}: training on {self.train} ({device})")
         reward = dict(self.arm.reward) or None
         env = make_env(self.train, tcfg.n_actors, device, self.seed, task=tcfg.task, reward=reward)

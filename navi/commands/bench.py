@@ -693,7 +693,8 @@ def bench_transfer_cmd(
             "scenes of seed 0; SEMANTICS object or surface; FAMILY@S scales that entry's scenes by up to S) or "
             "openarena (the maps outside the held-out fifth); either may end in /KEY=VALUE[,KEY=VALUE...]: "
             "train with those RewardConfig weights (or a fresh engine with those EngineConfig fields, e.g. "
-            "action_input=1) replaced, on the same corpus. Default: procedural and openarena.",
+            "action_input=1) replaced, or from init_from=CHECKPOINT's weights (explore or pointgoal: the "
+            "shipped reference), on the same corpus. Default: procedural and openarena.",
         ),
     ] = None,
     seeds: Annotated[

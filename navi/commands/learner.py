@@ -162,6 +162,7 @@ TRAIN_OPTIONS = (
     "max_minibatch",
     "task",
     "rank_scenes",
+    "init_from",
 )
 """The TrainConfig settings `navi train` takes as options."""
 
@@ -301,6 +302,7 @@ def train(
     from navi_learner.config import StorageError, default_actors
     from navi_learner.envs.factory import corpus_summary
     from navi_learner.ppo import dist
+    from navi_learner.ppo.learner import InitError
     from navi_learner.ppo.train import train as run_train
     from navi_learner.serving.registry import ModelRegistry
 
@@ -313,7 +315,9 @@ def train(
     signals = dist.StopSignals().install() if d.active else None
     try:
         cfg = train_config(settings, dev, engine)
-        resume, cfg = resume_choice(checkpoint, fresh, cfg)
+        if cfg.init_from and checkpoint is not None:
+            raise fail("--init-from starts a fresh run from a checkpoint's weights; --checkpoint resumes one")
+        resume, cfg = (None, cfg) if cfg.init_from else resume_choice(checkpoint, fresh, cfg)
         if resume is not None and engine:
             typer.echo(f"note: --engine is ignored: the engine comes from {resume}", err=True)
         n = cfg.n_actors or default_actors(torch.device(dev))
@@ -340,7 +344,7 @@ def train(
             dist=d,
             should_stop=None if signals is None else signals.requested,
         )
-    except (dist.DistError, StorageError) as err:
+    except (dist.DistError, StorageError, InitError) as err:
         raise fail(str(err)) from err
     finally:
         dist.shutdown(d)

@@ -152,6 +152,10 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     (tmp_path / "junk.pt").write_bytes(b"junk")
     code, _, err = invoke("export", "junk.pt", "--onnx", "out.onnx")
     assert code == 2 and err.startswith("error:")
+    code, _, err = invoke("train", "--env", "toy", "--init-from", "absent.pt", "--device", "cpu")
+    assert code == 2 and "init_from: checkpoint absent.pt does not exist" in err
+    code, _, err = invoke("train", "--env", "toy", "--init-from", "explore", "--checkpoint", "junk.pt")
+    assert code == 2 and "--checkpoint resumes one" in err
 
 
 def test_export_without_onnx_says_what_to_install(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

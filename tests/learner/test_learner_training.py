@@ -12,13 +12,16 @@ import pytest
 import torch
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
+from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.protocol import StepOut
 from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
 from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
 from navi_learner.ppo import timing as timing_module
+from navi_learner.ppo.learner import InitError, init_weights
 from navi_learner.ppo.timing import StageTimers
 from navi_learner.ppo.train import train
+from navi_learner.references import REFERENCES
 from navi_learner.serving.checkpoint import load_checkpoint
 from navi_learner.serving.registry import ModelRegistry
 
@@ -219,3 +222,57 @@ def test_a_resumed_run_trains_at_its_own_learning_rate(tmp_path: Path) -> None:
     assert learned == []
     assert after.optimizer is not None and before.optimizer is not None
     assert {float(v["step"]) for v in after.optimizer["state"].values()} == {4.0 + 2 * 4.0}
+
+
+def test_a_run_started_from_a_checkpoints_weights_takes_nothing_else(tmp_path: Path) -> None:
+    """init_from starts a fresh run from a checkpoint's weights: at lr 0 its final weights are the
+    checkpoint's (a run without it ends elsewhere), while its counters and optimizer are its own."""
+    per_update = 32 * 32
+    first = train(ToyEnv(32, seed=1), config(2 * per_update), run_dir=tmp_path / "r1", progress=False)
+    frozen = replace(config(per_update), ppo=replace(config(1).ppo, lr=0.0))
+    started = train(
+        ToyEnv(32, seed=2),
+        replace(frozen, init_from=str(first.final_checkpoint)),
+        run_dir=tmp_path / "r2",
+        progress=False,
+    )
+    fresh = train(ToyEnv(32, seed=2), frozen, run_dir=tmp_path / "r3", progress=False)
+    source = load_checkpoint(first.final_checkpoint)
+
+    def moved(path: Path) -> list[str]:
+        after = load_checkpoint(path).model
+        return [
+            k
+            for k, v in source.model.items()
+            if v.is_floating_point() and not torch.equal(v, after[k]) and not k.startswith("rnd.err_")
+        ]
+
+    assert moved(started.final_checkpoint) == [] and moved(fresh.final_checkpoint) != []
+    after = load_checkpoint(started.final_checkpoint)
+    assert after.meta.step_id == per_update and after.meta.parent_checkpoint in (None, "")
+    assert after.optimizer is not None
+    assert {float(v["step"]) for v in after.optimizer["state"].values()} == {4.0}  # its own 1 x 2 x 2 steps
+    manifest = json.loads((tmp_path / "r2" / "manifests" / "run.json").read_text())
+    assert manifest["init_from"] == str(first.final_checkpoint) and manifest["resume_from"] is None
+
+
+def test_init_from_names_a_fitting_checkpoint_or_the_run_stops_with_why() -> None:
+    """A task's name loads its shipped reference, bit for bit; a missing file, another temporal core or
+    another engine shape is an InitError naming the checkpoint."""
+    obs_shape = (3, 256, 48)
+    policy = CognitiveMambaPolicy(obs_shape, EngineConfig())
+    assert init_weights(policy, "explore", TrainConfig()) == REFERENCES["explore"]
+    reference = load_checkpoint(REFERENCES["explore"]).model
+    assert all(torch.equal(v, reference[k]) for k, v in policy.state_dict().items())
+    tiny = CognitiveMambaPolicy(obs_shape, ENGINE)
+    for spec, cfg, why in (
+        ("absent.pt", TrainConfig(engine=ENGINE), "does not exist"),
+        (
+            "explore",
+            TrainConfig(engine=replace(ENGINE, temporal_core="gru")),
+            "temporal core mamba2, not gru",
+        ),
+        ("explore", TrainConfig(engine=ENGINE), "do not fit this run's engine"),
+    ):
+        with pytest.raises(InitError, match=why):
+            init_weights(tiny, spec, cfg)

@@ -23,6 +23,7 @@ from navi_bench.transfer import (
 from navi_learner.config import TrainConfig, learning_recipe
 from navi_learner.evaluation.competence import EvalProtocol
 from navi_learner.evaluation.open_floor import OpenFloorConfig
+from navi_learner.references import REFERENCES
 from navi_learner.serving.checkpoint import read_meta
 
 
@@ -48,6 +49,13 @@ def test_arms_parse_and_bad_ones_are_refused() -> None:
     assert lever.run_key == "procedural-surface-arena+maze-structure_weight=0-blind_weight=0.1"
     assert lever.spec == "procedural:surface:arena+maze/structure_weight=0,blind_weight=0.1"
     assert parse_arm("openarena/collision_weight=5").reward == (("collision_weight", 5.0),)
+    warm = parse_arm("procedural/init_from=explore,structure_weight=0")
+    assert (warm.init_from, warm.reward, warm.key) == (
+        "explore",
+        (("structure_weight", 0.0),),
+        "procedural-object-all",
+    )
+    assert warm.run_key == "procedural-object-all-structure_weight=0-init_from=explore"
     for bad, why in (
         ("procedural/", "name KEY=VALUE after /"),
         ("procedural/action_input=maybe", "expects 1 or 0"),
@@ -58,6 +66,8 @@ def test_arms_parse_and_bad_ones_are_refused() -> None:
         ("procedural:object:castle", "unknown family 'castle'"),
         ("procedural:object:arena@0", "the scale after @"),
         ("openarena:surface", "expected openarena or procedural"),
+        ("procedural/init_from=absent.pt", "init_from names one checkpoint"),
+        ("procedural/init_from=explore,init_from=pointgoal", "init_from names one checkpoint"),
     ):
         with pytest.raises(ValueError, match=why):
             parse_arm(bad)
@@ -82,8 +92,9 @@ def test_the_bar_on_real_maps() -> None:
 
 
 def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Two procedural arms (one family each, object and surface semantics, the second scaled by up to 2 and
-    trained with a reward weight replaced), one seed, no OpenArena package: the job says so, builds each
+    """Two procedural arms (one family each, object and surface semantics; the first starting from the
+    shipped explore reference's weights, the second scaled by up to 2 and trained with a reward weight
+    replaced), one seed, no OpenArena package: the job says so, builds each
     arm's corpora, runs the untimed warm-up once, trains each arm with its own reward, flies the baselines
     and each final checkpoint on the unseen procedural scenes and the open floor, sampled as explore flies
     and, in a row of its own, with its mean action (the same checkpoint flying elsewhere), and its summary and report hold
@@ -102,7 +113,7 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
     train: TrainConfig = learning_recipe(TrainConfig(n_actors=4, rollout_length=16))
     cfg = TransferConfig(
         arms=(
-            parse_arm("procedural:object:maze"),
+            parse_arm("procedural:object:maze/init_from=explore"),
             parse_arm("procedural:surface:maze@2/structure_weight=0,action_input=1"),
         ),
         seeds=(3,),
@@ -130,10 +141,13 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
         "random",
         "reactive",
     }
-    second = "procedural:surface:maze@2/structure_weight=0,action_input=1"
+    first, second = (
+        "procedural:object:maze/init_from=explore",
+        "procedural:surface:maze@2/structure_weight=0,action_input=1",
+    )
     assert [(r["arm"], r["action_noise"], r["seed"]) for r in saved["runs"]] == [
-        ("procedural:object:maze", 1.0, 3),
-        ("procedural:object:maze, mean action", 0.0, 3),
+        (first, 1.0, 3),
+        (f"{first}, mean action", 0.0, 3),
         (second, 1.0, 3),
         (f"{second}, mean action", 0.0, 3),
     ]
@@ -145,6 +159,14 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
         flew = [r["final_by_part"]["procedural"]["distance_per_1k"] for r in (sampled, mean)]
         assert flew[0] != flew[1]  # the same drone, flown its own mean and sampled, went elsewhere
     assert (out / "runs" / "procedural-surface-maze@2-structure_weight=0-action_input=1-seed3").is_dir()
+    started = [
+        json.loads((out / "runs" / f"{key}-seed3" / "manifests" / "run.json").read_text())["init_from"]
+        for key in (
+            "procedural-object-maze-init_from=explore",
+            "procedural-surface-maze@2-structure_weight=0-action_input=1",
+        )
+    ]
+    assert started == [str(REFERENCES["explore"]), None]  # only the first arm started from the reference
     for run in saved["runs"]:
         assert set(run["final_by_part"]) == {"procedural"} and run["steps"] > 0 and run["train_s"] >= 2.0
         (floor,) = run["open_floor"]  # each final checkpoint flew the probe's one floor and start
@@ -167,7 +189,7 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
         and "| reactive |" in report
     )
     assert f"Each worker first ran {WARMUP_UPDATES} untimed updates" in report
-    assert "## Open floors" in report and "| procedural:object:maze | " in report
+    assert "## Open floors" in report and f"| {first} | " in report
     assert result["summary"]["per_map"] == {} and not (out / "transfer.png").exists()
 
 

@@ -52,17 +52,15 @@ from navi_learner.evaluation.evaluate import (
     paired_intervals,
 )
 from navi_learner.ppo.train import train
+from navi_learner.references import REFERENCES
 from navi_learner.serving.checkpoint import CheckpointError, CheckpointMeta, atomic_write, read_meta
 from navi_learner.serving.registry import ModelRegistry
 
-REFERENCE = Path(__file__).resolve().parents[1] / "reference" / "mamba2.pt"
+REFERENCE = REFERENCES["explore"]
 """The explore reference checkpoint the CPU path fine-tunes (reference/mamba2.json: how it was made)."""
 
-POINTGOAL_REFERENCE = REFERENCE.with_name("mamba2-pointgoal.pt")
+POINTGOAL_REFERENCE = REFERENCES["pointgoal"]
 """The point-goal reference checkpoint the CPU path fine-tunes (its JSON: how it was made)."""
-
-REFERENCES = {"explore": REFERENCE, "pointgoal": POINTGOAL_REFERENCE}
-"""The reference checkpoint of each task."""
 
 UNSEEN_SEED = 1000
 """Seed of the procedural scenes the main job evaluates on (the default corpus uses seed 0)."""

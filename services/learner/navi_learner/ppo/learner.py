@@ -24,6 +24,7 @@ from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.runs import RunFiles, new_run_id
 from navi_learner.ppo.stats import EpisodeStats
 from navi_learner.ppo.timing import Clock, StageTimers
+from navi_learner.references import checkpoint_path
 from navi_learner.serving.checkpoint import (
     CheckpointError,
     CheckpointMeta,
@@ -158,6 +159,32 @@ def resume(
     return TrainState(m.step_id, m.episode_count, m.reward_ema, m.wall_time_hours, 0, str(path))
 
 
+class InitError(ValueError):
+    """TrainConfig.init_from names no checkpoint, or one whose weights do not fit the run's engine."""
+
+
+def init_weights(policy: CognitiveMambaPolicy, spec: str, cfg: TrainConfig) -> Path:
+    """Load a checkpoint's weights and novelty statistics (the policy's state) into a fresh run's
+    policy; `spec` a path, or a task's name for its shipped reference (references.checkpoint_path).
+    Nothing else is taken: the optimizer, counters and reward average stay fresh. Returns the path;
+    InitError when it is not a checkpoint or does not fit the engine."""
+    path = checkpoint_path(spec)
+    try:
+        ckpt = load_checkpoint(path, next(policy.parameters()).device)
+    except CheckpointError as err:
+        raise InitError(f"init_from: {err}") from err
+    if ckpt.meta.temporal_core != cfg.engine.temporal_core:
+        raise InitError(
+            f"init_from {path} uses temporal core {ckpt.meta.temporal_core}, not {cfg.engine.temporal_core}"
+        )
+    try:
+        policy.load_state_dict(ckpt.model)
+    except RuntimeError as err:
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise InitError(f"init_from {path}: its weights do not fit this run's engine ({first})") from err
+    return path
+
+
 def setup(
     env: BatchedEnv,
     cfg: TrainConfig,
@@ -194,6 +221,7 @@ def setup(
     run_id, root = sync.broadcast_object((run_id, root))
     run = RunFiles(root, run_id, on_log, write=d.main)
     st = TrainState() if resume_from is None else resume(policy, optimizer, resume_from, cfg)
+    init = init_weights(policy, cfg.init_from, cfg) if resume_from is None and cfg.init_from else None
     for group in optimizer.param_groups:  # adaptive: a device tensor the update adjusts in place
         lr = float(group["lr"])
         group["lr"] = torch.tensor(lr, device=device) if cfg.ppo.target_kl > 0 else lr
@@ -202,6 +230,7 @@ def setup(
         "obs_shape": list(env.obs_shape),
         "device": str(device),
         "resume_from": st.parent_checkpoint,
+        "init_from": str(init) if init is not None else None,
         "corpus_summary": corpus_summary or {},
     }
     sync.broadcast_module(policy)  # identical replicas, fresh or resumed
