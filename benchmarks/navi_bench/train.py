@@ -1,9 +1,11 @@
 """`navi bench train`: env only / env + inference / env + training SPS and ms per stage, one JSON object.
 
 `--nproc N` measures one process first, then N data-parallel ranks through torchrun (each rank with
-the same actors on its own device, the three columns measured on every rank at once), and reports the
-per-rank and total SPS with the scaling efficiency SPS(N) / (N x SPS(1)) of each column, and every
-rank's timeline of a training step (collect, forward, update, sync: what it waits for the others).
+the same actors on its own device, the three columns measured on every rank at once), then by default
+one process again, and reports the per-rank and total SPS with the scaling efficiency SPS(N) / (N x
+SPS(1)) of each column against the faster of the one-process runs (the one-process figure moves between
+runs on some hosts, and the faster one gives the lower ratio), and every rank's timeline of a training
+step (collect, forward, update, sync: what it waits for the others).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -179,7 +181,8 @@ def timeline(ms: dict[str, float], step_ms: float) -> dict[str, float]:
 
 
 def timeline_table(report: dict[str, Any]) -> str:
-    """The scaling report's timelines as a table: one process, then each rank, ms per env step."""
+    """The scaling report's timelines as a table: one process (the baseline run), then each rank, ms per
+    env step; then every one-process run's train SPS where there were several."""
     head = f"{'':>8}" + "".join(f"{k:>10}" for k in TIMELINE) + f"{'train SPS':>12}"
     lines = ["ms per env step: collect, forward and update without their waits; sync, the waits", head]
     for name, r in [("single", report["single"]), *((f"rank {r['rank']}", r) for r in report["ranks"])]:
@@ -187,17 +190,26 @@ def timeline_table(report: dict[str, Any]) -> str:
         lines.append(
             f"{name:>8}" + "".join(f"{t[k]:>10.3f}" for k in TIMELINE) + f"{r['env_train_sps']:>12,}"
         )
+    runs = report["single_runs"]
+    if len(runs) > 1:
+        each = " and ".join(f"{r['env_train_sps']:,}" for r in runs)
+        lines.append(f"one process before and after the ranks: {each} train SPS (the faster is the baseline)")
     return "\n".join(lines)
 
 
-def scaling_report(nproc: int, single: dict[str, Any], ranks: dict[str, Any]) -> dict[str, Any]:
-    """One process's columns and nproc ranks' (per rank and total) joined, with the scaling
-    efficiency of each column: total SPS(N) / (N x SPS(1)). Every entry of "ranks" (and "single") keeps
-    its timeline_ms."""
+def scaling_report(nproc: int, singles: list[dict[str, Any]], ranks: dict[str, Any]) -> dict[str, Any]:
+    """The one-process runs' columns and nproc ranks' (per rank and total) joined, with the scaling
+    efficiency of each column: total SPS(N) / (N x SPS(1)), SPS(1) the one-process run with the most
+    train SPS ("single"; every run in "single_runs", in order). Every entry of "ranks" (and "single")
+    keeps its timeline_ms."""
+    if not singles:
+        raise ValueError("scaling needs at least one one-process run")
+    single = max(singles, key=lambda r: r["env_train_sps"])
     total = ranks["total"]
     return {
         "nproc": nproc,
         "single": single,
+        "single_runs": singles,
         "ranks": ranks["ranks"],
         "total": total,
         "scaling_efficiency": {
@@ -207,22 +219,29 @@ def scaling_report(nproc: int, single: dict[str, Any], ranks: dict[str, Any]) ->
     }
 
 
-def bench_train_scaling(nproc: int, args: list[str]) -> dict[str, Any]:
-    """`navi bench train ARGS` as one process, then on nproc ranks through torchrun (one job, run one
-    after the other so they do not share devices); ARGS is the command line without --nproc. The
-    timelines' table goes to stderr."""
+def bench_train_scaling(nproc: int, args: list[str], singles: int = 2) -> dict[str, Any]:
+    """`navi bench train ARGS` as one process, then on nproc ranks through torchrun, then (`singles` 2)
+    as one process again: one job, run one after the other so they do not share devices; ARGS is the
+    command line without --nproc. The timelines' table goes to stderr."""
+    if singles not in (1, 2):
+        raise ValueError(f"singles must be 1 or 2, got {singles}")
     with tempfile.TemporaryDirectory() as tmp:
-        single_file, ranks_file = Path(tmp) / "single.json", Path(tmp) / "ranks.json"
-        cmd = [sys.executable, *entry_argv(), *args, "--result-file", str(single_file)]
-        if subprocess.run(cmd, check=False).returncode != 0 or not single_file.is_file():
-            raise RuntimeError("the one-process measurement failed (its error is above)")
+        ranks_file = Path(tmp) / "ranks.json"
+
+        def one_process(k: int) -> dict[str, Any]:
+            path = Path(tmp) / f"single{k}.json"
+            cmd = [sys.executable, *entry_argv(), *args, "--result-file", str(path)]
+            if subprocess.run(cmd, check=False).returncode != 0 or not path.is_file():
+                raise RuntimeError("the one-process measurement failed (its error is above)")
+            return cast(dict[str, Any], json.loads(path.read_text()))
+
+        runs = [one_process(0)]
         code = relaunch(nproc, [*args, "--result-file", str(ranks_file)])
         if code != 0 or not ranks_file.is_file():
             raise RuntimeError(
                 f"the {nproc}-rank measurement failed with exit code {code} (its error is above)"
             )
-        report = scaling_report(
-            nproc, json.loads(single_file.read_text()), json.loads(ranks_file.read_text())
-        )
+        runs += [one_process(k) for k in range(1, singles)]
+        report = scaling_report(nproc, runs, json.loads(ranks_file.read_text()))
     print(timeline_table(report), file=sys.stderr, flush=True)
     return report

@@ -870,6 +870,15 @@ def bench_train_cmd(
             "process: per-rank and total SPS, scaling efficiency SPS(N) / (N x SPS(1)).",
         ),
     ] = 1,
+    single_runs: Annotated[
+        int,
+        typer.Option(
+            "--single-runs",
+            min=1,
+            max=2,
+            help="With --nproc: one-process runs, before the ranks and (2) after them; SPS(1) is the faster.",
+        ),
+    ] = 2,
     result_file: Annotated[
         Path | None, typer.Option("--result-file", hidden=True, help="Write the JSON here instead.")
     ] = None,
@@ -887,7 +896,7 @@ def bench_train_cmd(
     if nproc > 1 and not dist.launched():
         args = dist.strip_option(dist.strip_option(sys.argv[1:], "--nproc"), "--result-file")
         try:
-            result = bench_train_scaling(nproc, args)
+            result = bench_train_scaling(nproc, dist.strip_option(args, "--single-runs"), single_runs)
         except RuntimeError as err:
             raise fail(str(err)) from err
     else:

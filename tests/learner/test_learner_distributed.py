@@ -389,12 +389,44 @@ def test_the_normaliser_pooled_one_step_late_is_the_unions_one_step_late(
     assert not torch.allclose(got[2:], plain[2:], atol=1e-3)  # later steps: the previous step's moments
 
 
+def test_scaling_is_against_the_faster_one_process_run() -> None:
+    """Two one-process runs that disagree: the ratio uses the faster (the lower ratio); one run is its own
+    baseline; none is refused."""
+    from navi_bench.train import scaling_report, timeline_table
+
+    def run(sps: int) -> dict[str, Any]:
+        ms = {"collect": 1.0, "forward": 1.0, "update": 1.0, "sync": 0.0, "other": 0.0, "step": 3.0}
+        return {
+            "env_only_sps": 4 * sps,
+            "env_inference_sps": 2 * sps,
+            "env_train_sps": sps,
+            "timeline_ms": ms,
+        }
+
+    ranks = {"ranks": [run(95) | {"rank": 0}, run(95) | {"rank": 1}], "total": {}}
+    ranks["total"] = {k: 2 * v for k, v in run(95).items() if k.endswith("_sps")}
+    slow, fast = run(90), run(100)
+    report = scaling_report(2, [slow, fast], ranks)
+    assert report["single"] is fast and report["single_runs"] == [slow, fast]
+    assert report["scaling_efficiency"] == {"env_only": 0.95, "env_inference": 0.95, "env_train": 0.95}
+    assert "90 and 100 train SPS (the faster is the baseline)" in timeline_table(report)
+    alone = scaling_report(2, [slow], ranks)
+    assert alone["scaling_efficiency"]["env_train"] == pytest.approx(190 / 180, abs=1e-3)
+    assert "before and after" not in timeline_table(alone)
+    with pytest.raises(ValueError, match="at least one"):
+        scaling_report(2, [], ranks)
+
+
 def test_bench_train_nproc_reports_ranks_totals_and_scaling(tmp_path: Path) -> None:
     args = ["bench", "train", *TRAIN_ARGS, "--updates", "1", "--nproc", "2", "--json"]
     out = run_navi(args, tmp_path, 240)
     assert out.returncode == 0, out.stderr[-3000:]
     report: dict[str, Any] = json.loads(out.stdout)
     assert report["nproc"] == 2 and [r["rank"] for r in report["ranks"]] == [0, 1]
+    # one process before and after the ranks; the faster run is the baseline
+    runs = report["single_runs"]
+    assert len(runs) == 2 and report["single"] == max(runs, key=lambda r: r["env_train_sps"])
+    assert f"{runs[0]['env_train_sps']:,} and {runs[1]['env_train_sps']:,} train SPS" in out.stderr
     columns = ("env_only_sps", "env_inference_sps", "env_train_sps")
     for col in columns:
         assert report["single"][col] > 0 and all(r[col] > 0 for r in report["ranks"])
