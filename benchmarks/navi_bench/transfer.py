@@ -62,6 +62,7 @@ from navi_learner.evaluation.evaluate import (
     evaluate,
     jsonable,
 )
+from navi_learner.evaluation.goal_flights import FLIGHTS, NEAR_M, GoalFlights, observers
 from navi_learner.evaluation.open_floor import (
     OpenFloorConfig,
     build_open_floors,
@@ -416,15 +417,21 @@ class RunJob:
         trained = CheckpointPolicy(result.final_checkpoint, torch.device(device), noise, p.seed)
         finals: dict[str, Any] = {}
         collisions: dict[str, dict[str, int]] = {}
+        flown: dict[str, dict[str, float]] = {}
         for part, corpus in self.unseen.items():
             env = eval_env(corpus, self.cfg, device)
             sites = CollisionSites(env.config) if part == "openarena" else None
-            metrics = evaluate(env, trained, p.steps, p.seed, by_scene=part == "openarena", observe=sites)
+            flights = GoalFlights() if part == "openarena" and self.cfg.train.task == "pointgoal" else None
+            metrics = evaluate(
+                env, trained, p.steps, p.seed, by_scene=part == "openarena", observe=observers(sites, flights)
+            )
             metrics.policy = f"{name} seed {self.seed}"
             metrics.per_actor = {}
             finals[part] = asdict(metrics)
             if sites is not None:
                 collisions = sites.classify(env, _names(env))
+            if flights is not None:
+                flown = flights.summary(_names(env))
             say(f"[bench transfer] {name} seed {self.seed} on {part}:\n{comparison_table([metrics])}")
         floor: list[dict[str, Any]] = []
         probe = self.cfg.open_floor
@@ -444,6 +451,7 @@ class RunJob:
             "sps": result.sps,
             "final_by_part": finals,
             "collisions_by_surface": collisions,
+            "goal_flights": flown,
             "open_floor": floor,
         }
 
@@ -505,12 +513,18 @@ class BaselineJob:
         rows = []
         for policy in baseline_policies(env, p):
             sites = CollisionSites(env.config) if self.part == "openarena" else None
-            metrics = evaluate(env, policy, p.steps, p.seed, by_scene=sites is not None, observe=sites)
+            goal = self.part == "openarena" and self.cfg.train.task == "pointgoal"
+            flights = GoalFlights() if goal else None
+            metrics = evaluate(
+                env, policy, p.steps, p.seed, by_scene=sites is not None, observe=observers(sites, flights)
+            )
             metrics.per_actor = {}
             rows.append(metrics)
             out[policy.name] = asdict(metrics)
             if sites is not None:
                 out[policy.name]["collisions_by_surface"] = sites.classify(env, _names(env))
+            if flights is not None:
+                out[policy.name]["goal_flights"] = flights.summary(_names(env))
         say(f"[bench transfer] baselines on {self.corpus}:\n" + comparison_table(rows))
         return {"part": self.part, "corpus": str(self.corpus), "baselines": out}
 
@@ -622,6 +636,24 @@ def summarise(runs: list[dict[str, Any]], baselines: dict[str, dict[str, Any]], 
             }  # a count no run kept (results saved before it was counted) stays out of the table
         for name, b in baselines["openarena"].items():
             out["surfaces"][name] = b.get("collisions_by_surface", {}).get("all", {})
+        out["flights"] = flight_rows(runs, baselines["openarena"])
+    return out
+
+
+def flight_rows(runs: list[dict[str, Any]], baselines: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """Per arm (the median over its seeds of each FLIGHTS value over all the maps; episodes summed) and
+    per baseline: how point-goal episodes on the OpenArena maps ended. Empty for explore runs."""
+    out: dict[str, dict[str, float]] = {}
+    for arm in dict.fromkeys(r["arm"] for r in runs):
+        seeds = [r["goal_flights"]["all"] for r in runs if r["arm"] == arm and r.get("goal_flights")]
+        if seeds:
+            out[arm] = {
+                k: sum(s[k] for s in seeds) if k == "episodes" else statistics.median(s[k] for s in seeds)
+                for k in FLIGHTS
+            }
+    for name, b in baselines.items():
+        if b.get("goal_flights"):
+            out[name] = b["goal_flights"]["all"]
     return out
 
 
@@ -678,6 +710,19 @@ def report_markdown(result: dict[str, Any]) -> str:
         ]
         for name, row in s["surfaces"].items():
             lines.append(f"| {name} | " + " | ".join(str(row.get(k, "–")) for k in COUNTS) + " |")
+        lines.append("")
+    if s.get("flights"):
+        lines += ["## How point-goal episodes on the OpenArena maps ended (arms: median over seeds)", ""]
+        lines += [
+            f"near: came within {NEAR_M:g} m of the goal; nearest and final: path length to the goal over the "
+            "start's; climb and sink: from the height after the first step (m); speed: m/s (medians over "
+            "episodes).",
+            "",
+            "| policy | " + " | ".join(FLIGHTS) + " |",
+            "| --- |" + " --- |" * len(FLIGHTS),
+        ]
+        for name, row in s["flights"].items():
+            lines.append(f"| {name} | " + " | ".join(_fmt(float(row[k])) for k in FLIGHTS) + " |")
         lines.append("")
     if s.get("open_floor"):
         widths = list(next(iter(s["open_floor"].values())))

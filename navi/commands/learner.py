@@ -204,20 +204,27 @@ def resume_choice(checkpoint: Path | None, fresh: bool, cfg: TrainConfig) -> tup
 
 
 def print_metrics(
-    rows: list[EvalMetrics], as_json: bool, collisions: dict[str, dict[str, int]] | None = None
+    rows: list[EvalMetrics],
+    as_json: bool,
+    collisions: dict[str, dict[str, int]] | None = None,
+    flights: dict[str, dict[str, float]] | None = None,
 ) -> None:
     """One JSON object, or a markdown table; with `collisions` (CollisionSites.classify rows) also the
-    collision table, under "collisions" in the JSON."""
+    collision table, under "collisions" in the JSON, and with `flights` (GoalFlights.summary rows) the
+    point-goal episodes' table, under "goal_flights"."""
     from navi_learner.evaluation.collisions import collision_table
     from navi_learner.evaluation.evaluate import comparison_table, jsonable
+    from navi_learner.evaluation.goal_flights import flight_table
 
     if as_json:
-        extra = {} if collisions is None else {"collisions": collisions}
-        typer.echo(json.dumps({"results": jsonable([asdict(r) for r in rows]), **extra}))
+        extra: dict[str, object] = {} if collisions is None else {"collisions": collisions}
+        extra |= {} if flights is None else {"goal_flights": flights}
+        typer.echo(json.dumps(jsonable({"results": [asdict(r) for r in rows], **extra})))
     else:
-        typer.echo(
-            comparison_table(rows) + ("" if collisions is None else "\n\n" + collision_table(collisions))
-        )
+        tables = [comparison_table(rows)]
+        tables += [] if collisions is None else [collision_table(collisions)]
+        tables += [] if flights is None else [flight_table(flights)]
+        typer.echo("\n\n".join(tables))
 
 
 BASELINES = ("random", "reactive", "greedy", "oracle")
@@ -462,6 +469,14 @@ def evaluate_cmd(
             "while commanding into the nearest surface in view) and unseen (no ray of the view showed it).",
         ),
     ] = False,
+    goal_flights: Annotated[
+        bool,
+        typer.Option(
+            "--goal-flights",
+            help="Point-goal: also say per scene how the episodes ended (success, came within 2 m, nearest "
+            "and final path length over the start's, climb and sink from the first step's height, speed).",
+        ),
+    ] = False,
 ) -> None:
     """Evaluate a checkpoint or a baseline: return, collisions (with moving obstacles among them),
     clearance, coverage, distance, starvation; point-goal episodes add success, SPL, soft SPL,
@@ -469,6 +484,7 @@ def evaluate_cmd(
     from navi_learner.envs.protocol import capabilities
     from navi_learner.evaluation.collisions import CollisionSites
     from navi_learner.evaluation.evaluate import evaluate
+    from navi_learner.evaluation.goal_flights import GoalFlights, observers
 
     if (checkpoint is None) == (policy is None):
         raise typer.BadParameter(f"give exactly one of CHECKPOINT or --policy {'|'.join(BASELINES)}")
@@ -491,10 +507,16 @@ def evaluate_cmd(
     config = getattr(environment, "config", None)
     if collisions and config is None:
         raise typer.BadParameter("--collisions needs the drone env (--env sdfdag)")
+    if goal_flights and (config is None or chosen_task != "pointgoal"):
+        raise typer.BadParameter(
+            "--goal-flights needs point-goal episodes of the drone env (--task pointgoal)"
+        )
     sites = CollisionSites(config) if collisions else None
-    metrics = evaluate(environment, chosen, steps, seed, progress=True, observe=sites)
-    table = None if sites is None else sites.classify(environment, capabilities(environment).scenes)
-    print_metrics([metrics], as_json, table)
+    flights = GoalFlights() if goal_flights else None
+    metrics = evaluate(environment, chosen, steps, seed, progress=True, observe=observers(sites, flights))
+    scenes = capabilities(environment).scenes
+    table = None if sites is None else sites.classify(environment, scenes)
+    print_metrics([metrics], as_json, table, None if flights is None else flights.summary(scenes))
 
 
 @app.command(rich_help_panel=PANEL)

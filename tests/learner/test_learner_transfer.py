@@ -22,6 +22,7 @@ from navi_bench.transfer import (
 )
 from navi_learner.config import TrainConfig, learning_recipe
 from navi_learner.evaluation.competence import EvalProtocol
+from navi_learner.evaluation.goal_flights import FLIGHTS
 from navi_learner.evaluation.open_floor import OpenFloorConfig
 from navi_learner.references import REFERENCES
 from navi_learner.serving.checkpoint import read_meta
@@ -195,7 +196,8 @@ def test_bench_transfer_end_to_end_on_a_cpu(tmp_path: Path, monkeypatch: pytest.
 
 def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
     """The summary and report of a point-goal job, from result rows: medians over seeds, the bar per seed
-    against greedy, per-map success / SPL beside the seekers', and the surfaces touched."""
+    against greedy, per-map success / SPL beside the seekers', the surfaces touched and how the episodes
+    ended (each seed's flights over all maps: medians over seeds, episodes summed)."""
     keys = ("success_rate", "spl", "collisions_per_episode")
 
     def row(s: float, spl: float, c: float, maps: dict[str, tuple[float, float, float]]) -> dict[str, object]:
@@ -212,6 +214,9 @@ def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
     base["greedy"]["collisions_by_surface"] = {
         "all": {"floor": 0, "ceiling": 0, "wall": 3, "slope": 1, "thin": 2}
     }
+    flight = dict(zip(FLIGHTS, (10.0, 0.9, 0.95, 0.02, 0.03, 1.0, 0.5, 3.0), strict=True))
+    base["greedy"]["goal_flights"] = {"dm1": flight, "all": flight}
+    climbs = (25.0, 1.0, 18.0)  # one seed per entry
     runs = [
         {
             "arm": "procedural",
@@ -220,6 +225,7 @@ def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
             "collisions_by_surface": {
                 "all": {"floor": 1, "ceiling": 0, "wall": 2, "slope": 0, "thin": seed, "pinned": 1}
             },
+            "goal_flights": {"all": flight | {"episodes": 20.0, "climb_m": climbs[seed]}},
         }
         for seed, (s, spl, c) in enumerate(((0.95, 0.85, 0.3), (0.9, 0.79, 0.2), (0.7, 0.6, 5.0)))
     ]
@@ -242,6 +248,8 @@ def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
         "pinned": 3,
     }
     assert summary["surfaces"]["greedy"]["wall"] == 3
+    assert summary["flights"]["procedural"] == flight | {"episodes": 60.0, "climb_m": 18.0}
+    assert summary["flights"]["greedy"] == flight
     text = report_markdown(
         {
             "summary": summary,
@@ -254,6 +262,8 @@ def test_point_goal_summary_counts_competent_seeds_and_shows_each_map() -> None:
     assert "| procedural | 0.9 (0.95, 0.9, 0.7) | 0.79 (0.85, 0.79, 0.6) | 0.3 (0.3, 0.2, 5) | 1/3 |" in text
     assert "| dm2 | 0 / 0 | 0.88 / 0.84 | 0.92 / 0.86 | 0.8 / 0.7 |" in text
     assert "| procedural | 3 | 0 | 6 | 0 | 3 | 3 |" in text and "| greedy | 0 | 0 | 3 | 1 | 2 | – |" in text
+    assert "## How point-goal episodes on the OpenArena maps ended" in text
+    assert "| procedural | 60 | 0.9 | 0.95 | 0.02 | 0.03 | 18 | 0.5 | 3 |" in text
 
 
 def test_point_goal_parts_leave_out_the_maps_where_no_goal_can_be_posed(tmp_path: Path) -> None:
