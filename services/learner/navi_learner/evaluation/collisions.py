@@ -14,6 +14,7 @@ import torch
 
 from navi_env.config import EnvConfig
 from navi_learner.envs.protocol import StepLike
+from navi_learner.evaluation.evaluate import scene_table
 
 THIN_M = 0.4
 """A collision is with thin geometry when the solid behind the touched surface is thinner than this."""
@@ -126,8 +127,4 @@ class CollisionSites:
 
 def collision_table(rows: dict[str, dict[str, int]]) -> str:
     """A markdown table of `CollisionSites.classify` rows: one line per scene with contacts, then "all"."""
-    lines = ["| scene | " + " | ".join(COUNTS) + " |", "| --- |" + " --- |" * len(COUNTS)]
-    for name in [*sorted(k for k in rows if k != "all"), "all"]:
-        if name in rows:
-            lines.append(f"| {name} | " + " | ".join(str(rows[name].get(k, 0)) for k in COUNTS) + " |")
-    return "\n".join(lines)
+    return scene_table(rows, COUNTS, lambda _, v: str(v or 0))

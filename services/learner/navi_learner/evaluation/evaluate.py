@@ -26,9 +26,10 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -385,6 +386,18 @@ def evaluate(
     if first_scene is not None:
         result.per_scene = scene_values(sums, first_scene.cpu().numpy(), capabilities(env).scenes, has)
     return result
+
+
+def scene_table(
+    rows: Mapping[str, Mapping[str, Any]], columns: Sequence[str], cell: Callable[[str, Any], str]
+) -> str:
+    """A markdown table of per-scene rows (scene name -> column -> value): one line per scene by name, then
+    "all"; `cell(column, value)` writes a cell."""
+    lines = ["| scene | " + " | ".join(columns) + " |", "| --- |" + " --- |" * len(columns)]
+    for name in [*sorted(k for k in rows if k != "all"), "all"]:
+        if name in rows:
+            lines.append(f"| {name} | " + " | ".join(cell(k, rows[name].get(k)) for k in columns) + " |")
+    return "\n".join(lines)
 
 
 def jsonable(value: object) -> object:

@@ -15,6 +15,7 @@ from collections.abc import Callable
 import torch
 
 from navi_learner.envs.protocol import StepLike
+from navi_learner.evaluation.evaluate import scene_table
 
 NEAR_M = 2.0
 """An episode came near its goal when its path length to the goal fell below this (m) at some step."""
@@ -104,12 +105,7 @@ class GoalFlights:
 
 def flight_table(rows: dict[str, dict[str, float]]) -> str:
     """A markdown table of `GoalFlights.summary` rows: one line per scene, then "all"."""
-    lines = ["| scene | " + " | ".join(FLIGHTS) + " |", "| --- |" + " --- |" * len(FLIGHTS)]
-    for name in [*sorted(k for k in rows if k != "all"), "all"]:
-        if name in rows:
-            cells = [f"{rows[name][k]:.0f}" if k == "episodes" else f"{rows[name][k]:.3g}" for k in FLIGHTS]
-            lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return scene_table(rows, FLIGHTS, lambda k, v: f"{v:.0f}" if k == "episodes" else f"{v:.3g}")
 
 
 Observer = Callable[[StepLike, torch.Tensor], None]
