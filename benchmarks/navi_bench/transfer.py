@@ -61,8 +61,9 @@ from navi_learner.evaluation.evaluate import (
     comparison_table,
     evaluate,
     jsonable,
+    observers,
 )
-from navi_learner.evaluation.goal_flights import FLIGHTS, NEAR_M, GoalFlights, observers
+from navi_learner.evaluation.goal_flights import FLIGHTS, NEAR_M, GoalFlights
 from navi_learner.evaluation.open_floor import (
     OpenFloorConfig,
     build_open_floors,

@@ -483,8 +483,8 @@ def evaluate_cmd(
     collisions per episode and time to goal."""
     from navi_learner.envs.protocol import capabilities
     from navi_learner.evaluation.collisions import CollisionSites
-    from navi_learner.evaluation.evaluate import evaluate
-    from navi_learner.evaluation.goal_flights import GoalFlights, observers
+    from navi_learner.evaluation.evaluate import evaluate, observers
+    from navi_learner.evaluation.goal_flights import GoalFlights
 
     if (checkpoint is None) == (policy is None):
         raise typer.BadParameter(f"give exactly one of CHECKPOINT or --policy {'|'.join(BASELINES)}")

@@ -14,13 +14,8 @@ from typer.testing import CliRunner
 from navi.cli import build_app
 from navi_env.corpus.folder import build_default_corpus
 from navi_learner.envs.protocol import StepOut
-from navi_learner.evaluation.goal_flights import (
-    COLUMNS,
-    FLIGHTS,
-    GoalFlights,
-    flight_table,
-    observers,
-)
+from navi_learner.evaluation.evaluate import observers
+from navi_learner.evaluation.goal_flights import COLUMNS, FLIGHTS, GoalFlights, flight_table
 
 
 def step(

@@ -286,6 +286,10 @@ def scene_values(
     return out
 
 
+Observer = Callable[[StepLike, torch.Tensor], None]
+"""What `evaluate` calls after every step with its output and the actions that made it."""
+
+
 def evaluate(
     env: BatchedEnv,
     policy: EvalPolicy,
@@ -293,7 +297,7 @@ def evaluate(
     seed: int = 0,
     progress: bool = False,
     by_scene: bool = False,
-    observe: Callable[[StepLike, torch.Tensor], None] | None = None,
+    observe: Observer | None = None,
 ) -> EvalMetrics:
     """Run `steps` batched steps from env.reset(seed) and summarise (one host read at the end). With
     `by_scene` the result also holds per-scene values (EvalMetrics.per_scene; the env's info "scene_id"
@@ -386,6 +390,19 @@ def evaluate(
     if first_scene is not None:
         result.per_scene = scene_values(sums, first_scene.cpu().numpy(), capabilities(env).scenes, has)
     return result
+
+
+def observers(*each: Observer | None) -> Observer | None:
+    """One `evaluate` observer calling each given one in turn (None where none is given)."""
+    chosen = [o for o in each if o is not None]
+    if not chosen:
+        return None
+
+    def call(out: StepLike, action: torch.Tensor) -> None:
+        for o in chosen:
+            o(out, action)
+
+    return call
 
 
 def scene_table(

@@ -10,8 +10,6 @@ away from its goal from one that times out short of it or overshoots it (docs/TR
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import torch
 
 from navi_learner.envs.protocol import StepLike
@@ -106,20 +104,3 @@ class GoalFlights:
 def flight_table(rows: dict[str, dict[str, float]]) -> str:
     """A markdown table of `GoalFlights.summary` rows: one line per scene, then "all"."""
     return scene_table(rows, FLIGHTS, lambda k, v: f"{v:.0f}" if k == "episodes" else f"{v:.3g}")
-
-
-Observer = Callable[[StepLike, torch.Tensor], None]
-"""What `evaluate` calls after every step with its output and the actions that made it."""
-
-
-def observers(*each: Observer | None) -> Observer | None:
-    """One `evaluate` observer calling each given one in turn (None where none is given)."""
-    chosen = [o for o in each if o is not None]
-    if not chosen:
-        return None
-
-    def call(out: StepLike, action: torch.Tensor) -> None:
-        for o in chosen:
-            o(out, action)
-
-    return call
