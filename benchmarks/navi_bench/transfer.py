@@ -124,7 +124,7 @@ def parse_arm(spec: str) -> Arm:
     the runs start from); ValueError on anything else."""
     from navi_learner.config import EngineConfig, engine_overrides
     from navi_learner.envs.factory import parse_reward_overrides
-    from navi_learner.references import checkpoint_path
+    from navi_learner.serving.references import checkpoint_path
 
     base, slash, overrides = spec.strip().partition("/")
     items = [o for o in overrides.split(",") if o.strip()]

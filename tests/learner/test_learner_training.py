@@ -21,8 +21,8 @@ from navi_learner.ppo import timing as timing_module
 from navi_learner.ppo.learner import InitError, init_weights
 from navi_learner.ppo.timing import StageTimers
 from navi_learner.ppo.train import train
-from navi_learner.references import REFERENCES
 from navi_learner.serving.checkpoint import load_checkpoint
+from navi_learner.serving.references import REFERENCES
 from navi_learner.serving.registry import ModelRegistry
 
 ENGINE = EngineConfig.tiny()

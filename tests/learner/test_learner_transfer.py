@@ -24,8 +24,8 @@ from navi_learner.config import TrainConfig, learning_recipe
 from navi_learner.evaluation.competence import EvalProtocol
 from navi_learner.evaluation.goal_flights import FLIGHTS
 from navi_learner.evaluation.open_floor import OpenFloorConfig
-from navi_learner.references import REFERENCES
 from navi_learner.serving.checkpoint import read_meta
+from navi_learner.serving.references import REFERENCES
 
 
 def test_arms_parse_and_bad_ones_are_refused() -> None:

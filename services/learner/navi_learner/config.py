@@ -262,7 +262,7 @@ class TrainConfig:
     checkpoint fly the task it learned."""
     init_from: str = ""
     """Weights a fresh run starts from: a checkpoint's path, or explore / pointgoal for that task's shipped
-    reference (navi_learner.references). It brings the policy's weights and the novelty normaliser's
+    reference (navi_learner.serving.references). It brings the policy's weights and the novelty normaliser's
     statistics (the checkpoint's engine must be the run's); the optimizer, the counters and the reward
     average start fresh. Empty: random weights. A resumed run takes everything from its checkpoint instead."""
     sync_timers: bool = False

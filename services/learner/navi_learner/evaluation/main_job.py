@@ -52,8 +52,8 @@ from navi_learner.evaluation.evaluate import (
     paired_intervals,
 )
 from navi_learner.ppo.train import train
-from navi_learner.references import REFERENCES
 from navi_learner.serving.checkpoint import CheckpointError, CheckpointMeta, atomic_write, read_meta
+from navi_learner.serving.references import REFERENCES
 from navi_learner.serving.registry import ModelRegistry
 
 REFERENCE = REFERENCES["explore"]

@@ -24,7 +24,6 @@ from navi_learner.ppo.rollout import RolloutStorage
 from navi_learner.ppo.runs import RunFiles, new_run_id
 from navi_learner.ppo.stats import EpisodeStats
 from navi_learner.ppo.timing import Clock, StageTimers
-from navi_learner.references import checkpoint_path
 from navi_learner.serving.checkpoint import (
     CheckpointError,
     CheckpointMeta,
@@ -36,6 +35,7 @@ from navi_learner.serving.checkpoint import (
     prune_checkpoints,
     save_checkpoint,
 )
+from navi_learner.serving.references import checkpoint_path
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-REFERENCE_DIR = Path(__file__).resolve().parent / "reference"
+REFERENCE_DIR = Path(__file__).resolve().parents[1] / "reference"
 """Where the reference checkpoints lie, beside their JSON and README."""
 
 REFERENCES = {"explore": REFERENCE_DIR / "mamba2.pt", "pointgoal": REFERENCE_DIR / "mamba2-pointgoal.pt"}
