@@ -104,7 +104,8 @@ class Arm:
 
     @property
     def run_key(self) -> str:
-        """A folder-safe name of its runs: the corpus's, and the reward and engine fields it replaces."""
+        """A folder-safe name of its runs: the corpus's, the reward and engine fields it replaces, and the
+        checkpoint its runs start from."""
         fields_ = [f"{k}={_value(v)}" for k, v in (*self.reward, *self.engine)]
         if self.init_from:
             fields_.append(f"init_from={Path(self.init_from).stem}")
