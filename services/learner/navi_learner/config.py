@@ -377,4 +377,4 @@ class RunBudget:
     eval_every_s: Annotated[float, CliOption(min=1.0)] = 30.0
     """CUDA: training seconds between two unseen evaluations."""
     cpu_steps: Annotated[int, CliOption(min=0)] = 2048
-    """CPU: env steps of fine-tuning the reference checkpoint (point-goal: of training from scratch)."""
+    """CPU: env steps of fine-tuning the task's reference checkpoint."""
