@@ -165,8 +165,8 @@ def test_main_job_point_goal_cpu_path_fine_tunes_its_reference_and_compares_with
 def test_point_goal_reference_flies_the_cpu_protocol_ahead_of_the_greedy_seeker(unseen: Path) -> None:
     """The shipped point-goal reference on the CPU path's point-goal protocol (48 actors x 1,000 steps,
     the task's own 500-step episodes, env seed 12345) on the eight unseen scenes: near the competence bar
-    (success 0.92 measured there after the fine-tune, reference/README.md) and well ahead of the map-less greedy seeker in
-    success, SPL and collisions per episode."""
+    (success 0.92 measured there after the fine-tune, reference/README.md) and well ahead of the map-less
+    greedy seeker in success, SPL and collisions per episode."""
     protocol = EvalProtocol.for_device(torch.device("cpu"), "pointgoal")
     assert (protocol.actors, protocol.steps, protocol.episode_steps) == (48, 1000, 500)
     env = make_env(
