@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +23,9 @@ from navi_bench.learn import LearnConfig, bench_learn, run_devices
 from navi_env.corpus.folder import build_default_corpus
 from navi_env.corpus.openarena import split_openarena
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe
+from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.factory import make_env, parse_reward_overrides
-from navi_learner.envs.protocol import StepLike
+from navi_learner.envs.protocol import StepLike, capabilities
 from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy
 from navi_learner.evaluation.competence import CompetenceMonitor, EvalProtocol, meets_bar
@@ -32,6 +33,8 @@ from navi_learner.evaluation.evaluate import (
     COLLISION_FLOOR_PER_1K,
     ActorSums,
     EvalMetrics,
+    ModulePolicy,
+    action_noise,
     beats_supported,
     competent,
     competent_supported,
@@ -254,6 +257,38 @@ def test_monitor_stops_training_at_the_first_competent_point(tmp_path: Path) -> 
     )
     assert result.step_id == 128 and len(monitor.curve) == 1
     assert monitor.competence is not None and monitor.competence["step"] == 128
+
+
+def test_monitor_flies_the_weights_as_their_checkpoint_does() -> None:
+    """Training compiles the live encoder in place on CUDA, and its fused kernels fly other numbers than
+    the eager encoder of a loaded checkpoint. The monitor flies an eager twin with the live weights: a
+    live module that computes otherwise leaves its evaluation as it is, and that evaluation is a loaded
+    copy's flight."""
+    env = ToyEnv(8, seed=3, max_steps=16)
+    protocol = EvalProtocol(actors=8, steps=32, episode_steps=16, seed=3)
+    beaten = {"random": metrics(math.inf, 0.0), "reactive": metrics(math.inf, 0.0)}
+    monitor = CompetenceMonitor(env, protocol, every_s=1.0, baselines=beaten)
+    torch.manual_seed(0)
+    policy = CognitiveMambaPolicy(env.obs_shape, ENGINE)
+
+    def flight(m: EvalMetrics) -> dict[str, object]:
+        return {k: v for k, v in asdict(m).items() if k not in ("sps", "policy")}
+
+    plain = monitor.evaluate_policy(policy)
+    loaded = CognitiveMambaPolicy(env.obs_shape, ENGINE)
+    loaded.load_state_dict(policy.state_dict())
+    noise = action_noise(capabilities(env).task)
+    copy = evaluate(
+        env, ModulePolicy(loaded.eval(), "copy", noise, protocol.seed), protocol.steps, protocol.seed
+    )
+    assert flight(copy) == flight(plain)
+    forward = policy.encoder.forward
+    policy.encoder.forward = lambda obs: forward(obs) + 1.0  # type: ignore[method-assign]
+    live = evaluate(
+        env, ModulePolicy(policy.eval(), "live", noise, protocol.seed), protocol.steps, protocol.seed
+    )
+    assert live.episode_return != plain.episode_return  # the live module flies otherwise
+    assert flight(monitor.evaluate_policy(policy)) == flight(plain)
 
 
 def test_split_openarena_holds_out_every_fifth_map() -> None:

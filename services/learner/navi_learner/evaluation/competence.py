@@ -126,6 +126,17 @@ def curve_point(metrics: EvalMetrics, step: int, train_s: float, wall_s: float) 
     return point
 
 
+def eager_twin(policy: CognitiveMambaPolicy) -> CognitiveMambaPolicy:
+    """A fresh policy of the same shape with `policy`'s weights and buffers, in eval mode, built as a
+    loaded checkpoint is (CheckpointPolicy). Training compiles the live encoder in place on CUDA, whose
+    fused kernels round otherwise than the eager encoder a checkpoint flies: near the bar the two flights
+    could give opposite verdicts."""
+    device = next(policy.parameters()).device
+    twin = CognitiveMambaPolicy(policy.obs_shape, policy.cfg).to(device)
+    twin.load_state_dict(policy.state_dict())
+    return twin.eval()
+
+
 @dataclass
 class CompetenceMonitor:
     """A train() monitor: every `every_s` seconds of training it evaluates the live policy on `env`
@@ -154,15 +165,13 @@ class CompetenceMonitor:
         self.status = bar_status(None, self.baselines)
 
     def evaluate_policy(self, policy: CognitiveMambaPolicy, name: str = "trained") -> EvalMetrics:
-        """Evaluation of `policy` on the unseen env, flown as its task is (ACTION_NOISE; train mode restored
-        afterwards)."""
-        was_training = policy.training
-        policy.eval()
-        flown = ModulePolicy(policy, name, action_noise(capabilities(self.env).task), self.protocol.seed)
-        try:
-            return evaluate(self.env, flown, self.protocol.steps, self.protocol.seed)
-        finally:
-            policy.train(was_training)
+        """Evaluation of `policy`'s weights on the unseen env, flown as its task is (ACTION_NOISE) by
+        eager_twin(policy): the flight a checkpoint of these weights gets (CheckpointPolicy), so the
+        evaluation that stops a run is the final verdict's."""
+        flown = ModulePolicy(
+            eager_twin(policy), name, action_noise(capabilities(self.env).task), self.protocol.seed
+        )
+        return evaluate(self.env, flown, self.protocol.steps, self.protocol.seed)
 
     def record(self, policy: CognitiveMambaPolicy, step: int, train_s: float) -> EvalMetrics:
         """Evaluate now and append the curve point; notes competence the first time it is reached."""
