@@ -1,5 +1,5 @@
 """Learning measured on unseen scenes: the evaluation protocol, the competence bar, and a training
-monitor that evaluates the live policy every so often and records the learning curve.
+monitor that evaluates the live weights every so often (flown as a checkpoint of them is) and records the learning curve.
 
 Competence (docs/TRAINING.md): on the unseen scenes, with the same seed, the policy flown as its task is
 (ACTION_NOISE), at most half the reactive baseline's collisions per 1,000 steps (0.5 where it has none)
@@ -139,7 +139,7 @@ def eager_twin(policy: CognitiveMambaPolicy) -> CognitiveMambaPolicy:
 
 @dataclass
 class CompetenceMonitor:
-    """A train() monitor: every `every_s` seconds of training it evaluates the live policy on `env`
+    """A train() monitor: every `every_s` seconds of training it evaluates the live weights on `env`
     (the unseen scenes) with `protocol`, appends a curve point, and notes the first competent point.
     With `stop_at_competence` training ends there."""
 
