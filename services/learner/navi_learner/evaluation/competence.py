@@ -1,5 +1,6 @@
 """Learning measured on unseen scenes: the evaluation protocol, the competence bar, and a training
-monitor that evaluates the live weights every so often (flown as a checkpoint of them is) and records the learning curve.
+monitor that evaluates the live weights every so often (flown as a checkpoint of them is) and records
+the learning curve.
 
 Competence (docs/TRAINING.md): on the unseen scenes, with the same seed, the policy flown as its task is
 (ACTION_NOISE), at most half the reactive baseline's collisions per 1,000 steps (0.5 where it has none)
