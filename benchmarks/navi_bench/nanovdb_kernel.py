@@ -9,6 +9,10 @@ The march follows Navi's step rules (csrc/ray_walk.h) without its empty-space sk
 into the lattice's cube it steps by max(d, eps) voxels; a sample below the hit threshold eps + slope * t
 that does not rise from the one before stops the ray where the line through the two meets zero (at most
 16 d ahead); a negative sample is refined by 6 bisections and a secant between the last two samples.
+With `far` > 0 each step first reads the nearest sample alone (one voxel, `Volume.CLOSEST`): the field
+is 1-Lipschitz and the nearest sample lies within half a voxel's diagonal (sqrt 3 / 2), so while that
+sample less the half diagonal exceeds `far` the ray steps by it without the trilinear read (8 voxels); nearer, the step
+rules above run on trilinear samples, the first of them never stopping a ray on its own.
 
 Loop-carried variables are declared as `float(0.0)` / `int(0)`: Warp types a variable reassigned in a
 dynamic loop from its constructor, so the literal-only forms ruff prefers would not compile.
@@ -39,7 +43,9 @@ def fill_kernel(wp: Any) -> Any:
 
 def march_kernel(wp: Any) -> Any:
     """Depth (P,) meters and steps (P,) of rays (origins in index space, unit directions) through a
-    float32 narrow-band volume of distances in meters. `refine` bisections, a secant reach of `reach` d."""
+    float32 narrow-band volume of distances in meters. `refine` bisections, a secant reach of `reach` d;
+    `far` > 0: nearest-sample steps while the nearest sample's bound exceeds `far` voxels (0: trilinear
+    samples only)."""
 
     @wp.kernel
     def march(
@@ -54,6 +60,7 @@ def march_kernel(wp: Any) -> Any:
         max_steps: int,
         refine: int,
         reach: float,
+        far: float,
         depth: wp.array(dtype=float),  # type: ignore[valid-type]
         steps: wp.array(dtype=int),  # type: ignore[valid-type]
     ) -> None:
@@ -80,13 +87,24 @@ def march_kernel(wp: Any) -> Any:
             done = int(0)
             while n < max_steps and done == 0:
                 n += 1
-                f = wp.volume_sample_f(volume, o + t * d, wp.Volume.LINEAR) * inv_voxel
-                if f < 0.0:  # inside: bisect between the last free sample and here, then a secant
+                bound = float(0.0)
+                if far > 0.0:  # the nearest sample less half a voxel's diagonal bounds the distance here
+                    bound = wp.volume_sample_f(volume, o + t * d, wp.Volume.CLOSEST) * inv_voxel - 0.8660254
+                f = float(0.0)
+                if bound <= far:
+                    f = wp.volume_sample_f(volume, o + t * d, wp.Volume.LINEAR) * inv_voxel
+                if bound > far:  # far from every surface: step by the nearest sample's bound
+                    prev_t = t
+                    prev_d = -1.0  # no trilinear sample behind: the next one cannot stop the ray alone
+                    t = t + bound
+                    if t > t1:
+                        done = 2
+                elif f < 0.0:  # inside: bisect between the last free sample and here, then a secant
                     lo = float(prev_t)
                     hi = float(t)
                     flo = float(prev_d)
                     fhi = float(f)
-                    if n == 1:
+                    if prev_d < 0.0:  # no free trilinear sample behind (the first step, or after far steps)
                         lo = t
                         flo = f
                     for _r in range(refine):

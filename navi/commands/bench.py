@@ -147,6 +147,22 @@ def bench_trace_cmd(
             "--nanovdb-bands", help="Narrow-band half widths in voxels for --vs-nanovdb, comma-separated."
         ),
     ] = "3,8,24",
+    nanovdb_scales: Annotated[
+        str,
+        typer.Option(
+            "--nanovdb-scales",
+            help="Voxel sizes of the band for --vs-nanovdb, comma-separated, as multiples of the scene's "
+            "own cell (2: the same field sampled on a lattice twice as coarse).",
+        ),
+    ] = "1",
+    nanovdb_sampling: Annotated[
+        str,
+        typer.Option(
+            "--nanovdb-sampling",
+            help="Marches for --vs-nanovdb, comma-separated: linear (a trilinear sample every step) and "
+            "closest-far (the nearest sample alone while it bounds the distance above 2 voxels).",
+        ),
+    ] = "linear",
     obstacles: Annotated[
         int,
         typer.Option(
@@ -178,13 +194,27 @@ def bench_trace_cmd(
         raise fail(f"--nanovdb-bands expects numbers separated by commas, got {nanovdb_bands!r}") from None
     if vs_nanovdb and (not bands or min(bands) <= 0):
         raise fail("--nanovdb-bands needs at least one band, every one above 0 voxels")
+    try:
+        scales = tuple(int(k) for k in nanovdb_scales.split(",") if k.strip())
+    except ValueError:
+        raise fail(
+            f"--nanovdb-scales expects whole numbers separated by commas, got {nanovdb_scales!r}"
+        ) from None
+    if vs_nanovdb and (not scales or min(scales) < 1):
+        raise fail("--nanovdb-scales needs at least one voxel scale, every one 1 or more")
+    samplings = tuple(x.strip() for x in nanovdb_sampling.split(",") if x.strip())
+    known = ("linear", "closest-far")
+    if vs_nanovdb and (not samplings or any(x not in known for x in samplings)):
+        raise fail(
+            f"--nanovdb-sampling takes {' or '.join(known)}, comma-separated; got {nanovdb_sampling!r}"
+        )
     if vs_nanovdb and obstacles:
         raise fail("--vs-nanovdb traces the static scene: leave out --obstacles")
     cfg = TraceBenchConfig(
         agents=agents, device=device, launches=steps, azimuth_bins=azimuth, elevation_bins=elevation,
         max_steps=max_steps, obstacles=obstacles, hit_slope=hit_slope,
     )  # fmt: skip
-    nanovdb = nanovdb_anchor(cfg, bands) if vs_nanovdb else None
+    nanovdb = nanovdb_anchor(cfg, bands, scales, samplings) if vs_nanovdb else None
     if corpus_dir is not None:
         if vs_warp:
             raise fail("--vs-warp needs one scene (--gmdag)")
@@ -229,15 +259,20 @@ def bench_trace_cmd(
         typer.echo(f"{key:>20}: {value}")
 
 
-def nanovdb_anchor(cfg: Any, bands: tuple[float, ...]) -> Callable[[Any, Any], dict[str, object]]:
-    """`--vs-nanovdb`: for a scene and the tracer's result on it, {"nanovdb": one dict per band}, or
-    {"nanovdb": {"error": why}} where warp-lang is missing (also said on stderr)."""
+def nanovdb_anchor(
+    cfg: Any,
+    bands: tuple[float, ...],
+    scales: tuple[int, ...] = (1,),
+    samplings: tuple[str, ...] = ("linear",),
+) -> Callable[[Any, Any], dict[str, object]]:
+    """`--vs-nanovdb`: for a scene and the tracer's result on it, {"nanovdb": one dict per voxel scale,
+    band and sampling}, or {"nanovdb": {"error": why}} where warp-lang is missing (also said on stderr)."""
 
     def measure(corpus: Any, measured: Any) -> dict[str, object]:
         from navi_bench.nanovdb import NanoVDBUnavailable, bench_nanovdb
 
         try:
-            return {"nanovdb": bench_nanovdb(corpus, cfg, measured.ms_per_launch, bands)}
+            return {"nanovdb": bench_nanovdb(corpus, cfg, measured.ms_per_launch, bands, scales, samplings)}
         except NanoVDBUnavailable as exc:
             typer.echo(f"--vs-nanovdb skipped: {exc}", err=True)
             return {"nanovdb": {"error": str(exc)}}

@@ -74,14 +74,50 @@ def test_nanovdb_march_agrees_with_the_reference_tracer(rooms: Path) -> None:
     voxel = corpus.infos[0].voxel_size
     ref = reference_depth(corpus, CFG)  # (B, R)
     for band in (3.0, 8.0):
-        depth, steps = nanovdb_depth(corpus, CFG, band)  # (B, R) each
-        hit, ref_hit = depth < CFG.horizon, ref < CFG.horizon
-        assert (hit == ref_hit).mean() >= 0.995
-        both = hit & ref_hit
-        assert both.mean() > 0.5  # walls in most directions
-        diff = np.abs(depth[both] - ref[both]) / voxel  # voxels
-        assert np.median(diff) < 0.01 and np.quantile(diff, 0.99) < 0.5
-        assert steps.min() >= 1 and steps.max() <= CFG.max_steps
+        for sampling in ("linear", "closest-far"):
+            depth, steps = nanovdb_depth(corpus, CFG, band, sampling=sampling)  # (B, R) each
+            hit, ref_hit = depth < CFG.horizon, ref < CFG.horizon
+            assert (hit == ref_hit).mean() >= 0.995
+            both = hit & ref_hit
+            assert both.mean() > 0.5  # walls in most directions
+            diff = np.abs(depth[both] - ref[both]) / voxel  # voxels
+            assert np.median(diff) < 0.01 and np.quantile(diff, 0.99) < 0.5
+            assert steps.min() >= 1 and steps.max() <= CFG.max_steps
+
+
+@needs_warp
+def test_nanovdb_nearest_sample_steps_stop_where_trilinear_steps_do(rooms: Path) -> None:
+    """The nearest-sample bound never steps past a surface: "closest-far" ends every ray within a
+    hundredth of a voxel of the trilinear march at the median, and hits what it hits."""
+    from navi_bench.nanovdb import nanovdb_depth
+
+    corpus = load_scene(rooms, "cpu")
+    voxel = corpus.infos[0].voxel_size
+    linear, _ = nanovdb_depth(corpus, CFG, 8.0)  # (B, R)
+    far, _ = nanovdb_depth(corpus, CFG, 8.0, sampling="closest-far")  # (B, R)
+    assert ((linear < CFG.horizon) == (far < CFG.horizon)).all()
+    diff = np.abs(far - linear) / voxel  # (B, R) voxels
+    assert np.median(diff) < 0.01 and diff.max() < 0.5
+
+
+@needs_warp
+def test_a_coarser_band_holds_fewer_tiles_and_the_same_walls(rooms: Path) -> None:
+    """At voxel scale 2 the band samples the same field on a lattice twice as coarse: fewer tiles,
+    twice the voxel, and rays still end on the reference tracer's walls at the median."""
+    from navi_bench.nanovdb import lattice, nanovdb_depth
+
+    corpus = load_scene(rooms, "cpu")
+    info = corpus.infos[0]
+    assert lattice(corpus, 2) == (info.resolution // 2, 2 * info.voxel_size)
+    assert len(narrow_band(corpus, 8.0, 2)[0]) < len(narrow_band(corpus, 8.0)[0]) / 2
+    ref = reference_depth(corpus, CFG)  # (B, R)
+    depth, _ = nanovdb_depth(corpus, CFG, 8.0, scale=2)  # (B, R)
+    hit, ref_hit = depth < CFG.horizon, ref < CFG.horizon
+    assert (hit == ref_hit).mean() >= 0.99
+    both = hit & ref_hit
+    assert np.median(np.abs(depth[both] - ref[both])) < 0.5 * info.voxel_size
+    with pytest.raises(ValueError, match="at least 1"):
+        lattice(corpus, 0)
 
 
 @needs_warp
@@ -102,6 +138,17 @@ def test_bench_trace_vs_nanovdb_reports_each_band(rooms: Path) -> None:
     for b in bands:
         assert b["grays_per_s"] > 0 and b["hit_disagreement"] <= 0.005
         assert b["median_abs_depth_diff_m"] is not None and b["median_abs_depth_diff_m"] < 0.01
+        assert (b["voxel_scale"], b["sampling"]) == (1, "linear")
+    more = ["--vs-nanovdb", "--nanovdb-bands", "8", "--nanovdb-scales", "1,2", "--nanovdb-sampling",
+            "linear,closest-far", "--json"]  # fmt: skip
+    result = CliRunner().invoke(build_app(), [*args.split(), *more])
+    assert result.exit_code == 0, result.output
+    rows = json.loads(result.stdout.strip().splitlines()[-1])["nanovdb"]
+    assert [(r["voxel_scale"], r["sampling"]) for r in rows] == [
+        (1, "linear"), (1, "closest-far"), (2, "linear"), (2, "closest-far")
+    ]  # fmt: skip
+    assert rows[0]["tiles"] == rows[1]["tiles"] > rows[2]["tiles"] == rows[3]["tiles"]
+    assert rows[2]["voxel_m"] == 2 * rows[0]["voxel_m"]
 
 
 def test_bench_trace_vs_nanovdb_rejects_bad_options(rooms: Path) -> None:
@@ -114,6 +161,9 @@ def test_bench_trace_vs_nanovdb_rejects_bad_options(rooms: Path) -> None:
         (["--nanovdb-bands", "3,wide"], "--nanovdb-bands expects numbers"),
         (["--nanovdb-bands", "0"], "every one above 0"),
         (["--obstacles", "2"], "leave out --obstacles"),
+        (["--nanovdb-scales", "1.5"], "--nanovdb-scales expects whole numbers"),
+        (["--nanovdb-scales", "0"], "every one 1 or more"),
+        (["--nanovdb-sampling", "cubic"], "--nanovdb-sampling takes linear or closest-far"),
     ):
         result = CliRunner().invoke(build_app(), base + extra)
         assert result.exit_code == 2 and says in result.stderr, result.output
