@@ -14,17 +14,20 @@ from pathlib import Path
 __version__ = "0.1.0"
 
 
-def git_commit() -> str:
-    """The commit of the checkout this package runs from, or "unknown" outside a git checkout."""
+def git_commit(where: Path | None = None) -> str:
+    """The commit of the checkout this package runs from (or of `where`), with "+modified" when tracked
+    files differ from it (what ran is then not that commit alone), or "unknown" outside a git checkout."""
+    folder = where or Path(__file__).resolve().parent
+
+    def git(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(["git", *args], cwd=folder, capture_output=True, text=True, timeout=5)
+
     try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short=12", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=5,
-            check=True,
-        )
+        head = git("rev-parse", "--short=12", "HEAD")
+        changed = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
-    return out.stdout.strip() or "unknown"
+    commit = head.stdout.strip() if head.returncode == 0 else ""
+    if not commit:
+        return "unknown"
+    return commit + ("+modified" if changed.returncode == 0 and changed.stdout.strip() else "")

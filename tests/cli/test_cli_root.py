@@ -19,11 +19,17 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def head_commit() -> str:
-    """This checkout's commit as git names it (12 hex digits), or "unknown" outside a git checkout."""
+    """This checkout's commit as git names it (12 hex digits), "+modified" when a tracked file differs
+    from it, or "unknown" outside a git checkout."""
     done = subprocess.run(
         ["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True, text=True
     )
-    return done.stdout.strip() if done.returncode == 0 else "unknown"
+    if done.returncode != 0:
+        return "unknown"
+    changed = subprocess.run(
+        ["git", "diff", "HEAD", "--quiet"], cwd=ROOT, capture_output=True, text=True
+    ).returncode  # 1 where a tracked file differs
+    return done.stdout.strip() + ("+modified" if changed == 1 else "")
 
 
 def test_version_prints_version_and_commit() -> None:
