@@ -15,8 +15,9 @@ __version__ = "0.1.0"
 
 
 def git_commit(where: Path | None = None) -> str:
-    """The commit of the checkout this package runs from (or of `where`), with "+modified" when tracked
-    files differ from it (what ran is then not that commit alone), or "unknown" outside a git checkout."""
+    """The commit of the checkout this package runs from (or of `where`), with "+modified" when the content
+    of tracked files differs from it (what ran is then not that commit alone; file modes are not
+    compared, as a copied tree may lose them), or "unknown" outside a git checkout."""
     folder = where or Path(__file__).resolve().parent
 
     def git(*args: str) -> subprocess.CompletedProcess[str]:
@@ -24,7 +25,7 @@ def git_commit(where: Path | None = None) -> str:
 
     try:
         head = git("rev-parse", "--short=12", "HEAD")
-        changed = git("status", "--porcelain", "--untracked-files=no")
+        changed = git("-c", "core.fileMode=false", "status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     commit = head.stdout.strip() if head.returncode == 0 else ""

@@ -27,7 +27,10 @@ def head_commit() -> str:
     if done.returncode != 0:
         return "unknown"
     changed = subprocess.run(
-        ["git", "diff", "HEAD", "--quiet"], cwd=ROOT, capture_output=True, text=True
+        ["git", "-c", "core.fileMode=false", "diff", "HEAD", "--quiet"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
     ).returncode  # 1 where a tracked file differs
     return done.stdout.strip() + ("+modified" if changed == 1 else "")
 
