@@ -11,8 +11,8 @@ that does not rise from the one before stops the ray where the line through the 
 16 d ahead); a negative sample is refined by 6 bisections and a secant between the last two samples.
 With `far` > 0 each step first reads the nearest sample alone (one voxel, `Volume.CLOSEST`): the field
 is 1-Lipschitz and the nearest sample lies within half a voxel's diagonal (sqrt 3 / 2), so while that
-sample less the half diagonal exceeds `far` the ray steps by it without the trilinear read (8 voxels); nearer, the step
-rules above run on trilinear samples, the first of them never stopping a ray on its own.
+sample less the half diagonal exceeds `far` the ray steps by it without the trilinear read (8 voxels);
+nearer, the step rules above run on trilinear samples, the first of them never stopping a ray alone.
 
 Loop-carried variables are declared as `float(0.0)` / `int(0)`: Warp types a variable reassigned in a
 dynamic loop from its constructor, so the literal-only forms ruff prefers would not compile.

@@ -176,6 +176,7 @@ def bench_trace_cmd(
     record: RecordOpt = None,
 ) -> None:
     """G rays/s and observations/s of the tracer with the 256x48 spherical pattern."""
+    from navi_bench.nanovdb import SAMPLINGS
     from navi_bench.trace import TraceBenchConfig, bench_trace, bench_trace_maps
     from navi_compiler.gmdag import GmdagError
     from navi_env.tracer.scene import load_scene
@@ -203,7 +204,7 @@ def bench_trace_cmd(
     if vs_nanovdb and (not scales or min(scales) < 1):
         raise fail("--nanovdb-scales needs at least one voxel scale, every one 1 or more")
     samplings = tuple(x.strip() for x in nanovdb_sampling.split(",") if x.strip())
-    known = ("linear", "closest-far")
+    known = tuple(SAMPLINGS)
     if vs_nanovdb and (not samplings or any(x not in known for x in samplings)):
         raise fail(
             f"--nanovdb-sampling takes {' or '.join(known)}, comma-separated; got {nanovdb_sampling!r}"
