@@ -138,6 +138,7 @@ def parse_arm(spec: str) -> Arm:
     try:
         reward = tuple(parse_reward_overrides([o for o in items if o not in to_engine]).items())
         engine = tuple(engine_overrides(to_engine).items())
+        EngineConfig(**dict(engine))  # the fields' own bounds
     except (TypeError, ValueError) as err:
         raise ValueError(f"arm {spec!r}: {err}") from err
     if slash and not (reward or engine or inits):

@@ -9,8 +9,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from navi_env.sim.observation import write_observation
 from navi_learner.config import EngineConfig, TrainConfig, engine_overrides
-from navi_learner.engine.encoder import RayViTEncoder, attention_explicit, patchify, spherical_positions
+from navi_learner.engine.encoder import (
+    RayViTEncoder,
+    attention_explicit,
+    cap_view,
+    patchify,
+    spherical_positions,
+)
 
 
 def test_canonical_shapes() -> None:
@@ -127,3 +134,81 @@ def test_engine_option_parses_the_attention_and_refuses_others() -> None:
         engine_overrides(["attention=flash"])
     with pytest.raises(ValueError, match="sdpa or explicit"):
         RayViTEncoder((3, 32, 8), EngineConfig.tiny(attention="flash"))
+
+
+def _frames(depth0: torch.Tensor, depth1: torch.Tensor, semantic: torch.Tensor) -> torch.Tensor:
+    """The env's observation (N, 3, Az, El) of depth1 (N, Az, El) meters one step after depth0, both with
+    semantic (N, Az, El) uint8 (0: a miss, whose depth is the 100 m horizon), written by the env's own
+    write_observation."""
+    n, az, el = depth1.shape
+    obs = torch.zeros(n, 3, az, el)  # (N, 3, Az, El)
+    fresh = torch.zeros(n, dtype=torch.bool)  # (N,)
+    for depth in (depth0, depth1):
+        flat = depth.reshape(n, -1)  # (N, R)
+        write_observation(obs, flat, semantic.reshape(n, -1), semantic.reshape(n, -1) > 0, fresh, 100.0)
+    return obs
+
+
+def test_a_capped_view_is_the_view_of_a_world_that_ends_at_the_view_range() -> None:
+    """cap_view of the env's observation equals the observation the env writes where every ray beyond
+    the view range (misses included) hits an unknown-class surface (code 1) at it: depth, semantic and
+    delta depth, both frames capped."""
+    g = torch.Generator().manual_seed(0)
+    n, az, el, view_m = 4, 16, 8, 20.0
+    far_or_near = torch.rand(2, n, az, el, generator=g) < 0.5  # (2, N, Az, El) bool
+    near = torch.rand(2, n, az, el, generator=g) * 19.0 + 0.2  # (2, N, Az, El) meters in [0.2, 19.2)
+    far = torch.rand(2, n, az, el, generator=g) * 79.0 + 21.0  # (2, N, Az, El) meters in [21, 100)
+    depth = torch.where(far_or_near, far, near)  # (2, N, Az, El)
+    semantic = torch.randint(1, 200, (n, az, el), generator=g, dtype=torch.uint8)  # (N, Az, El)
+    missed = torch.rand(n, az, el, generator=g) < 0.2  # (N, Az, El) bool
+    semantic[missed] = 0
+    depth[1][missed] = 100.0
+    fraction = float(torch.tensor(view_m / 100.0, dtype=torch.float16))  # as the encoder rounds it
+    capped = cap_view(_frames(depth[0], depth[1], semantic), fraction)  # (N, 3, Az, El)
+    view = fraction * 100.0  # meters
+    beyond = depth[1] > view_m  # (N, Az, El) bool
+    ends = torch.where(beyond, torch.ones_like(semantic), semantic)  # (N, Az, El) code 1: class 0
+    expected = _frames(depth[0].clamp(max=view), depth[1].clamp(max=view), ends)  # (N, 3, Az, El)
+    assert torch.equal(capped, expected)
+    assert beyond.any() and (~beyond).any() and (depth[0] > view_m).ne(beyond).any()
+
+
+def test_a_capped_view_keeps_the_goal_mark_and_the_near_field() -> None:
+    """Four rays: near (it came from beyond), a far hit, a miss, a far ray with the goal mark."""
+    obs = torch.tensor(
+        [[0.125, 0.5, 1.0, 0.875], [0.75, 0.625, 0.0, -0.25], [-0.5, 0.125, 0.0, 0.25]]
+    )  # (C, R)
+    out = cap_view(obs.view(1, 3, 1, 4), 0.25).view(3, 4)  # (C, R)
+    assert out[0].tolist() == [0.125, 0.25, 0.25, 0.25]  # depth capped at the view range
+    assert out[1].tolist() == [0.75, 0.5, 0.5, -0.25]  # far hits and misses unknown; the mark stays
+    assert out[2].tolist() == [-0.125, 0.0, 0.0, 0.0]  # from 0.625 (capped 0.25) to 0.125; the rest far
+    assert torch.equal(cap_view(obs.view(1, 3, 1, 4), 1.0), obs.view(1, 3, 1, 4))
+
+
+def test_an_encoder_with_a_view_range_does_not_see_beyond_it() -> None:
+    """With view_range 0.2 the embedding is the same whatever lies beyond 20 m; without, it is not."""
+    g = torch.Generator().manual_seed(0)
+    left = torch.arange(16).view(1, 16, 1) < 4  # (1, Az, El) the left quarter of a 16 x 8 view
+    near = torch.rand(2, 2, 16, 8, generator=g) * 10.0 + 0.5  # (2, N, Az, El) meters: two frames
+    views = []
+    for _ in range(2):  # two worlds that differ only beyond 20 m, in the left quarter
+        far = torch.rand(2, 2, 16, 8, generator=g) * 70.0 + 25.0  # (2, N, Az, El) meters
+        depth = torch.where(left, far, near)  # (2, N, Az, El)
+        classes = torch.randint(0, 9, (2, 16, 8), generator=g, dtype=torch.uint8)  # (N, Az, El), 0 a miss
+        semantic = torch.where(left, classes, torch.full_like(classes, 7))  # (N, Az, El)
+        depth[1] = torch.where(semantic == 0, 100.0, depth[1])
+        views.append(_frames(depth[0], depth[1], semantic))  # (N, 3, Az, El)
+    capped, whole = (RayViTEncoder((3, 16, 8), EngineConfig.tiny(view_range=v)) for v in (0.2, 1.0))
+    whole.load_state_dict(capped.state_dict())  # the same weights
+    with torch.no_grad():
+        assert torch.equal(capped(views[0]), capped(views[1]))
+        assert not torch.allclose(whole(views[0]), whole(views[1]))
+
+
+def test_the_view_range_is_a_fraction_of_the_horizon() -> None:
+    assert engine_overrides(["view_range=0.2"]) == {"view_range": 0.2}
+    kept = TrainConfig.from_dict(asdict(TrainConfig(engine=EngineConfig(view_range=0.2))))
+    assert kept.engine.view_range == 0.2  # stored with every checkpoint's config
+    for bad in (0.0, -0.1, 1.5):
+        with pytest.raises(ValueError, match="view_range must lie in"):
+            EngineConfig(view_range=bad)

@@ -50,6 +50,8 @@ def test_arms_parse_and_bad_ones_are_refused() -> None:
     assert lever.run_key == "procedural-surface-arena+maze-structure_weight=0-blind_weight=0.1"
     assert lever.spec == "procedural:surface:arena+maze/structure_weight=0,blind_weight=0.1"
     assert parse_arm("openarena/collision_weight=5").reward == (("collision_weight", 5.0),)
+    view = parse_arm("procedural/view_range=0.2")
+    assert view.engine == (("view_range", 0.2),) and view.run_key == "procedural-object-all-view_range=0.2"
     warm = parse_arm("procedural/init_from=explore,structure_weight=0")
     assert (warm.init_from, warm.reward, warm.key) == (
         "explore",
@@ -60,6 +62,7 @@ def test_arms_parse_and_bad_ones_are_refused() -> None:
     for bad, why in (
         ("procedural/", "name KEY=VALUE after /"),
         ("procedural/action_input=maybe", "expects 1 or 0"),
+        ("procedural/view_range=1.5", "view_range must lie in"),
         ("procedural/structure=0", "unknown reward weight"),
         ("procedural/structure_weight", "KEY=NUMBER"),
         ("quake", "expected openarena or procedural"),

@@ -82,6 +82,17 @@ class EngineConfig:
     episode starts), embedded and added to the encoder's embedding. A drone whose move was blocked sees the
     same view after commanding motion, which only its own action tells apart from hovering. Its weights
     start at zero, so a fresh engine acts as one without it until training moves them."""
+    view_range: float = 1.0
+    """The depth the encoder reads, as a fraction of the env's horizon (0.2: 20 m at the default 100 m):
+    every ray beyond it, and every miss, reads as a surface of the unknown class at it (a goal mark
+    kept), and delta depth is that of the capped frames. The env's rewards and statistics still see the
+    true depth. 1: the whole horizon, the observation read as it is."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.view_range <= 1.0:
+            raise ValueError(
+                f"view_range must lie in (0, 1], a fraction of the horizon; got {self.view_range}"
+            )
 
     @classmethod
     def tiny(cls, **overrides: Any) -> EngineConfig:

@@ -8,6 +8,10 @@ spherical sin/cos positional encoding (computed once, a buffer, never trained) i
 pre-norm transformer blocks mix the tokens (attention by F.scaled_dot_product_attention, or written
 out: `EngineConfig.attention`), and the mean token is projected to the embedding.
 
+With `EngineConfig.view_range` below 1 the encoder first caps the view (`cap_view`): whatever lies beyond
+that fraction of the horizon reads as an unknown surface at it, so a drone trained in rooms meets the
+far walls and sky of a large open map as the near walls it knows.
+
 Ray layout (docs/ACTOR.md): azimuth bin a is at φ = 2π·a/Az (bin 0 straight ahead, increasing to
 the left); elevation bin e at θ = -π/2 + π·(e + 0.5)/El (bottom to top).
 """
@@ -64,6 +68,20 @@ def near_field(depth: torch.Tensor) -> torch.Tensor:
     return torch.log(depth.clamp(0.0, 1.0) + NEAR_FIELD_EPS) * (1.0 / math.log(NEAR_FIELD_EPS))
 
 
+def cap_view(obs: torch.Tensor, view_range: float) -> torch.Tensor:
+    """obs (N, 3, Az, El) as an encoder with EngineConfig.view_range reads it, (N, 3, Az, El) float32:
+    depth beyond `view_range` (a fraction of the horizon; a miss reads 1) is `view_range`, the semantic
+    channel there the unknown class (0.5) unless a goal mark (< 0) is painted on the ray, and delta depth
+    the difference of the capped frames (the previous frame's depth is depth - delta, exactly; with
+    `view_range` a float16 value, as the encoder rounds it, the capped delta is exact too)."""
+    depth, semantic, delta = obs.float().unbind(1)  # (N, Az, El) each
+    capped = depth.clamp(max=view_range)  # (N, Az, El)
+    before = (depth - delta).clamp(max=view_range)  # (N, Az, El) the previous frame's depth, capped
+    unknown = (depth > view_range) & (semantic >= 0.0)  # (N, Az, El) bool: far, no goal mark
+    semantic = torch.where(unknown, 0.5, semantic)  # (N, Az, El)
+    return torch.stack([capped, semantic, capped - before], dim=1)  # (N, 3, Az, El)
+
+
 def attention_explicit(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """softmax(q kᵀ / √d) v written out, the softmax in float32: q, k, v (N, h, P, d) -> (N, h, P, d).
     The same function as F.scaled_dot_product_attention(q, k, v)."""
@@ -116,6 +134,7 @@ class RayViTEncoder(nn.Module):
         )
         self.norm = nn.LayerNorm(cfg.embed_dim)
         self.out = nn.Linear(cfg.embed_dim, cfg.embed_dim)
+        self.view_range = float(torch.tensor(cfg.view_range, dtype=torch.float16))  # a float16 depth value
 
     @property
     def n_tokens(self) -> int:
@@ -123,6 +142,8 @@ class RayViTEncoder(nn.Module):
         return int(self.pos.shape[0])
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if self.view_range < 1.0:
+            obs = cap_view(obs, self.view_range)  # (N, 3, Az, El) float32
         x = torch.cat([near_field(obs[:, :1].float()), obs.float()], dim=1)  # (N, 4, Az, El)
         x = self.embed(patchify(x, self.patch).to(self.embed.weight.dtype)) + self.pos  # (N, P, D)
         for block in self.blocks:
