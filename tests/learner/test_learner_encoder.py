@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from navi_env.sim.observation import write_observation
-from navi_learner.config import EngineConfig, TrainConfig, engine_overrides
+from navi_learner.config import TASK_VIEW_RANGE, EngineConfig, TrainConfig, engine_overrides, resolve
 from navi_learner.engine.encoder import (
     RayViTEncoder,
     attention_explicit,
@@ -205,10 +205,26 @@ def test_an_encoder_with_a_view_range_does_not_see_beyond_it() -> None:
         assert not torch.allclose(whole(views[0]), whole(views[1]))
 
 
-def test_the_view_range_is_a_fraction_of_the_horizon() -> None:
+def test_the_view_range_is_a_fraction_of_the_horizon_fixed_per_task_when_a_run_starts() -> None:
     assert engine_overrides(["view_range=0.2"]) == {"view_range": 0.2}
-    kept = TrainConfig.from_dict(asdict(TrainConfig(engine=EngineConfig(view_range=0.2))))
-    assert kept.engine.view_range == 0.2  # stored with every checkpoint's config
-    for bad in (0.0, -0.1, 1.5):
+    for bad in (-0.1, 1.5):
         with pytest.raises(ValueError, match="view_range must lie in"):
             EngineConfig(view_range=bad)
+    for task, view in (("explore", 1.0), ("pointgoal", 0.2)):  # 0, the default: the task's
+        assert resolve(TrainConfig(task=task, device="cpu"), (3, 256, 48)).engine.view_range == view
+        assert TASK_VIEW_RANGE[task] == view
+    chosen = TrainConfig(task="pointgoal", device="cpu", engine=EngineConfig(view_range=1.0))
+    assert resolve(chosen, (3, 256, 48)).engine.view_range == 1.0  # a chosen range stays
+    kept = TrainConfig.from_dict(asdict(resolve(TrainConfig(task="pointgoal", device="cpu"), (3, 256, 48))))
+    assert kept.engine.view_range == 0.2  # stored with every checkpoint's config
+    old = {k: v for k, v in asdict(EngineConfig()).items() if k != "view_range"}
+    assert EngineConfig.from_dict(old).view_range == 1.0  # older checkpoints read the whole horizon
+
+
+def test_an_engine_left_at_the_task_default_outside_a_run_reads_the_whole_horizon() -> None:
+    torch.manual_seed(0)
+    obs = torch.rand(2, 3, 16, 8)  # (N, C, Az, El)
+    unset, whole = (RayViTEncoder((3, 16, 8), EngineConfig.tiny(view_range=v)) for v in (0.0, 1.0))
+    whole.load_state_dict(unset.state_dict())
+    with torch.no_grad():
+        assert torch.equal(unset(obs), whole(obs))

@@ -95,3 +95,29 @@ def test_exact_stage_timers_measure_gpu_time_without_waiting_for_it() -> None:
         assert abs(ms["ms_env"] - want) < 0.2 * want, (ms, want)
         assert ms["ms_learn"] < 0.1 * want and ms["ms_forward"] == 0.0
     assert len(timers.pool) == 4 and not timers.spans
+
+
+def test_compiled_encoder_with_a_view_range_matches_eager_and_ignores_the_far_field_on_cuda() -> None:
+    """The encoder as training compiles it, with the point-goal view range (0.2): within float tolerance of
+    the eager encoder, and blind beyond 20 m as the eager one is (views that differ only there embed
+    alike, bit for bit)."""
+    from navi_learner.engine.encoder import RayViTEncoder
+
+    torch.manual_seed(0)
+    dev = torch.device("cuda")
+    enc = RayViTEncoder((3, 256, 48), EngineConfig(view_range=0.2)).to(dev).eval()
+    compiled = torch.compile(enc)
+    n = 512
+    depth = (torch.rand(n, 256, 48, device=dev) * 0.4).half().float()  # (N, Az, El) 0-40 m of 100
+    before = (torch.rand(n, 256, 48, device=dev) * 0.4).half().float()  # (N, Az, El) the previous frame
+    semantic = torch.where(torch.rand(n, 256, 48, device=dev) < 0.1, -0.25, 0.75)  # (N, Az, El) marks
+    view = torch.stack([depth, semantic, depth - before], dim=1)  # (N, 3, Az, El)
+    far = (depth > 0.25) & (before > 0.25)  # (N, Az, El) beyond 20 m in both frames
+    other = view.clone()
+    other[:, 0] = torch.where(far, 1.0, depth)  # misses there instead
+    other[:, 1] = torch.where(far & (semantic > 0), 0.0, semantic)
+    other[:, 2] = torch.where(far, 0.0, view[:, 2])
+    with torch.no_grad():
+        eager, fused, fused_other = enc(view), compiled(view), compiled(other)  # (N, D) each
+    assert torch.allclose(fused, eager, atol=2e-4, rtol=0)
+    assert torch.equal(fused, fused_other)

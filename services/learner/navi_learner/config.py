@@ -82,16 +82,17 @@ class EngineConfig:
     episode starts), embedded and added to the encoder's embedding. A drone whose move was blocked sees the
     same view after commanding motion, which only its own action tells apart from hovering. Its weights
     start at zero, so a fresh engine acts as one without it until training moves them."""
-    view_range: float = 1.0
+    view_range: float = 0.0
     """The depth the encoder reads, as a fraction of the env's horizon (0.2: 20 m at the default 100 m):
     every ray beyond it, and every miss, reads as a surface of the unknown class at it (a goal mark
-    kept), and delta depth is that of the capped frames. The env's rewards and statistics still see the
-    true depth. 1: the whole horizon, the observation read as it is."""
+    kept), and delta depth is that of the capped frames; the env's rewards and statistics still see the
+    true depth. 1: the whole horizon. 0: the task's (TASK_VIEW_RANGE), fixed when a run starts (`resolve`)
+    and stored with its checkpoints; an engine built with 0 outside a run reads the whole horizon."""
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.view_range <= 1.0:
+        if not 0.0 <= self.view_range <= 1.0:
             raise ValueError(
-                f"view_range must lie in (0, 1], a fraction of the horizon; got {self.view_range}"
+                f"view_range must lie in [0, 1], a fraction of the horizon; got {self.view_range}"
             )
 
     @classmethod
@@ -114,8 +115,9 @@ class EngineConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> EngineConfig:
         """The engine a checkpoint stored. One written before `patch_el` existed had square patches of
-        `patch_size`, so a missing `patch_el` is 0 (square), not today's default."""
-        return cls(**({"patch_el": 0} | data))
+        `patch_size`, so a missing `patch_el` is 0 (square), not today's default; one written before
+        `view_range` existed read the whole horizon (1)."""
+        return cls(**({"patch_el": 0, "view_range": 1.0} | data))
 
     @property
     def patch(self) -> tuple[int, int]:
@@ -129,6 +131,13 @@ class EngineConfig:
         if az % pa or el % pe:
             raise ValueError(f"observation {az}x{el} is not divisible by the {pa}x{pe} patch")
         return pa, pe
+
+
+TASK_VIEW_RANGE: dict[str, float] = {"explore": 1.0, "pointgoal": 0.2}
+"""EngineConfig.view_range per task where a run leaves it 0. Point-goal drones read 20 m: trained on
+procedural scenes with the whole horizon, they stopped following the goal on open real maps whose sky
+and far walls fill most of the view (docs/TRAINING.md, "Real maps never seen"). Explore keeps the whole
+horizon: its transfer has not been measured with a shorter view."""
 
 
 def engine_overrides(items: Sequence[str]) -> dict[str, Any]:
@@ -357,7 +366,8 @@ def obs_bytes(obs_shape: tuple[int, int, int], compact: bool) -> int:
 
 
 def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = True) -> TrainConfig:
-    """Fill the derived defaults (actor count, rollout length) once, right after parsing.
+    """Fill the derived defaults (actor count, rollout length, the engine's view range for the task)
+    once, right after parsing.
 
     The rollout length defaults to ROLLOUT_DEFAULT for the device but is capped, to a multiple of the
     BPTT chunk, so that N·T stored observations (`compact` or float32, see obs_bytes) fit in
@@ -376,7 +386,8 @@ def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = T
     rollout = max(bptt, rollout // bptt * bptt)
     minibatches = max(cfg.ppo.num_minibatches, -(-n_actors * rollout // cfg.ppo.max_minibatch))
     ppo = replace(cfg.ppo, bptt_chunk=bptt, num_minibatches=minibatches)
-    return replace(cfg, n_actors=n_actors, rollout_length=rollout, ppo=ppo)
+    engine = replace(cfg.engine, view_range=cfg.engine.view_range or TASK_VIEW_RANGE.get(cfg.task, 1.0))
+    return replace(cfg, n_actors=n_actors, rollout_length=rollout, ppo=ppo, engine=engine)
 
 
 @dataclass(frozen=True, kw_only=True)

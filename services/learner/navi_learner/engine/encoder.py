@@ -142,7 +142,7 @@ class RayViTEncoder(nn.Module):
         return int(self.pos.shape[0])
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        if self.view_range < 1.0:
+        if 0.0 < self.view_range < 1.0:
             obs = cap_view(obs, self.view_range)  # (N, 3, Az, El) float32
         x = torch.cat([near_field(obs[:, :1].float()), obs.float()], dim=1)  # (N, 4, Az, El)
         x = self.embed(patchify(x, self.patch).to(self.embed.weight.dtype)) + self.pos  # (N, P, D)
