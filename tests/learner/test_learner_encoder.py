@@ -1,5 +1,6 @@
-"""RayViTEncoder: shapes at the canonical 256×48, fixed spherical positional encodings, and the written-out
-attention against F.scaled_dot_product_attention."""
+"""RayViTEncoder: shapes at the canonical 256×48, fixed spherical positional encodings, the written-out
+attention against F.scaled_dot_product_attention, and the view range (`cap_view`) against the env's own
+observation writer."""
 
 from __future__ import annotations
 
