@@ -1,5 +1,6 @@
 """Free space, its connected parts and true path lengths: the torch passes against breadth-first search
-and Dijkstra on random grids (with and without random edge masks), the 26-neighbourhood metric in open
+and Dijkstra on random grids (with and without random edge masks), the CPU's frontier relaxation against
+the whole-grid passes bit for bit, the 26-neighbourhood metric in open
 space, a wall with a doorway, the lattice sampled from a scene's distance field, and its edge test: a
 wall thinner than the cell cuts the edges across it and paths go round it."""
 
@@ -32,6 +33,8 @@ from navi_env.space.freespace import (
     geodesic_ref,
     greedy_coverage,
     open_edges,
+    settle_frontier,
+    settle_passes,
     surface_distance,
     surface_distance_ref,
 )
@@ -115,6 +118,29 @@ def test_geodesic_through_edges_matches_dijkstra(seed: int) -> None:
     assert bool(finite.sum() > sources.shape[0])
     whole = geodesic(free, sources, 0.5)
     assert bool((fast >= whole).all()) and bool((fast > whole).any())  # fewer edges: never shorter
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_frontier_relaxation_is_the_whole_grid_passes(seed: int) -> None:
+    """settle_frontier (what a CPU runs) ends where settle_passes (what a GPU runs) does, bit for bit: from
+    single sources through edges, from several through every free pair, and from scattered start values
+    with no free mask (as surface_distance starts); a start value inside a blocked voxel reads inf in both."""
+    free = random_free(seed, shape=(11, 9, 6), share=0.7)
+    edges = random_edges(free, 700 + seed, keep=0.8)
+    g = torch.Generator().manual_seed(300 + seed)
+    candidates = free.nonzero()  # (F, 3)
+    sources = candidates[torch.randperm(candidates.shape[0], generator=g)[:4]]  # (4, 3)
+    start = torch.full((4, *free.shape), math.inf)  # (4, X, Y, Z)
+    start[torch.arange(4), sources[:, 0], sources[:, 1], sources[:, 2]] = 0.0
+    blocked = (~free).nonzero()[0]  # (3,)
+    start[0, blocked[0], blocked[1], blocked[2]] = 0.0
+    for mask in (edges, None):
+        passes = settle_passes(start.clone(), 0.37, free, mask)  # (4, X, Y, Z)
+        assert torch.equal(settle_frontier(start.clone(), 0.37, free, mask), passes)
+        assert bool(torch.isfinite(passes).sum() > 4 * 4) and math.isinf(float(passes[0, *blocked]))
+    scattered = torch.rand(1, *free.shape, generator=g)  # (1, X, Y, Z)
+    scattered = torch.where(scattered < 0.1, scattered * 4.0, math.inf)  # a tenth of the voxels start finite
+    assert torch.equal(settle_frontier(scattered, 0.4), settle_passes(scattered, 0.4))
 
 
 @pytest.mark.parametrize("seed", range(3))
