@@ -46,8 +46,8 @@ All are torch only, on the scene's device: one pass over the grid per iteration,
 of path lengths and surface distances on a CPU (`settle`), which `settle_frontier` runs from the voxels
 that changed (the same fields, bit for bit; on czest3ctf's 215 × 139 × 36 lattice, 16 goal fields in
 4.2 s on 2 cores instead of 290 s). `components_ref`, `geodesic_ref` and `surface_distance_ref` are the
-plain-Python twins (breadth-first search, Dijkstra) for small grids; `edge_clearance_ref` samples the distance field densely along every edge (the slow
-twin of `cast_edges`).
+plain-Python twins (breadth-first search, Dijkstra) for small grids; `edge_clearance_ref` samples the
+distance field densely along every edge (the slow twin of `cast_edges`).
 """
 
 from __future__ import annotations
