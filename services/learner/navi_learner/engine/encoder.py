@@ -5,8 +5,9 @@ differ by 0.005), so the encoder adds a log-depth channel, `near_field`, that sp
 contact, 0.67 at 1% of the horizon, 0 at the horizon). Non-overlapping patches of the four channels
 (16 azimuth × 16 elevation rays, 22.5° × 60°: 16×3 = 48 tokens at 256×48) are embedded linearly, a fixed
 spherical sin/cos positional encoding (computed once, a buffer, never trained) is added, a few lean
-pre-norm transformer blocks mix the tokens (attention by F.scaled_dot_product_attention, or written
-out: `EngineConfig.attention`), and the mean token is projected to the embedding.
+pre-norm transformer blocks mix the tokens (attention by F.scaled_dot_product_attention, written out,
+or one fused kernel for few tokens: `EngineConfig.attention`, engine/attention.py), and the mean token is
+projected to the embedding.
 
 With `EngineConfig.view_range` below 1 the encoder first caps the view (`cap_view`): whatever lies beyond
 that fraction of the horizon reads as an unknown surface at it, so a drone trained in rooms meets the
@@ -25,6 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from navi_learner.config import ATTENTIONS, EngineConfig
+from navi_learner.engine.attention import attention_explicit, fused_attention_fits, short_attention
 
 
 def spherical_positions(az_patches: int, el_patches: int, dim: int) -> torch.Tensor:
@@ -82,13 +84,6 @@ def cap_view(obs: torch.Tensor, view_range: float) -> torch.Tensor:
     return torch.stack([capped, semantic, capped - before], dim=1)  # (N, 3, Az, El)
 
 
-def attention_explicit(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """softmax(q kᵀ / √d) v written out, the softmax in float32: q, k, v (N, h, P, d) -> (N, h, P, d).
-    The same function as F.scaled_dot_product_attention(q, k, v)."""
-    w = torch.matmul(q, k.transpose(-2, -1)).float() * (1.0 / math.sqrt(q.shape[-1]))  # (N, h, P, P) f32
-    return torch.matmul(w.softmax(dim=-1).to(v.dtype), v)  # (N, h, P, d)
-
-
 class Block(nn.Module):
     """Pre-norm transformer block: multi-head attention and a GELU MLP."""
 
@@ -97,6 +92,7 @@ class Block(nn.Module):
         if attention not in ATTENTIONS:
             raise ValueError(f"attention must be {' or '.join(ATTENTIONS)}, got {attention!r}")
         self.attend = F.scaled_dot_product_attention if attention == "sdpa" else attention_explicit
+        self.fused = attention == "fused"  # short_attention on the qkv layout itself
         self.heads = heads
         self.norm1 = nn.LayerNorm(dim)
         self.qkv = nn.Linear(dim, 3 * dim)
@@ -108,9 +104,12 @@ class Block(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, p, d = x.shape
         qkv = self.qkv(self.norm1(x)).view(n, p, 3, self.heads, d // self.heads)  # (N, P, 3, h, D/h)
-        q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # (N, h, P, D/h) each
-        att = self.attend(q, k, v)  # (N, h, P, D/h)
-        x = x + self.proj(att.transpose(1, 2).reshape(n, p, d))  # (N, P, D)
+        if self.fused:
+            att = short_attention(qkv)  # (N, P, h, D/h)
+        else:
+            q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # (N, h, P, D/h) each
+            att = self.attend(q, k, v).transpose(1, 2)  # (N, P, h, D/h)
+        x = x + self.proj(att.reshape(n, p, d))  # (N, P, D)
         return x + self.fc2(F.gelu(self.fc1(self.norm2(x))))  # (N, P, D)
 
 
@@ -128,6 +127,10 @@ class RayViTEncoder(nn.Module):
         self.register_buffer(
             "pos", spherical_positions(az // pa, el // pe, cfg.embed_dim), persistent=False
         )  # (P, D) float32
+        if cfg.attention == "fused":
+            why = fused_attention_fits((az // pa) * (el // pe), cfg.embed_dim // cfg.encoder_heads)
+            if why is not None:
+                raise ValueError(f"attention fused cannot take this encoder: {why}; use sdpa")
         self.blocks = nn.ModuleList(
             Block(cfg.embed_dim, cfg.encoder_heads, cfg.mlp_ratio, cfg.attention)
             for _ in range(cfg.encoder_layers)

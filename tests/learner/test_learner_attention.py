@@ -1,0 +1,118 @@
+"""The fused short-sequence attention (engine/attention.py): its Triton kernels against the written-out
+reference (run on the CPU by Triton's interpreter), the operator's gradient, the encoder wired to it, and
+the shapes it refuses. The CUDA run of the kernels is in test_learner_gpu.py."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from navi_learner.config import EngineConfig
+from navi_learner.engine.attention import (
+    fused_attention_fits,
+    short_attention,
+    short_attention_backward_ref,
+    short_attention_ref,
+)
+from navi_learner.engine.encoder import RayViTEncoder
+
+LEARNER = Path(__file__).resolve().parents[2] / "services" / "learner"
+
+INTERPRETED = textwrap.dedent(
+    """
+    import json, torch
+    from navi_learner.engine.attention import (short_attention_backward_ref, short_attention_backward_triton,
+        short_attention_ref, short_attention_triton)
+    g = torch.Generator().manual_seed(0)
+    errors = {}
+    for n, p, h, d in [(3, 48, 4, 32), (2, 5, 1, 16), (1, 128, 2, 64)]:
+        qkv = torch.randn(n, p, 3, h, d, generator=g)  # (N, P, 3, h, d)
+        dout = torch.randn(n, p, h, d, generator=g)  # (N, P, h, d)
+        ref, grad = short_attention_ref(qkv), short_attention_backward_ref(qkv, dout)
+        for dtype in (torch.float32, torch.float16):
+            out = short_attention_triton(qkv.to(dtype)).float()
+            dqkv = short_attention_backward_triton(qkv.to(dtype), dout.to(dtype)).float()
+            errors[f"{n},{p},{h},{d},{dtype}"] = [
+                (out - ref).abs().max().item(), (dqkv - grad).abs().max().item(),
+                grad.abs().max().item(), list(out.shape), list(dqkv.shape)]
+    print(json.dumps(errors))
+    """
+)
+
+
+def test_kernels_match_the_written_out_attention_under_the_interpreter() -> None:
+    """Forward and backward kernels against short_attention_ref and its autograd gradient, with the
+    sequence padded to the program's block (5 of 16, 48 of 64) and full (128): float32 to rounding,
+    float16 to its precision."""
+    pytest.importorskip("triton", reason="the kernels are Triton programs; this torch build has no Triton")
+    env = {
+        **os.environ,
+        "TRITON_INTERPRET": "1",
+        "PYTHONPATH": f"{LEARNER}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+    }
+    run = subprocess.run(
+        [sys.executable, "-c", INTERPRETED], env=env, capture_output=True, text=True, timeout=600
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    import json
+
+    errors = json.loads(run.stdout.strip().splitlines()[-1])
+    assert len(errors) == 6
+    for key, (out_err, grad_err, grad_max, out_shape, grad_shape) in errors.items():
+        n, p, h, d = (int(x) for x in key.split(",")[:4])
+        assert out_shape == [n, p, h, d] and grad_shape == [n, p, 3, h, d]
+        tol = 1e-5 if "float32" in key else 5e-3
+        assert out_err < tol, key
+        assert grad_err < tol * max(1.0, grad_max), key
+
+
+def test_the_operator_is_sdpa_in_value_and_gradient() -> None:
+    """short_attention (here its CPU twin, through the registered operator and its autograd) reads
+    q, k, v from the qkv layout and returns what F.scaled_dot_product_attention returns, transposed."""
+    g = torch.Generator().manual_seed(1)
+    qkv = torch.randn(4, 48, 3, 4, 32, generator=g, requires_grad=True)  # (N, P, 3, h, d)
+    out = short_attention(qkv)  # (N, P, h, d)
+    q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # (N, h, P, d) each
+    ref = F.scaled_dot_product_attention(q, k, v).transpose(1, 2)  # (N, P, h, d)
+    assert out.shape == (4, 48, 4, 32)
+    assert torch.allclose(out, ref, atol=1e-5, rtol=0)
+    dout = torch.randn(out.shape, generator=g)  # (N, P, h, d)
+    (got,) = torch.autograd.grad(out, qkv, dout)
+    (want,) = torch.autograd.grad(ref, qkv, dout)
+    assert torch.allclose(got, want, atol=1e-5, rtol=0)
+    assert torch.equal(short_attention_backward_ref(qkv, dout), got)
+    assert torch.equal(short_attention_ref(qkv.detach()), out.detach())
+
+
+def test_encoder_with_fused_attention_matches_sdpa_and_loads_its_weights() -> None:
+    torch.manual_seed(0)
+    shape = (3, 32, 8)
+    sdpa = RayViTEncoder(shape, EngineConfig.tiny())
+    fused = RayViTEncoder(shape, EngineConfig.tiny(attention="fused"))
+    fused.load_state_dict(sdpa.state_dict())
+    obs = torch.rand(6, *shape)  # (N, 3, Az, El)
+    outs, grads = [], []
+    for enc in (sdpa, fused):
+        y = enc(obs)  # (N, D)
+        y.square().sum().backward()
+        outs.append(y.detach())
+        grads.append(torch.cat([p.grad.flatten() for p in enc.parameters()]))  # type: ignore[union-attr]
+    assert torch.allclose(outs[0], outs[1], atol=1e-5, rtol=0)
+    assert torch.allclose(grads[0], grads[1], atol=1e-4, rtol=1e-4)
+
+
+def test_shapes_the_kernel_cannot_hold_are_refused_with_the_reason() -> None:
+    assert fused_attention_fits(48, 32) is None and fused_attention_fits(128, 16) is None
+    assert "129 tokens" in str(fused_attention_fits(129, 32))
+    assert "heads 24 wide" in str(fused_attention_fits(48, 24))
+    with pytest.raises(ValueError, match="attention fused cannot take this encoder: heads 8 wide"):
+        RayViTEncoder((3, 32, 8), EngineConfig.tiny(attention="fused", encoder_heads=4))  # 32 / 4 = 8
+    with pytest.raises(ValueError, match="192 tokens"):
+        RayViTEncoder((3, 256, 48), EngineConfig(attention="fused", patch_size=8, patch_el=8))
