@@ -15,12 +15,14 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, cast
 
 import torch
 
+from navi_bench.profile import profile_stages
 from navi_learner.config import TrainConfig, compact_storage, resolve
 from navi_learner.engine.heads import ACTION_DIM
 from navi_learner.engine.memory import EpisodicMemory
@@ -90,13 +92,17 @@ def bench_train(
     warmup: int = 2,
     env_steps: int = 50,
     dist: Dist | None = None,
+    profile_dir: Path | None = None,
 ) -> dict[str, Any]:
     """All three columns for one configuration; the training column skips `warmup` updates.
 
     On a rank of a data-parallel run (`dist`) every rank measures its own columns, all ranks starting
     each column together; every rank returns {"world_size", "ranks": [each rank's columns], "total"}.
     Besides the columns: ms per env step of each stage (`ms_per_step`, stages exclusive of the sync
-    within them) and the step's timeline (`timeline_ms`)."""
+    within them) and the step's timeline (`timeline_ms`).
+
+    With `profile_dir` one more update runs after the measured ones, its rollout and its update under
+    torch.profiler (navi_bench.profile: one file per stage and rank in `profile_dir`)."""
     d = dist or Dist()
     sync = Sync(d, [], env.device) if d.active else None
     compact = compact_storage(cfg, bool(getattr(env, "compact_obs", False)))
@@ -104,7 +110,8 @@ def bench_train(
         resolve(cfg, env.obs_shape, compact), sync_timers=True, log_every=1, checkpoint_every=10**12
     )
     per_update = cfg.n_actors * cfg.rollout_length
-    cfg = replace(cfg, total_steps=per_update * d.world * (warmup + updates))  # steps count every rank's
+    extra = 1 if profile_dir is not None else 0  # the profiled update, after the measured ones
+    cfg = replace(cfg, total_steps=per_update * d.world * (warmup + updates + extra))  # every rank's steps
     device = env.device
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -133,7 +140,11 @@ def bench_train(
     if sync is not None:
         sync.barrier()  # the normaliser's last sums waited for; every rank starts training together
     rows: list[dict[str, float]] = []
-    with tempfile.TemporaryDirectory() as tmp:
+    tag = f"rank{d.rank}" if d.active else "one-process"
+    profiling = (
+        profile_stages(profile_dir, warmup + updates + 1, tag) if profile_dir is not None else nullcontext()
+    )
+    with tempfile.TemporaryDirectory() as tmp, profiling:
         train(
             env,
             cfg,
@@ -142,7 +153,7 @@ def bench_train(
             progress=False,
             dist=d,
         )
-    measured = rows[warmup:] or rows
+    measured = rows[warmup : warmup + updates] or rows
     mean = {
         k: sum(r[k] for r in measured) / len(measured)
         for k in ("sps", "ms_env", "ms_forward", "ms_learn", "ms_sync")

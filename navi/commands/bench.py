@@ -919,6 +919,16 @@ def bench_train_cmd(
         Path | None, typer.Option("--result-file", hidden=True, help="Write the JSON here instead.")
     ] = None,
     engine: EngineOpt = None,
+    profile: Annotated[
+        Path | None,
+        typer.Option(
+            "--profile",
+            help="Run one more update after the measured ones with its rollout and its PPO update under "
+            "torch.profiler, and write there collect-TAG.txt and update-TAG.txt (TAG one-process or "
+            "rankN): the kernels' busy time, then the operators by device time. With --nproc the last "
+            "one-process run's files stay.",
+        ),
+    ] = None,
 ) -> None:
     """Env only / env + inference / env + training SPS and ms per stage."""
     from dataclasses import replace
@@ -945,7 +955,7 @@ def bench_train_cmd(
             n = cfg.n_actors or default_actors(torch.device(dev))
             environment = build_env(env, corpus, n, dev, d.rank, d.rank, d.world, rank_scenes=cfg.rank_scenes)
             cfg = replace(cfg, n_actors=n)
-            result = bench_train(environment, cfg, updates=updates, dist=d)
+            result = bench_train(environment, cfg, updates=updates, dist=d, profile_dir=profile)
         except (dist.DistError, StorageError) as err:
             raise fail(str(err)) from err
         finally:
