@@ -1,6 +1,6 @@
 """The fused short-sequence attention (engine/attention.py): its Triton kernels against the written-out
-reference (run on the CPU by Triton's interpreter), the operator's gradient, the encoder wired to it, and
-the shapes it refuses. The CUDA run of the kernels is in test_learner_gpu.py."""
+reference (run on the CPU by Triton's interpreter), the operator's gradient, and the shapes it refuses.
+The encoder wired to it is in test_learner_encoder.py, the CUDA run of the kernels in test_learner_gpu.py."""
 
 from __future__ import annotations
 
@@ -89,23 +89,6 @@ def test_the_operator_is_sdpa_in_value_and_gradient() -> None:
     assert torch.allclose(got, want, atol=1e-5, rtol=0)
     assert torch.equal(short_attention_backward_ref(qkv, dout), got)
     assert torch.equal(short_attention_ref(qkv.detach()), out.detach())
-
-
-def test_encoder_with_fused_attention_matches_sdpa_and_loads_its_weights() -> None:
-    torch.manual_seed(0)
-    shape = (3, 32, 8)
-    sdpa = RayViTEncoder(shape, EngineConfig.tiny())
-    fused = RayViTEncoder(shape, EngineConfig.tiny(attention="fused"))
-    fused.load_state_dict(sdpa.state_dict())
-    obs = torch.rand(6, *shape)  # (N, 3, Az, El)
-    outs, grads = [], []
-    for enc in (sdpa, fused):
-        y = enc(obs)  # (N, D)
-        y.square().sum().backward()
-        outs.append(y.detach())
-        grads.append(torch.cat([p.grad.flatten() for p in enc.parameters()]))  # type: ignore[union-attr]
-    assert torch.allclose(outs[0], outs[1], atol=1e-5, rtol=0)
-    assert torch.allclose(grads[0], grads[1], atol=1e-4, rtol=1e-4)
 
 
 def test_shapes_the_kernel_cannot_hold_are_refused_with_the_reason() -> None:

@@ -110,13 +110,15 @@ def test_explicit_attention_is_the_same_function_as_sdpa() -> None:
     assert half.dtype == torch.bfloat16 and torch.allclose(half.float(), ref, atol=0.05, rtol=0)
 
 
-def test_encoder_with_explicit_attention_matches_sdpa_in_value_and_gradient() -> None:
+@pytest.mark.parametrize("attention", ["explicit", "fused"])
+def test_encoder_attention_option_matches_sdpa_in_value_and_gradient(attention: str) -> None:
     """The option changes how attention is computed, not the function: the same weights give the same
-    embedding and the same gradients, and a checkpoint loads into either."""
+    embedding and the same gradients, and a checkpoint loads into either (fused here runs its CPU twin
+    through the registered operator and its autograd)."""
     torch.manual_seed(0)
     shape = (3, 32, 8)
     fused = RayViTEncoder(shape, EngineConfig.tiny())
-    written = RayViTEncoder(shape, EngineConfig.tiny(attention="explicit"))
+    written = RayViTEncoder(shape, EngineConfig.tiny(attention=attention))  # type: ignore[arg-type]
     written.load_state_dict(fused.state_dict())
     obs = torch.rand(6, *shape)  # (N, 3, Az, El)
     outs, grads = [], []
