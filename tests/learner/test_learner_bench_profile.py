@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 import navi_learner.ppo.train as training
@@ -56,10 +57,7 @@ def test_bench_train_profiles_the_update_after_the_measured_ones(tmp_path: Path)
 
 def test_profile_stages_restores_the_loop_even_when_it_fails(tmp_path: Path) -> None:
     kept = (training.collect, training.update)
-    try:
-        with profile_stages(tmp_path, 1, "one-process"):
-            assert training.collect is not kept[0] and training.update is not kept[1]
-            raise RuntimeError("the run fails")
-    except RuntimeError:
-        pass
+    with pytest.raises(RuntimeError, match="the run fails"), profile_stages(tmp_path, 1, "one-process"):
+        assert training.collect is not kept[0] and training.update is not kept[1]
+        raise RuntimeError("the run fails")
     assert (training.collect, training.update) == kept
