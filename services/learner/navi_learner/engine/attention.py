@@ -61,17 +61,16 @@ def fused_attention_fits(tokens: int, head_width: int) -> str | None:
 if triton is not None:
 
     @triton.jit
-    def _dot(a: Any, b: Any, IEEE: tl.constexpr) -> Any:
+    def _dot(a, b, IEEE: tl.constexpr):  # type: ignore[no-untyped-def]
         """a @ b accumulated in float32; float32 operands multiplied in full precision, not TF32."""
         if IEEE:
             return tl.dot(a, b, input_precision="ieee")
         return tl.dot(a, b)
 
     @triton.jit
-    def _qkv_and_probs(
-        QKV: Any, P: Any, scale: Any, H: tl.constexpr, D: tl.constexpr, BLOCK: tl.constexpr,
-        IEEE: tl.constexpr,
-    ) -> Any:  # fmt: skip
+    def _qkv_and_probs(  # type: ignore[no-untyped-def]
+        QKV, P, scale, H: tl.constexpr, D: tl.constexpr, BLOCK: tl.constexpr, IEEE: tl.constexpr,
+    ):  # fmt: skip
         """This program's (sample, head): q, k, v (BLOCK, D), their softmax probabilities (BLOCK, BLOCK)
         float32 (padded rows and columns read as zero), the row offsets, the column offsets, the valid
         rows, and the sample."""
@@ -92,20 +91,19 @@ if triton is not None:
         return q, k, v, probs, rows, cols, valid, n, head
 
     @triton.jit
-    def _short_attention_fwd(
-        QKV: Any, OUT: Any, P: Any, scale: Any, H: tl.constexpr, D: tl.constexpr,
-        BLOCK: tl.constexpr, IEEE: tl.constexpr,
-    ) -> None:  # fmt: skip
+    def _short_attention_fwd(  # type: ignore[no-untyped-def]
+        QKV, OUT, P, scale, H: tl.constexpr, D: tl.constexpr, BLOCK: tl.constexpr, IEEE: tl.constexpr,
+    ):  # fmt: skip
         _q, _k, v, probs, rows, cols, valid, n, head = _qkv_and_probs(QKV, P, scale, H, D, BLOCK, IEEE)
         o = _dot(probs.to(v.dtype), v, IEEE)  # (BLOCK, D) float32
         at = OUT + n * P * (H * D) + head * D + rows[:, None] * (H * D) + cols[None, :]
         tl.store(at, o.to(OUT.dtype.element_ty), mask=valid[:, None])
 
     @triton.jit
-    def _short_attention_bwd(
-        QKV: Any, DOUT: Any, DQKV: Any, P: Any, scale: Any, H: tl.constexpr, D: tl.constexpr,
-        BLOCK: tl.constexpr, IEEE: tl.constexpr,
-    ) -> None:  # fmt: skip
+    def _short_attention_bwd(  # type: ignore[no-untyped-def]
+        QKV, DOUT, DQKV, P, scale, H: tl.constexpr, D: tl.constexpr, BLOCK: tl.constexpr,
+        IEEE: tl.constexpr,
+    ):  # fmt: skip
         q, k, v, probs, rows, cols, valid, n, head = _qkv_and_probs(QKV, P, scale, H, D, BLOCK, IEEE)
         at_out = DOUT + n * P * (H * D) + head * D + rows[:, None] * (H * D) + cols[None, :]
         do = tl.load(at_out, mask=valid[:, None], other=0.0)  # (BLOCK, D)
