@@ -142,3 +142,30 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     allowed = os.environ.get("NAVI_ALLOWED_SKIPS")
     if allowed is not None and unexpected_skips(allowed) and exitstatus == pytest.ExitCode.OK:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+HOPPER = ("cuda", 90, 32)
+"""The GPU target the CUDA code is built for (sm_90, 32-lane warps)."""
+
+
+@pytest.fixture
+def hopper_compile() -> Callable[[Any, dict[str, str], dict[str, Any]], dict[str, Any]]:
+    """Compile a Triton kernel for sm_90 down to its cubin, on a machine without a GPU: Triton's front end
+    and ptxas run on the host, so a kernel the interpreter accepts but the compiler refuses (a global, an
+    annotation, a type the GPU lowering lacks) fails here and not first on a benchmark host. The
+    returned function takes the kernel, the launch signature ({"X": "*bf16", "n": "i32", "k":
+    "constexpr"}) and the constexpr values, and returns the compiled kernel's assembly by stage
+    ("ptx", "cubin", ...) and its shared memory in bytes ("shared")."""
+    triton = pytest.importorskip("triton", reason="the kernels are Triton programs; this torch has no Triton")
+    try:
+        from triton.backends.compiler import GPUTarget
+        from triton.compiler import ASTSource
+    except ImportError as error:  # pragma: no cover - a Triton without the ahead-of-time API
+        pytest.skip(f"this Triton ({triton.__version__}) cannot compile ahead of time: {error}")
+
+    def compile_kernel(kernel: Any, signature: dict[str, str], constexprs: dict[str, Any]) -> dict[str, Any]:
+        source = ASTSource(fn=kernel, signature=signature, constexprs=constexprs)
+        compiled = triton.compile(source, target=GPUTarget(*HOPPER))
+        return {**compiled.asm, "shared": int(compiled.metadata.shared)}
+
+    return compile_kernel

@@ -3,10 +3,13 @@ twin itself) and on CUDA (the Triton kernel, rows that are not a multiple of its
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import pytest
 import torch
 
-from navi_env.ecosystem.rows import copy_rows, copy_rows_ref
+from navi_env.ecosystem.rows import CHUNK, _kernel, copy_rows, copy_rows_ref
 
 
 def case(device: str, n: int, shape: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -41,3 +44,17 @@ def test_copy_rows_kernel_matches_the_reference_on_cuda(shape: tuple[int, ...]) 
     before = dst.clone()
     copy_rows(dst, src, none)
     assert torch.equal(dst, before)
+
+
+@pytest.mark.parametrize("dtype", ["fp32", "bf16", "u8"])
+def test_copy_rows_kernel_compiles_for_hopper(
+    hopper_compile: Callable[..., dict[str, Any]], dtype: str
+) -> None:
+    """The kernel, as copy_rows launches it (any element type, a uint8 mask, the row length), compiles
+    for sm_90 to a cubin on this CPU machine."""
+    kernel = _kernel()
+    assert kernel is not None  # hopper_compile has skipped where Triton is missing
+    signature = {"dst": f"*{dtype}", "src": f"*{dtype}", "mask": "*u8", "row": "i32", "chunk": "constexpr"}
+    asm = hopper_compile(kernel, signature, {"chunk": CHUNK})
+    assert len(asm["cubin"]) > 0
+    assert ".target sm_90" in asm["ptx"]

@@ -8,7 +8,9 @@ import os
 import subprocess
 import sys
 import textwrap
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -16,10 +18,13 @@ import torch.nn.functional as F
 
 from navi_learner.config import EngineConfig
 from navi_learner.engine.attention import (
+    FUSED_HEAD_WIDTHS,
     fused_attention_fits,
+    kernel_serves,
     short_attention,
     short_attention_backward_ref,
     short_attention_ref,
+    token_block,
 )
 from navi_learner.engine.encoder import RayViTEncoder
 
@@ -99,3 +104,56 @@ def test_shapes_the_kernel_cannot_hold_are_refused_with_the_reason() -> None:
         RayViTEncoder((3, 32, 8), EngineConfig.tiny(attention="fused", encoder_heads=4))  # 32 / 4 = 8
     with pytest.raises(ValueError, match="192 tokens"):
         RayViTEncoder((3, 256, 48), EngineConfig(attention="fused", patch_size=8, patch_el=8))
+
+
+SM90_SHARED_BYTES = 232_448
+"""The most shared memory one block may take on sm_90 (227 KiB): a kernel compiled for more fails to launch."""
+TRITON_TYPE = {torch.float32: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}
+
+
+def test_the_kernels_serve_every_shape_in_half_precision_and_small_ones_in_float32() -> None:
+    """kernel_serves: bf16 and float16 over the whole envelope, float32 up to a 64-row block of heads
+    32 wide (or 16 rows of 128), nothing else (float64 runs the written-out twin)."""
+    for tokens in (5, 48, 128):
+        for width in FUSED_HEAD_WIDTHS:
+            assert kernel_serves(tokens, width, torch.bfloat16) and kernel_serves(
+                tokens, width, torch.float16
+            )
+    assert token_block(5) == 16 and token_block(48) == 64 and token_block(64) == 64 and token_block(65) == 128
+    assert kernel_serves(48, 32, torch.float32) and kernel_serves(16, 128, torch.float32)
+    assert not kernel_serves(48, 64, torch.float32) and not kernel_serves(65, 16, torch.float32)
+    assert not kernel_serves(48, 32, torch.float64)
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16, torch.float32], ids=TRITON_TYPE.get)
+def test_kernels_compile_for_hopper_wherever_they_serve(
+    hopper_compile: Callable[..., dict[str, Any]], dtype: torch.dtype
+) -> None:
+    """The forward and backward kernels, as the host code launches them, compile for sm_90 to a cubin on
+    this CPU machine (the interpreter above runs them without compiling them), at every block and head
+    width they serve in `dtype`, and fit in a block's shared memory."""
+    from navi_learner.engine.attention import _short_attention_bwd, _short_attention_fwd
+
+    t = TRITON_TYPE[dtype]
+    served = 0
+    for block in (16, 32, 64, 128):
+        for width in FUSED_HEAD_WIDTHS:
+            if not kernel_serves(block, width, dtype):
+                continue
+            served += 1
+            shape = {"H": 4, "D": width, "BLOCK": block, "IEEE": dtype == torch.float32}
+            const = {name: "constexpr" for name in shape}
+            fwd = hopper_compile(
+                _short_attention_fwd,
+                {"QKV": f"*{t}", "OUT": f"*{t}", "P": "i32", "scale": "fp32", **const},
+                shape,
+            )
+            bwd = hopper_compile(
+                _short_attention_bwd,
+                {"QKV": f"*{t}", "DOUT": f"*{t}", "DQKV": f"*{t}", "P": "i32", "scale": "fp32", **const},
+                shape,
+            )
+            for kernel in (fwd, bwd):
+                assert len(kernel["cubin"]) > 0 and ".target sm_90" in kernel["ptx"], (block, width)
+                assert kernel["shared"] <= SM90_SHARED_BYTES, (block, width, kernel["shared"])
+    assert served == (16 if dtype != torch.float32 else 9)

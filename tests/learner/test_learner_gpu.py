@@ -10,7 +10,12 @@ import pytest
 import torch
 
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig
-from navi_learner.engine.attention import short_attention, short_attention_backward_ref, short_attention_ref
+from navi_learner.engine.attention import (
+    kernel_serves,
+    short_attention,
+    short_attention_backward_ref,
+    short_attention_ref,
+)
 from navi_learner.engine.encoder import RayViTEncoder
 from navi_learner.engine.temporal import make_core
 from navi_learner.envs.toy import ToyEnv
@@ -141,6 +146,19 @@ def test_fused_attention_kernels_match_the_reference_on_cuda() -> None:
         want = short_attention_backward_ref(qkv.detach().float(), dout.float())  # (N, P, 3, h, d)
         assert grad.dtype == dtype
         assert (grad.float() - want).abs().max().item() < tol * max(1.0, want.abs().max().item())
+
+
+def test_fused_attention_runs_the_twin_where_the_float32_kernels_do_not_serve() -> None:
+    """float32 at 128 tokens of heads 64 wide (beyond FLOAT32_KERNEL_TILE): the operator on CUDA gives
+    the written-out attention and its gradient, without compiling the large float32 kernels."""
+    g = torch.Generator(device="cuda").manual_seed(2)
+    qkv = torch.randn(8, 128, 3, 2, 64, device="cuda", generator=g, requires_grad=True)  # (N, P, 3, h, d)
+    assert not kernel_serves(128, 64, torch.float32)
+    out = short_attention(qkv)  # (N, P, h, d)
+    dout = torch.randn(out.shape, device="cuda", generator=g)  # (N, P, h, d)
+    (grad,) = torch.autograd.grad(out, qkv, dout)  # (N, P, 3, h, d)
+    assert torch.allclose(out, short_attention_ref(qkv.detach()), atol=1e-6, rtol=0)
+    assert torch.allclose(grad, short_attention_backward_ref(qkv.detach(), dout), atol=1e-6, rtol=0)
 
 
 def test_compiled_encoder_with_fused_attention_matches_sdpa_on_cuda() -> None:
