@@ -157,11 +157,8 @@ def hopper_compile() -> Callable[[Any, dict[str, str], dict[str, Any]], dict[str
     "constexpr"}) and the constexpr values, and returns the compiled kernel's assembly by stage
     ("ptx", "cubin", ...) and its shared memory in bytes ("shared")."""
     triton = pytest.importorskip("triton", reason="the kernels are Triton programs; this torch has no Triton")
-    try:
-        from triton.backends.compiler import GPUTarget
-        from triton.compiler import ASTSource
-    except ImportError as error:  # pragma: no cover - a Triton without the ahead-of-time API
-        pytest.skip(f"this Triton ({triton.__version__}) cannot compile ahead of time: {error}")
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
 
     def compile_kernel(kernel: Any, signature: dict[str, str], constexprs: dict[str, Any]) -> dict[str, Any]:
         source = ASTSource(fn=kernel, signature=signature, constexprs=constexprs)
