@@ -5,12 +5,15 @@ Protocol (docs/TRAINING.md, "The learning benchmark"):
   scenes of seed 1000 + every fifth OpenArena map (sorted by name, starting with the first). The
   split, with every scene name, is written into the result. Without the OpenArena package the
   OpenArena parts are left out and the result says why.
-- For every temporal core and seed: train from scratch on the train split; every `eval_every_s`
+- Arms: a temporal core, optionally followed by `/KEY=VALUE[,KEY=VALUE...]`, EngineConfig fields the
+  arm's fresh engine replaces (`mamba2/attention=fused`). The runs go seed by seed, every arm of a seed
+  before the next seed, so that arms compared in one job share its conditions.
+- For every arm and seed: train from scratch on the train split; every `eval_every_s`
   seconds of training evaluate the live policy, flown as its task is (ACTION_NOISE), on the unseen split
   (EvalProtocol) and record a curve point; stop at competence (at most half the reactive baseline's collisions per
   1,000 steps and at least 1.5x its coverage) or at the time budget.
 - Report per run the training time and env steps to competence (null if never), the final metrics
-  per unseen part with 95% bootstrap intervals, and per core the median over seeds.
+  per unseen part with 95% bootstrap intervals, and per arm the median over seeds.
 - With `nproc` > 1 every run trains data-parallel (DD-PPO, ppo/dist.py) on that many ranks through
   torchrun, `actors` per rank, each rank on every train scene; rank 0 runs the monitor and
   the final evaluation (run_ranks, rank_main), and its clock is the run's training time.
@@ -38,6 +41,7 @@ from navi_learner.config import (
     TEMPORAL_CORES,
     TemporalCoreName,
     TrainConfig,
+    engine_overrides,
     learning_recipe,
     learning_size,
 )
@@ -77,6 +81,7 @@ class LearnConfig:
 
     seeds: tuple[int, ...] = (0, 1, 2)
     temporal_cores: tuple[str, ...] = ("mamba2",)
+    """The arms: a temporal core each, optionally `CORE/KEY=VALUE[,KEY=VALUE...]` (parse_arm)."""
     time_budget_s: float = 600.0
     """Training seconds per run (evaluations excluded)."""
     eval_every_s: float = 30.0
@@ -194,11 +199,42 @@ def prepare_splits(
     return Splits(train, unseen, unseen_parts, scenes, notes)
 
 
-def train_config(cfg: LearnConfig, core: str, seed: int, device: torch.device) -> TrainConfig:
-    """The TrainConfig of one run of the benchmark: the job's settings (its engine with `core`), sized by
-    learning_size, with the run's seed, device and time budget and no periodic checkpoints."""
+def parse_arm(spec: str) -> tuple[TemporalCoreName, dict[str, Any]]:
+    """An arm `CORE[/KEY=VALUE[,KEY=VALUE...]]` as (temporal core, EngineConfig fields it replaces);
+    ValueError names an unknown core or engine field."""
+    core, _, rest = (part.strip() for part in spec.partition("/"))
+    if core not in TEMPORAL_CORES:
+        raise ValueError(
+            f"arm {spec!r}: unknown temporal core {core!r}; choose from {', '.join(TEMPORAL_CORES)}"
+        )
+    items = [item for item in rest.split(",") if item.strip()]
+    if "/" in spec and not items:
+        raise ValueError(f"arm {spec!r}: name KEY=VALUE after /")
+    try:
+        overrides = engine_overrides(items)
+    except ValueError as err:
+        raise ValueError(f"arm {spec!r}: {err}") from err
     name: TemporalCoreName = "gru" if core == "gru" else "mambapy" if core == "mambapy" else "mamba2"
-    engine = replace(cfg.train.engine, temporal_core=name)
+    return name, overrides
+
+
+def arm_folder(spec: str, seed: int) -> str:
+    """The run folder's name of (arm, seed): the arm's spec with its separators as dashes."""
+    return f"{spec.replace('/', '-').replace(',', '-')}-seed{seed}"
+
+
+def run_order(cfg: LearnConfig) -> list[tuple[str, int]]:
+    """The job's (arm, seed) runs in the order they start: seed by seed, every arm of a seed before the
+    next seed, so that arms compared in one job share its conditions (and, with --gpus, its GPUs)."""
+    return [(arm, seed) for seed in cfg.seeds for arm in cfg.temporal_cores]
+
+
+def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) -> TrainConfig:
+    """The TrainConfig of one run of the benchmark: the job's settings (its engine with the arm's core
+    and fields), sized by learning_size, with the run's seed, device and time budget and no periodic
+    checkpoints."""
+    core, overrides = parse_arm(arm)
+    engine = replace(cfg.train.engine, temporal_core=core, **overrides)
     return replace(
         learning_size(cfg.train, device.type == "cuda"),
         time_limit_s=cfg.time_budget_s,
@@ -220,7 +256,7 @@ def run_one(
     say: Say = say_stderr,
     dist: Dist | None = None,
 ) -> dict[str, Any]:
-    """Train one (core, seed) from scratch with the competence monitor; returns its result dict. As a
+    """Train one (arm, seed) from scratch with the competence monitor; returns its result dict. As a
     rank of a data-parallel run (`dist`), this rank trains its actors on the train scenes as
     cfg.train.rank_scenes says (every one by default); rank 0 alone evaluates and returns the result (the other ranks return {})."""
     from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
@@ -267,7 +303,8 @@ def run_one(
         final[name] = asdict(evaluate(part, trained, cfg.protocol.steps, cfg.protocol.seed))
         final[name]["policy"] = f"trained ({core}, seed {seed})"
     return {
-        "temporal_core": core,
+        "arm": core,
+        "temporal_core": tcfg.engine.temporal_core,
         "seed": seed,
         "run_id": result.run_id,
         "checkpoint": str(result.final_checkpoint),
@@ -319,7 +356,7 @@ def run_devices(device: str, gpus: int, runs: int) -> list[str]:
 
 
 class RunJob(NamedTuple):
-    """One (core, seed) run of the job: what a process needs to train and evaluate it."""
+    """One (arm, seed) run of the job: what a process needs to train and evaluate it (`core`: the arm)."""
 
     splits: Splits
     cfg: LearnConfig
@@ -334,6 +371,17 @@ def _child(job: RunJob) -> dict[str, Any]:
     if job.device.startswith("cuda:"):
         torch.cuda.set_device(torch.device(job.device))  # extensions and graphs use the current device
     return run_one(*job)
+
+
+def gpu_lanes(runs: int, gpus: int) -> list[list[int]]:
+    """The job's runs (indices, placed round-robin by run_devices) per GPU, each GPU's in job order: one
+    process per GPU trains its lane one run after another. (A plain pool hands the next run to whichever
+    worker is free, which puts two runs on one GPU when runs of unequal length finish out of turn.)"""
+    return [list(range(g, runs, gpus)) for g in range(gpus)]
+
+
+def _lane(jobs: list[RunJob]) -> list[dict[str, Any]]:
+    return [_child(job) for job in jobs]
 
 
 RANK_ENTRY = ["-m", "navi_bench.learn_rank"]
@@ -388,11 +436,11 @@ def rank_main(job: Path) -> None:
 
 
 def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
-    """Per temporal core: competent seeds, median training seconds and env steps to competence (over the
-    competent seeds; null if none), and the median final unseen metrics."""
+    """Per arm (in the order of `runs`): competent seeds, median training seconds and env steps to
+    competence (over the competent seeds; null if none), and the median final unseen metrics."""
     out: dict[str, Any] = {}
-    for core in sorted({r["temporal_core"] for r in runs}):
-        mine = [r for r in runs if r["temporal_core"] == core]
+    for core in dict.fromkeys(r["arm"] for r in runs):
+        mine = [r for r in runs if r["arm"] == core]
         hits = [r["competence"] for r in mine if r["competence"] is not None]
         last = [r["curve"][-1] for r in mine if r["curve"]]
         out[core] = {
@@ -417,7 +465,7 @@ def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
 
 
 def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalMetrics]]) -> str:
-    """report.md: the summary per core, each run, and the per-split tables of the last run of each core."""
+    """report.md: the summary per arm, each run, and the per-split tables of every run."""
     lines = ["# navi bench learn", "", f"device {result['device']}, {result['date']}", ""]
     goal = result["config"]["train"].get("task") == "pointgoal"
     finals = ("success", "SPL") if goal else ("coll/1k", "cov/1k")
@@ -425,7 +473,7 @@ def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalM
         "median_final_collisions_per_1k", "median_final_coverage_per_1k"
     )  # fmt: skip
     lines += [
-        "| core | seeds | competent | median s to competence | median steps | "
+        "| arm | seeds | competent | median s to competence | median steps | "
         f"final {finals[0]} | final {finals[1]} | SPS |"
     ]
     lines += ["| --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -436,19 +484,19 @@ def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalM
         )
     lines += [
         "",
-        "| core | seed | competence (train s, steps) | steps | train s |",
+        "| arm | seed | competence (train s, steps) | steps | train s |",
         "| --- | --- | --- | --- | --- |",
     ]
     for r in result["runs"]:
         c = r["competence"]
         hit = f"{c['train_s']:.0f} s, {c['step']:,}" if c else "not reached"
-        lines.append(f"| {r['temporal_core']} | {r['seed']} | {hit} | {r['steps']:,} | {r['train_s']:.0f} |")
+        lines.append(f"| {r['arm']} | {r['seed']} | {hit} | {r['steps']:,} | {r['train_s']:.0f} |")
     for r in result["runs"]:
         for part, metrics in r["final_by_split"].items():
             rows = [EvalMetrics(**metrics), *baselines[part].values()]
             lines += [
                 "",
-                f"## {r['temporal_core']} seed {r['seed']}, unseen {part}",
+                f"## {r['arm']} seed {r['seed']}, unseen {part}",
                 "",
                 comparison_table(rows),
             ]
@@ -465,9 +513,10 @@ def bench_learn(
     say: Say = print,
 ) -> dict[str, Any]:
     """The whole benchmark; writes and returns result.json's content."""
-    for core in cfg.temporal_cores:
-        if core not in TEMPORAL_CORES:
-            raise ValueError(f"unknown temporal core {core!r}; choose from {', '.join(TEMPORAL_CORES)}")
+    for arm in cfg.temporal_cores:
+        parse_arm(arm)
+    if len(set(cfg.temporal_cores)) != len(cfg.temporal_cores):
+        raise ValueError(f"an arm is named twice: {', '.join(cfg.temporal_cores)}")
     if cfg.nproc < 1:
         raise ValueError(f"nproc must be at least 1, got {cfg.nproc}")
     if cfg.nproc > 1 and (cfg.parallel > 1 or cfg.gpus > 0):
@@ -486,15 +535,25 @@ def bench_learn(
     baselines = baselines_by_split(splits, cfg, device)
     for part, b in baselines.items():
         say(f"[bench learn] baselines on unseen {part}:\n" + comparison_table(list(b.values())))
-    runs_wanted = [(core, seed) for core in cfg.temporal_cores for seed in cfg.seeds]
+    runs_wanted = run_order(cfg)
     places = run_devices(device, cfg.gpus, len(runs_wanted))
     jobs = [
-        RunJob(splits, cfg, core, seed, place, out / "runs" / f"{core}-seed{seed}", baselines["all"])
+        RunJob(splits, cfg, core, seed, place, out / "runs" / arm_folder(core, seed), baselines["all"])
         for (core, seed), place in zip(runs_wanted, places, strict=True)
     ]
     started = time.perf_counter()
     if cfg.nproc > 1:
         runs = [run_ranks(job, cfg.nproc) for job in jobs]
+    elif cfg.gpus > 0 and cfg.parallel == cfg.gpus:  # one process per GPU, its runs one after another
+        lanes = gpu_lanes(len(jobs), cfg.gpus)
+        with multiprocessing.get_context("spawn").Pool(cfg.gpus) as pool:
+            done = pool.map(_lane, [[jobs[k] for k in lane] for lane in lanes])
+        by_job = {
+            k: run
+            for lane, results in zip(lanes, done, strict=True)
+            for k, run in zip(lane, results, strict=True)
+        }
+        runs = [by_job[k] for k in range(len(jobs))]
     elif cfg.parallel > 1:
         with multiprocessing.get_context("spawn").Pool(cfg.parallel) as pool:
             runs = pool.map(_child, jobs)
@@ -525,7 +584,7 @@ def bench_learn(
         "summary": summarise(runs, cfg.time_budget_s),
         "wall_s": time.perf_counter() - started,
     }
-    curves = {f"{r['temporal_core']} seed {r['seed']}": r["curve"] for r in runs}
+    curves = {f"{r['arm']} seed {r['seed']}": r["curve"] for r in runs}
     why_not = plot_curves(curves, baselines["all"], out / "learning_curves.png")
     if why_not:
         notes.append(why_not)

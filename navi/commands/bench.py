@@ -570,6 +570,15 @@ def bench_learn_cmd(
     temporal_cores: Annotated[
         str, typer.Option("--temporal-core", help="Comma-separated cores to compare: mamba2,gru,mambapy.")
     ] = "mamba2",
+    arms: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--arm",
+            help="CORE[/KEY=VALUE[,KEY=VALUE...]]: an arm to compare, a core with EngineConfig fields on top "
+            "of --engine (repeatable; replaces --temporal-core), e.g. --arm mamba2 --arm mamba2/attention=fused. "
+            "Runs go seed by seed, every arm of a seed before the next.",
+        ),
+    ] = None,
     budget: Annotated[
         float,
         typer.Option("--budget-s", min=1.0, help="Training seconds per run (evaluations excluded)."),
@@ -668,7 +677,11 @@ def bench_learn_cmd(
 
     dev = pick_device(settings["device"])
     train = train_config(settings, dev, engine)
-    cores = tuple(c.strip() for c in temporal_cores.split(",") if c.strip())
+    cores = (
+        tuple(a.strip() for a in arms)
+        if arms
+        else tuple(c.strip() for c in temporal_cores.split(",") if c.strip())
+    )
     protocol = EvalProtocol.for_device(torch.device(dev))
     protocol = replace(
         protocol,

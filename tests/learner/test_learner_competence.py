@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from navi_bench.learn import LearnConfig, bench_learn, run_devices
+from navi_bench.learn import LearnConfig, bench_learn, gpu_lanes, parse_arm, run_devices, run_order
 from navi_env.corpus.folder import build_default_corpus
 from navi_env.corpus.openarena import split_openarena
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe
@@ -381,11 +381,36 @@ def test_runs_spread_over_gpus_round_robin() -> None:
     assert run_devices("cuda", 4, 6) == ["cuda:0", "cuda:1", "cuda:2", "cuda:3", "cuda:0", "cuda:1"]
     with pytest.raises(ValueError, match="CUDA"):
         run_devices("cpu", 2, 2)
+    places = run_devices("cuda", 2, 5)
+    lanes = gpu_lanes(5, 2)  # one process per GPU trains its lane's runs one after another
+    assert lanes == [[0, 2, 4], [1, 3]]
+    assert [{places[k] for k in lane} for lane in lanes] == [{"cuda:0"}, {"cuda:1"}]
+
+
+def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
+    cfg = LearnConfig(seeds=(0, 1), temporal_cores=("mamba2", "mamba2/attention=fused,patch_size=32"))
+    assert run_order(cfg) == [
+        ("mamba2", 0), ("mamba2/attention=fused,patch_size=32", 0),
+        ("mamba2", 1), ("mamba2/attention=fused,patch_size=32", 1),
+    ]  # fmt: skip
+    assert parse_arm("gru") == ("gru", {})
+    assert parse_arm("mamba2/attention=fused,patch_size=32") == (
+        "mamba2",
+        {"attention": "fused", "patch_size": 32},
+    )
+    for bad, why in (
+        ("lstm", "unknown temporal core"),
+        ("mamba2/", "KEY=VALUE"),
+        ("mamba2/temporal_core=gru", "unknown engine field"),
+        ("mamba2/attention=flash", "attention expects one of"),
+    ):
+        with pytest.raises(ValueError, match=why):
+            parse_arm(bad)
 
 
 def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
     """`--first-seed 2 --seeds 1` trains seed 2 only (one study spread over several jobs); `--engine`
-    shapes every run's engine."""
+    shapes every run's engine, and an `--arm`'s fields go on top of it for that arm's runs."""
     from typer.testing import CliRunner
 
     from navi.cli import build_app
@@ -394,7 +419,7 @@ def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
     build_default_corpus(root / "procedural-train-64", resolution=64, count=1, seed=0)
     build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
     out = tmp_path / "out"
-    args = "bench learn --seeds 1 --first-seed 2 --temporal-core gru --budget-s 1 --eval-every-s 1"
+    args = "bench learn --seeds 1 --first-seed 2 --arm gru --arm gru/head_hidden=16 --budget-s 1 --eval-every-s 1"
     args += " --actors 4 --rollout-length 8 --eval-actors 4 --eval-steps 16 --eval-episode-steps 8"
     args += f" --resolution 64 --no-compile --device cpu --json --corpus-root {root} --out {out}"
     args += f" --openarena {tmp_path / 'none.pk3'} --engine head_hidden=24"
@@ -402,9 +427,12 @@ def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     saved = json.loads((out / "result.json").read_text())
     assert saved["config"]["seeds"] == [2]
-    assert saved["runs"][0]["train_config"]["engine"]["head_hidden"] == 24
-    assert [r["seed"] for r in saved["runs"]] == [2]
-    assert saved["runs"][0]["train_config"]["seed"] == 2
+    assert [(r["arm"], r["seed"]) for r in saved["runs"]] == [("gru", 2), ("gru/head_hidden=16", 2)]
+    assert [r["train_config"]["engine"]["head_hidden"] for r in saved["runs"]] == [24, 16]
+    assert all(r["train_config"]["seed"] == 2 and r["temporal_core"] == "gru" for r in saved["runs"])
+    assert list(saved["summary"]) == ["gru", "gru/head_hidden=16"]
+    assert (out / "runs" / "gru-head_hidden=16-seed2").is_dir()
+    assert "| gru/head_hidden=16 | 1 |" in (out / "report.md").read_text()
 
 
 def test_obstacle_collisions_are_measured_and_counted_among_collisions(tmp_path: Path) -> None:
