@@ -4,7 +4,7 @@ observation writer."""
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import pytest
 import torch
@@ -129,6 +129,29 @@ def test_encoder_attention_option_matches_sdpa_in_value_and_gradient(attention: 
         grads.append(torch.cat([p.grad.flatten() for p in enc.parameters()]))  # type: ignore[union-attr]
     assert torch.allclose(outs[0], outs[1], atol=1e-5, rtol=0)
     assert torch.allclose(grads[0], grads[1], atol=1e-4, rtol=1e-4)
+
+
+def test_auto_attention_is_sdpa_on_a_cpu_and_where_the_fused_kernel_cannot_serve() -> None:
+    """auto (the default) computes SDPA's very numbers on a CPU (the fused operator is for CUDA), and an
+    encoder the fused kernel cannot take (heads 12 wide, or more than 128 tokens) gets SDPA on every
+    device; `fused` asked for by name refuses such an encoder."""
+    torch.manual_seed(0)
+    shape = (3, 32, 8)
+    assert EngineConfig().attention == "auto"
+    auto = RayViTEncoder(shape, EngineConfig.tiny())
+    sdpa = RayViTEncoder(shape, EngineConfig.tiny(attention="sdpa"))
+    sdpa.load_state_dict(auto.state_dict())
+    obs = torch.rand(4, *shape)  # (N, 3, Az, El)
+    assert auto.attention == "auto" and all(b.fused_on_cuda and not b.fused for b in auto.blocks)
+    assert torch.equal(auto(obs), sdpa(obs))
+    wide = EngineConfig.tiny(embed_dim=24, encoder_heads=2)  # heads 12 wide
+    many = EngineConfig.tiny(patch_size=2, patch_el=2)  # 16 x 4 = 64 tokens of 3 x 32 x 8: fits
+    assert RayViTEncoder(shape, wide).attention == "sdpa" and RayViTEncoder(shape, many).attention == "auto"
+    assert (
+        RayViTEncoder((3, 64, 16), EngineConfig.tiny(patch_size=2, patch_el=2)).attention == "sdpa"
+    )  # 256 tokens
+    with pytest.raises(ValueError, match="12 wide"):
+        RayViTEncoder(shape, replace(wide, attention="fused"))
 
 
 def test_engine_option_parses_the_attention_and_refuses_others() -> None:

@@ -161,12 +161,24 @@ def test_fused_attention_runs_the_twin_where_the_float32_kernels_do_not_serve() 
     assert torch.allclose(grad, short_attention_backward_ref(qkv.detach(), dout), atol=1e-6, rtol=0)
 
 
+def test_auto_attention_runs_the_fused_operator_on_cuda() -> None:
+    """The default attention (auto) on CUDA is the fused operator: the same numbers, bit for bit."""
+    torch.manual_seed(0)
+    shape = (3, 256, 48)
+    auto = RayViTEncoder(shape, EngineConfig()).cuda()
+    fused = RayViTEncoder(shape, EngineConfig(attention="fused")).cuda()
+    fused.load_state_dict(auto.state_dict())
+    obs = torch.rand(64, *shape, device="cuda")  # (N, 3, Az, El)
+    with torch.autocast("cuda", dtype=torch.bfloat16):
+        assert torch.equal(auto(obs), fused(obs))
+
+
 def test_compiled_encoder_with_fused_attention_matches_sdpa_on_cuda() -> None:
     """The encoder compiled as one graph with the fused operator, under bf16 autocast, gives the eager
     SDPA encoder's embedding and gradients (same weights) to bf16 precision."""
     torch.manual_seed(0)
     shape = (3, 256, 48)
-    cfg = EngineConfig()
+    cfg = EngineConfig(attention="sdpa")
     sdpa = RayViTEncoder(shape, cfg).cuda()
     fused = RayViTEncoder(shape, replace(cfg, attention="fused")).cuda()
     fused.load_state_dict(sdpa.state_dict())

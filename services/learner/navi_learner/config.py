@@ -17,8 +17,8 @@ if TYPE_CHECKING:
 
 TemporalCoreName = Literal["mamba2", "gru", "mambapy"]
 TEMPORAL_CORES: tuple[TemporalCoreName, ...] = ("mamba2", "gru", "mambapy")
-AttentionName = Literal["sdpa", "explicit", "fused"]
-ATTENTIONS: tuple[AttentionName, ...] = ("sdpa", "explicit", "fused")
+AttentionName = Literal["auto", "sdpa", "explicit", "fused"]
+ATTENTIONS: tuple[AttentionName, ...] = ("auto", "sdpa", "explicit", "fused")
 
 
 @dataclass(frozen=True)
@@ -47,12 +47,13 @@ class EngineConfig:
     """Number of pre-norm transformer blocks in the RayViT encoder."""
     encoder_heads: int = 4
     """Attention heads per encoder block."""
-    attention: AttentionName = "sdpa"
-    """Encoder attention: sdpa (F.scaled_dot_product_attention, which picks a fused kernel), explicit
-    (softmax(QKᵀ/√d)V written out, the softmax in float32, for torch.compile to fuse with its
-    neighbours) or fused (one Triton program per sample and head holding all of its tokens, on CUDA;
-    up to 128 tokens, heads 16, 32, 64 or 128 wide). The same function; the weights and checkpoints do
-    not depend on it."""
+    attention: AttentionName = "auto"
+    """Encoder attention: auto (fused on CUDA where the encoder's tokens and head width fit it, sdpa
+    otherwise: on a CPU and for larger encoders), sdpa (F.scaled_dot_product_attention, which picks a
+    library kernel), explicit (softmax(QKᵀ/√d)V written out, the softmax in float32, for torch.compile to
+    fuse with its neighbours) or fused (one Triton program per sample and head holding all of its tokens;
+    up to 128 tokens, heads 16, 32, 64 or 128 wide; the CPU runs its written-out twin). The same
+    function; the weights and checkpoints do not depend on it."""
     mlp_ratio: int = 2
     """Hidden width of each encoder MLP as a multiple of D (2 keeps the encoder lean)."""
     temporal_core: TemporalCoreName = "mamba2"

@@ -5,9 +5,9 @@ differ by 0.005), so the encoder adds a log-depth channel, `near_field`, that sp
 contact, 0.67 at 1% of the horizon, 0 at the horizon). Non-overlapping patches of the four channels
 (16 azimuth × 16 elevation rays, 22.5° × 60°: 16×3 = 48 tokens at 256×48) are embedded linearly, a fixed
 spherical sin/cos positional encoding (computed once, a buffer, never trained) is added, a few lean
-pre-norm transformer blocks mix the tokens (attention by F.scaled_dot_product_attention, written out,
-or one fused kernel for few tokens: `EngineConfig.attention`, engine/attention.py), and the mean token is
-projected to the embedding.
+pre-norm transformer blocks mix the tokens (attention by one fused kernel for few tokens on CUDA, by
+F.scaled_dot_product_attention, or written out: `EngineConfig.attention`, engine/attention.py), and the
+mean token is projected to the embedding.
 
 With `EngineConfig.view_range` below 1 the encoder first caps the view (`cap_view`): whatever lies beyond
 that fraction of the horizon reads as an unknown surface at it, so a drone trained in rooms meets the
@@ -91,8 +91,9 @@ class Block(nn.Module):
         super().__init__()
         if attention not in ATTENTIONS:
             raise ValueError(f"attention must be {' or '.join(ATTENTIONS)}, got {attention!r}")
-        self.attend = F.scaled_dot_product_attention if attention == "sdpa" else attention_explicit
+        self.attend = attention_explicit if attention == "explicit" else F.scaled_dot_product_attention
         self.fused = attention == "fused"  # short_attention on the qkv layout itself
+        self.fused_on_cuda = attention == "auto"  # short_attention on CUDA, sdpa elsewhere
         self.heads = heads
         self.norm1 = nn.LayerNorm(dim)
         self.qkv = nn.Linear(dim, 3 * dim)
@@ -104,7 +105,7 @@ class Block(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, p, d = x.shape
         qkv = self.qkv(self.norm1(x)).view(n, p, 3, self.heads, d // self.heads)  # (N, P, 3, h, D/h)
-        if self.fused:
+        if self.fused or (self.fused_on_cuda and qkv.is_cuda):
             att = short_attention(qkv)  # (N, P, h, D/h)
         else:
             q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # (N, h, P, D/h) each
@@ -127,12 +128,13 @@ class RayViTEncoder(nn.Module):
         self.register_buffer(
             "pos", spherical_positions(az // pa, el // pe, cfg.embed_dim), persistent=False
         )  # (P, D) float32
-        if cfg.attention == "fused":
-            why = fused_attention_fits((az // pa) * (el // pe), cfg.embed_dim // cfg.encoder_heads)
-            if why is not None:
-                raise ValueError(f"attention fused cannot take this encoder: {why}; use sdpa")
+        why = fused_attention_fits((az // pa) * (el // pe), cfg.embed_dim // cfg.encoder_heads)
+        if cfg.attention == "fused" and why is not None:
+            raise ValueError(f"attention fused cannot take this encoder: {why}; use sdpa or auto")
+        self.attention = "sdpa" if cfg.attention == "auto" and why is not None else cfg.attention
+        """The attention the blocks compute (cfg.attention; auto becomes sdpa where fused cannot serve)."""
         self.blocks = nn.ModuleList(
-            Block(cfg.embed_dim, cfg.encoder_heads, cfg.mlp_ratio, cfg.attention)
+            Block(cfg.embed_dim, cfg.encoder_heads, cfg.mlp_ratio, self.attention)
             for _ in range(cfg.encoder_layers)
         )
         self.norm = nn.LayerNorm(cfg.embed_dim)

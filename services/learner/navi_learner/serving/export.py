@@ -6,6 +6,7 @@ Needs the `onnx` and `onnxscript` packages (imported lazily); without them, Expo
 from __future__ import annotations
 
 import importlib.util
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -43,7 +44,9 @@ def export_onnx(checkpoint: Path, out: Path, n_actors: int = 2) -> Path:
     ckpt = load_checkpoint(checkpoint)
     shape = tuple(int(v) for v in ckpt.meta.obs_shape)
     obs_shape = (shape[0], shape[1], shape[2])
-    policy = CognitiveMambaPolicy(obs_shape, EngineConfig.from_dict(ckpt.meta.config["engine"]))
+    engine = EngineConfig.from_dict(ckpt.meta.config["engine"])
+    # SDPA exports as ONNX operators; the fused attention is a Triton kernel (the same function, same weights)
+    policy = CognitiveMambaPolicy(obs_shape, replace(engine, attention="sdpa"))
     policy.load_state_dict(ckpt.model)
     policy.eval()
     model = StepPolicy(policy)
