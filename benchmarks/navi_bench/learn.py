@@ -107,6 +107,9 @@ class LearnConfig:
     """Scripted moving obstacles per actor in every env of the job (EnvConfig.obstacles)."""
     squad: int = 0
     """Squads of this many actors that see and collide with each other, in every env (0: off)."""
+    warmup_updates: int = 3
+    """Untimed PPO updates of every arm before the first run (warm_up): they fill the compile cache, so
+    that no run's clock holds the compile (0: none, the first run of each arm compiles on its clock)."""
 
 
 def prepare_splits(
@@ -218,9 +221,11 @@ def parse_arm(spec: str) -> tuple[TemporalCoreName, dict[str, Any]]:
     return name, overrides
 
 
-def arm_folder(spec: str, seed: int) -> str:
-    """The run folder's name of (arm, seed): the arm's spec with its separators as dashes."""
-    return f"{spec.replace('/', '-').replace(',', '-')}-seed{seed}"
+def arm_folder(spec: str, seed: int | None) -> str:
+    """The run folder's name of (arm, seed), or of the arm's warm-up (seed None): the arm's spec with its
+    separators as dashes."""
+    name = spec.replace("/", "-").replace(",", "-")
+    return f"{name}-warmup" if seed is None else f"{name}-seed{seed}"
 
 
 def run_order(cfg: LearnConfig) -> list[tuple[str, int]]:
@@ -243,6 +248,33 @@ def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) ->
         device=str(device),
         engine=engine,
     )
+
+
+def warm_up(
+    cfg: LearnConfig, arm: str, splits: Splits, device: str, run_dir: Path, say: Say
+) -> dict[str, Any]:
+    """`cfg.warmup_updates` untimed updates of `arm` on the train split, outside every run's clock: they put
+    its compiled rollout step and update into the compile cache on disk, which every later process of
+    the host reads (a cold compile took about 58 s of the first run's 200 s budget on an H200)."""
+    from navi_learner.ppo.train import train
+
+    started = time.perf_counter()
+    tcfg = train_config(cfg, arm, cfg.seeds[0], torch.device(device))
+    tcfg = replace(
+        tcfg, total_steps=cfg.warmup_updates * tcfg.n_actors * tcfg.rollout_length, time_limit_s=0.0
+    )
+    env = make_env(
+        splits.train, tcfg.n_actors, device, tcfg.seed, reward=dict(cfg.reward), obstacles=cfg.obstacles,
+        squad=cfg.squad, task=cfg.train.task,
+    )  # fmt: skip
+    train(env, tcfg, run_dir=run_dir, corpus_summary=corpus_summary(splits.train, "sdfdag"), progress=False)
+    if device.startswith("cuda"):
+        torch.cuda.empty_cache()
+    seconds = time.perf_counter() - started
+    say(
+        f"[bench learn] warm-up of {arm} on {device}: {cfg.warmup_updates} untimed updates in {seconds:.0f} s"
+    )
+    return {"arm": arm, "device": device, "updates": cfg.warmup_updates, "seconds": seconds}
 
 
 def run_one(
@@ -482,6 +514,13 @@ def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalM
             f"| {core} | {s['seeds']} | {s['competent_seeds']} | {s['median_train_s_to_competence']} | "
             f"{s['median_steps_to_competence']} | {s.get(keys[0])} | {s.get(keys[1])} | {s['median_sps']:.0f} |"
         )
+    warm = result.get("warmups", [])
+    if warm:
+        seconds = ", ".join(f"{w['arm']} {w['seconds']:.0f} s" for w in warm)
+        lines += [
+            "",
+            f"Compile warm-up before the runs, outside their clocks: {warm[0]['updates']} untimed updates per arm ({seconds}).",
+        ]
     lines += [
         "",
         "| arm | seed | competence (train s, steps) | steps | train s |",
@@ -541,6 +580,12 @@ def bench_learn(
         RunJob(splits, cfg, core, seed, place, out / "runs" / arm_folder(core, seed), baselines["all"])
         for (core, seed), place in zip(runs_wanted, places, strict=True)
     ]
+    warmups = []
+    if cfg.warmup_updates > 0 and cfg.nproc == 1:  # the data-parallel ranks compile other graphs
+        warmups = [
+            warm_up(cfg, arm, splits, device, out / "runs" / arm_folder(arm, None), say)
+            for arm in cfg.temporal_cores
+        ]
     started = time.perf_counter()
     if cfg.nproc > 1:
         runs = [run_ranks(job, cfg.nproc) for job in jobs]
@@ -580,6 +625,7 @@ def bench_learn(
             else "collisions/1k <= 0.5 x reactive and coverage/1k >= 1.5 x reactive, unseen split, same seed"
         ),
         "baselines": {part: {k: asdict(v) for k, v in b.items()} for part, b in baselines.items()},
+        "warmups": warmups,
         "runs": runs,
         "summary": summarise(runs, cfg.time_budget_s),
         "wall_s": time.perf_counter() - started,

@@ -653,6 +653,15 @@ def bench_learn_cmd(
             "procedural (0: as built, 16 procedural + 40 OpenArena).",
         ),
     ] = 0.0,
+    warmup_updates: Annotated[
+        int,
+        typer.Option(
+            "--warmup-updates",
+            min=0,
+            help="Untimed PPO updates of every arm before the runs, outside their clocks: they fill the "
+            "compile cache (0: none; the first run of each arm then compiles on its clock). Not with --nproc.",
+        ),
+    ] = 3,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False,
     record: RecordOpt = None,
     engine: EngineOpt = None,
@@ -704,6 +713,7 @@ def bench_learn_cmd(
         obstacles=obstacles,
         squad=squad,
         procedural_share=procedural_share,
+        warmup_updates=warmup_updates,
     )
     folder = out or Path("artifacts/bench/learn") / time.strftime("%Y%m%d-%H%M%S")
     try:

@@ -307,6 +307,7 @@ def small_learn_config(task: str = "explore", **overrides: object) -> LearnConfi
         eval_every_s=0.5,
         train=train,
         protocol=EvalProtocol(actors=4, steps=24, episode_steps=12, seed=5),
+        warmup_updates=0,
     )
     return LearnConfig(**(small | overrides))  # type: ignore[arg-type]
 
@@ -337,6 +338,7 @@ def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     assert summary["competent_seeds"] == sum(r["competence"] is not None for r in saved["runs"])
     assert (out / "learning_curves.png").stat().st_size > 10_000
     assert "| gru | 2 |" in (out / "report.md").read_text()
+    assert saved["warmups"] == []  # small_learn_config turns it off
 
 
 def test_bench_learn_point_goal_end_to_end_on_a_cpu(tmp_path: Path) -> None:
@@ -432,6 +434,13 @@ def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
     assert all(r["train_config"]["seed"] == 2 and r["temporal_core"] == "gru" for r in saved["runs"])
     assert list(saved["summary"]) == ["gru", "gru/head_hidden=16"]
     assert (out / "runs" / "gru-head_hidden=16-seed2").is_dir()
+    warm = saved["warmups"]  # the compile warm-up: once per arm, before every run and off their clocks
+    assert [(w["arm"], w["updates"]) for w in warm] == [("gru", 3), ("gru/head_hidden=16", 3)]
+    assert (out / "runs" / "gru-head_hidden=16-warmup").is_dir()
+    assert (
+        "Compile warm-up before the runs, outside their clocks: 3 untimed updates per arm"
+        in (out / "report.md").read_text()
+    )
     assert "| gru/head_hidden=16 | 1 |" in (out / "report.md").read_text()
 
 
