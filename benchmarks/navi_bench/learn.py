@@ -108,8 +108,8 @@ class LearnConfig:
     squad: int = 0
     """Squads of this many actors that see and collide with each other, in every env (0: off)."""
     warmup_updates: int = 3
-    """Untimed PPO updates of every arm before the first run (warm_up): they fill the compile cache, so
-    that no run's clock holds the compile (0: none, the first run of each arm compiles on its clock)."""
+    """Untimed PPO updates of each arm in every process that trains runs, before its first run (warm_up):
+    no run's clock then holds the compile (0: none; the first run of each arm compiles on its clock)."""
 
 
 def prepare_splits(
@@ -253,9 +253,10 @@ def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) ->
 def warm_up(
     cfg: LearnConfig, arm: str, splits: Splits, device: str, run_dir: Path, say: Say
 ) -> dict[str, Any]:
-    """`cfg.warmup_updates` untimed updates of `arm` on the train split, outside every run's clock: they put
-    its compiled rollout step and update into the compile cache on disk, which every later process of
-    the host reads (a cold compile took about 58 s of the first run's 200 s budget on an H200)."""
+    """`cfg.warmup_updates` untimed updates of `arm` on the train split, outside every run's clock: they
+    compile its rollout step and update in this process and put them into the compile cache on disk, so
+    the runs after it do not compile on their clocks (a cold compile took 58-60 s of a first run's 200 s
+    on an H200)."""
     from navi_learner.ppo.train import train
 
     started = time.perf_counter()
@@ -412,8 +413,22 @@ def gpu_lanes(runs: int, gpus: int) -> list[list[int]]:
     return [list(range(g, runs, gpus)) for g in range(gpus)]
 
 
-def _lane(jobs: list[RunJob]) -> list[dict[str, Any]]:
-    return [_child(job) for job in jobs]
+def warmup_folder(out: Path, arm: str, device: str) -> Path:
+    return out / "runs" / f"{arm_folder(arm, None)}-{device.replace(':', '')}"
+
+
+def _lane(jobs: list[RunJob], say: Say = say_stderr) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """One process's runs in turn, after the compile warm-up of each of their arms in this process (its
+    compiled code then serves the runs): (warm-ups, runs)."""
+    warmups = []
+    if jobs and jobs[0].cfg.warmup_updates > 0:
+        job = jobs[0]
+        if job.device.startswith("cuda:"):
+            torch.cuda.set_device(torch.device(job.device))
+        for arm in dict.fromkeys(j.core for j in jobs):
+            folder = warmup_folder(job.run_dir.parent.parent, arm, job.device)
+            warmups.append(warm_up(job.cfg, arm, job.splits, job.device, folder, say))
+    return warmups, [_child(job) for job in jobs]
 
 
 RANK_ENTRY = ["-m", "navi_bench.learn_rank"]
@@ -580,30 +595,31 @@ def bench_learn(
         RunJob(splits, cfg, core, seed, place, out / "runs" / arm_folder(core, seed), baselines["all"])
         for (core, seed), place in zip(runs_wanted, places, strict=True)
     ]
-    warmups = []
-    if cfg.warmup_updates > 0 and cfg.nproc == 1:  # the data-parallel ranks compile other graphs
-        warmups = [
-            warm_up(cfg, arm, splits, device, out / "runs" / arm_folder(arm, None), say)
-            for arm in cfg.temporal_cores
-        ]
+    warmups: list[dict[str, Any]] = []
     started = time.perf_counter()
-    if cfg.nproc > 1:
+    if cfg.nproc > 1:  # no warm-up: the data-parallel ranks compile graphs of their own
         runs = [run_ranks(job, cfg.nproc) for job in jobs]
     elif cfg.gpus > 0 and cfg.parallel == cfg.gpus:  # one process per GPU, its runs one after another
         lanes = gpu_lanes(len(jobs), cfg.gpus)
         with multiprocessing.get_context("spawn").Pool(cfg.gpus) as pool:
             done = pool.map(_lane, [[jobs[k] for k in lane] for lane in lanes])
+        warmups = [w for lane_warmups, _ in done for w in lane_warmups]
         by_job = {
             k: run
-            for lane, results in zip(lanes, done, strict=True)
+            for lane, (_, results) in zip(lanes, done, strict=True)
             for k, run in zip(lane, results, strict=True)
         }
         runs = [by_job[k] for k in range(len(jobs))]
-    elif cfg.parallel > 1:
+    elif cfg.parallel > 1:  # the warm-up here fills the compile cache on disk that the pool's workers read
+        warmups = [
+            warm_up(cfg, arm, splits, device, warmup_folder(out, arm, device), say)
+            for arm in cfg.temporal_cores
+        ]
+        started = time.perf_counter()
         with multiprocessing.get_context("spawn").Pool(cfg.parallel) as pool:
             runs = pool.map(_child, jobs)
     else:
-        runs = [_child(job) for job in jobs]
+        warmups, runs = _lane(jobs, say)
     notes = list(splits.notes)
     result: dict[str, Any] = {
         "device": (torch.cuda.get_device_name() if device.startswith("cuda") else "cpu")

@@ -436,7 +436,7 @@ def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
     assert (out / "runs" / "gru-head_hidden=16-seed2").is_dir()
     warm = saved["warmups"]  # the compile warm-up: once per arm, before every run and off their clocks
     assert [(w["arm"], w["updates"]) for w in warm] == [("gru", 3), ("gru/head_hidden=16", 3)]
-    assert (out / "runs" / "gru-head_hidden=16-warmup").is_dir()
+    assert (out / "runs" / "gru-head_hidden=16-warmup-cpu").is_dir()
     assert (
         "Compile warm-up before the runs, outside their clocks: 3 untimed updates per arm"
         in (out / "report.md").read_text()
