@@ -221,11 +221,14 @@ def parse_arm(spec: str) -> tuple[TemporalCoreName, dict[str, Any]]:
     return name, overrides
 
 
-def arm_folder(spec: str, seed: int | None) -> str:
-    """The run folder's name of (arm, seed), or of the arm's warm-up (seed None): the arm's spec with its
-    separators as dashes."""
-    name = spec.replace("/", "-").replace(",", "-")
-    return f"{name}-warmup" if seed is None else f"{name}-seed{seed}"
+def arm_slug(spec: str) -> str:
+    """An arm's spec as a folder name: its separators as dashes."""
+    return spec.replace("/", "-").replace(",", "-")
+
+
+def arm_folder(spec: str, seed: int) -> str:
+    """The run folder's name of (arm, seed)."""
+    return f"{arm_slug(spec)}-seed{seed}"
 
 
 def run_order(cfg: LearnConfig) -> list[tuple[str, int]]:
@@ -281,7 +284,7 @@ def warm_up(
 def run_one(
     splits: Splits,
     cfg: LearnConfig,
-    core: str,
+    arm: str,
     seed: int,
     device: str,
     run_dir: Path,
@@ -297,7 +300,7 @@ def run_one(
 
     d = dist or Dist()
     dev = torch.device(device)
-    tcfg = train_config(cfg, core, seed, dev)
+    tcfg = train_config(cfg, arm, seed, dev)
     reward = dict(cfg.reward)
     env = make_env(
         splits.train, tcfg.n_actors, device, seed + d.rank, reward=reward, obstacles=cfg.obstacles,
@@ -310,7 +313,7 @@ def run_one(
             cfg.protocol,
             cfg.eval_every_s,
             cfg.stop_at_competence,
-            say=lambda line: say(f"[{core} seed {seed}] {line}"),
+            say=lambda line: say(f"[{arm} seed {seed}] {line}"),
             baselines=baselines,
         )
     started = time.perf_counter()
@@ -334,9 +337,9 @@ def run_one(
     for name, path in splits.unseen_parts.items():
         part = eval_env(path, cfg, device)
         final[name] = asdict(evaluate(part, trained, cfg.protocol.steps, cfg.protocol.seed))
-        final[name]["policy"] = f"trained ({core}, seed {seed})"
+        final[name]["policy"] = f"trained ({arm}, seed {seed})"
     return {
-        "arm": core,
+        "arm": arm,
         "temporal_core": tcfg.engine.temporal_core,
         "seed": seed,
         "run_id": result.run_id,
@@ -389,11 +392,11 @@ def run_devices(device: str, gpus: int, runs: int) -> list[str]:
 
 
 class RunJob(NamedTuple):
-    """One (arm, seed) run of the job: what a process needs to train and evaluate it (`core`: the arm)."""
+    """One (arm, seed) run of the job: what a process needs to train and evaluate it."""
 
     splits: Splits
     cfg: LearnConfig
-    core: str
+    arm: str
     seed: int
     device: str
     run_dir: Path
@@ -414,7 +417,8 @@ def gpu_lanes(runs: int, gpus: int) -> list[list[int]]:
 
 
 def warmup_folder(out: Path, arm: str, device: str) -> Path:
-    return out / "runs" / f"{arm_folder(arm, None)}-{device.replace(':', '')}"
+    """The run folder of an arm's warm-up on `device`."""
+    return out / "runs" / f"{arm_slug(arm)}-warmup-{device.replace(':', '')}"
 
 
 def _lane(jobs: list[RunJob], say: Say = say_stderr) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
@@ -425,7 +429,7 @@ def _lane(jobs: list[RunJob], say: Say = say_stderr) -> tuple[list[dict[str, Any
         job = jobs[0]
         if job.device.startswith("cuda:"):
             torch.cuda.set_device(torch.device(job.device))
-        for arm in dict.fromkeys(j.core for j in jobs):
+        for arm in dict.fromkeys(j.arm for j in jobs):
             folder = warmup_folder(job.run_dir.parent.parent, arm, job.device)
             warmups.append(warm_up(job.cfg, arm, job.splits, job.device, folder, say))
     return warmups, [_child(job) for job in jobs]
@@ -456,7 +460,7 @@ def run_ranks(run: RunJob, nproc: int) -> dict[str, Any]:
     code = ddp.relaunch(nproc, [str(job)], env=env, entry=RANK_ENTRY)
     if code != 0 or not answer.is_file():
         raise RankRunError(
-            f"the {nproc}-rank run of {run.core} seed {run.seed} failed with exit code {code} (its error is above)"
+            f"the {nproc}-rank run of {run.arm} seed {run.seed} failed with exit code {code} (its error is above)"
         )
     result = dict(json.loads(answer.read_text()))
     job.unlink()
@@ -486,11 +490,11 @@ def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
     """Per arm (in the order of `runs`): competent seeds, median training seconds and env steps to
     competence (over the competent seeds; null if none), and the median final unseen metrics."""
     out: dict[str, Any] = {}
-    for core in dict.fromkeys(r["arm"] for r in runs):
-        mine = [r for r in runs if r["arm"] == core]
+    for arm in dict.fromkeys(r["arm"] for r in runs):
+        mine = [r for r in runs if r["arm"] == arm]
         hits = [r["competence"] for r in mine if r["competence"] is not None]
         last = [r["curve"][-1] for r in mine if r["curve"]]
-        out[core] = {
+        out[arm] = {
             "seeds": len(mine),
             "competent_seeds": len(hits),
             "median_train_s_to_competence": statistics.median(h["train_s"] for h in hits) if hits else None,
@@ -506,8 +510,8 @@ def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
             "median_sps": statistics.median(r["sps"] for r in mine),
         }
         if last and last[0].get("success_rate") is not None:  # point-goal runs
-            out[core]["median_final_success_rate"] = statistics.median(p["success_rate"] for p in last)
-            out[core]["median_final_spl"] = statistics.median(p["spl"] for p in last)
+            out[arm]["median_final_success_rate"] = statistics.median(p["success_rate"] for p in last)
+            out[arm]["median_final_spl"] = statistics.median(p["spl"] for p in last)
     return out
 
 
@@ -524,9 +528,9 @@ def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalM
         f"final {finals[0]} | final {finals[1]} | SPS |"
     ]
     lines += ["| --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for core, s in result["summary"].items():
+    for arm, s in result["summary"].items():
         lines.append(
-            f"| {core} | {s['seeds']} | {s['competent_seeds']} | {s['median_train_s_to_competence']} | "
+            f"| {arm} | {s['seeds']} | {s['competent_seeds']} | {s['median_train_s_to_competence']} | "
             f"{s['median_steps_to_competence']} | {s.get(keys[0])} | {s.get(keys[1])} | {s['median_sps']:.0f} |"
         )
     warm = result.get("warmups", [])
@@ -592,8 +596,8 @@ def bench_learn(
     runs_wanted = run_order(cfg)
     places = run_devices(device, cfg.gpus, len(runs_wanted))
     jobs = [
-        RunJob(splits, cfg, core, seed, place, out / "runs" / arm_folder(core, seed), baselines["all"])
-        for (core, seed), place in zip(runs_wanted, places, strict=True)
+        RunJob(splits, cfg, arm, seed, place, out / "runs" / arm_folder(arm, seed), baselines["all"])
+        for (arm, seed), place in zip(runs_wanted, places, strict=True)
     ]
     warmups: list[dict[str, Any]] = []
     started = time.perf_counter()
@@ -615,7 +619,6 @@ def bench_learn(
             warm_up(cfg, arm, splits, device, warmup_folder(out, arm, device), say)
             for arm in cfg.temporal_cores
         ]
-        started = time.perf_counter()
         with multiprocessing.get_context("spawn").Pool(cfg.parallel) as pool:
             runs = pool.map(_child, jobs)
     else:
