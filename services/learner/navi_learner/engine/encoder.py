@@ -131,8 +131,8 @@ class RayViTEncoder(nn.Module):
         why = fused_attention_fits((az // pa) * (el // pe), cfg.embed_dim // cfg.encoder_heads)
         if cfg.attention == "fused" and why is not None:
             raise ValueError(f"attention fused cannot take this encoder: {why}; use sdpa or auto")
+        # the blocks' attention: cfg.attention, where auto becomes sdpa if the fused kernel cannot serve
         self.attention = "sdpa" if cfg.attention == "auto" and why is not None else cfg.attention
-        """The attention the blocks compute (cfg.attention; auto becomes sdpa where fused cannot serve)."""
         self.blocks = nn.ModuleList(
             Block(cfg.embed_dim, cfg.encoder_heads, cfg.mlp_ratio, self.attention)
             for _ in range(cfg.encoder_layers)
