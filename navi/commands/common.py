@@ -83,6 +83,21 @@ def device_name(device: str) -> str:
     return "CPU"
 
 
+def cpu_model(cpuinfo: str | None = None) -> str:
+    """The host's processor as /proc/cpuinfo names it (its first "model name"), else platform.processor(),
+    else "unknown". The same GPU can be fed by slower or faster host CPUs: a record names both."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text(encoding="utf-8", errors="replace")
+        except OSError:
+            cpuinfo = ""
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "model name" and value.strip():
+            return value.strip()
+    return platform.processor() or "unknown"
+
+
 def record_result(result: dict[str, Any], bench: str, device: str, folder: Path) -> Path:
     """Append `result` to folder/DATE-GPU.jsonl as one line, with the date, the machine, the command line
     and the commit that reproduce it (docs/PERFORMANCE.md reads these records)."""
@@ -98,6 +113,7 @@ def record_result(result: dict[str, Any], bench: str, device: str, folder: Path)
         "commit": git_commit(),
         "navi": __version__,
         "python": platform.python_version(),
+        "cpu": cpu_model(),
         "cpu_count": os.cpu_count(),
         **result,
     }

@@ -1,8 +1,9 @@
-"""Records name the commit that ran, and say when tracked files differed from it."""
+"""Records name the commit that ran (and say when tracked files differed from it) and the host CPU."""
 
 from __future__ import annotations
 
 import os
+import platform
 import shutil
 import subprocess
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from navi import git_commit
+from navi.commands.common import cpu_model
 
 needs_git = pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
 
@@ -43,3 +45,13 @@ def test_a_modified_checkout_is_marked_and_an_untracked_file_is_not(tmp_path: Pa
 
 def test_outside_a_checkout_the_commit_is_unknown(tmp_path: Path) -> None:
     assert git_commit(tmp_path) == "unknown"
+
+
+def test_records_name_the_host_cpu_from_its_first_model_name() -> None:
+    info = (
+        "processor\t: 0\nvendor_id\t: GenuineIntel\nmodel name\t: Intel(R) Xeon(R) Platinum 8480+\n\n"
+        "processor\t: 1\nmodel name\t: Intel(R) Xeon(R) Platinum 8480+\n"
+    )
+    assert cpu_model(info) == "Intel(R) Xeon(R) Platinum 8480+"
+    assert cpu_model("processor\t: 0\nmodel name\t:   \n") == (platform.processor() or "unknown")
+    assert cpu_model() != ""  # this host's, whatever it is

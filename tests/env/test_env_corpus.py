@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from typer.testing import CliRunner
 
 from navi.commands import bench as cli_bench
 from navi.commands import env as cli_env
+from navi.commands.common import cpu_model
 from navi_compiler.dag.build import build_gmdag
 from navi_compiler.gmdag import Gmdag, write_gmdag
 from navi_env.config import EnvConfig
@@ -455,6 +457,7 @@ def test_cli_qualify_corpus_and_bench(sources: Path, tmp_path: Path) -> None:
         and row["command"].startswith("navi ")
         and record_file.stem.startswith(row["date"])
     )
+    assert row["cpu"] == cpu_model() and row["cpu_count"] == os.cpu_count()  # the host that fed the device
     assert {k: row[k] for k in report} == report  # the printed result, whole, plus how to reproduce it
     assert report["obs_shape"] == [2, 3, 16, 4] and report["steps_per_s"] > 0
     assert set(report["ms_per_stage"]) == {"physics", "reward", "episode", "trace", "observation"}
