@@ -108,8 +108,9 @@ class LearnConfig:
     squad: int = 0
     """Squads of this many actors that see and collide with each other, in every env (0: off)."""
     warmup_updates: int = 3
-    """Untimed PPO updates of each arm in every process that trains runs, before its first run (warm_up):
-    no run's clock then holds the compile (0: none; the first run of each arm compiles on its clock)."""
+    """Untimed PPO updates of each arm in every process that trains runs, before its first run (warm_up);
+    with nproc > 1 the ranks of every run take them before it: no run's clock then holds the compile (0:
+    none; the first run of each arm compiles on its clock)."""
 
 
 def prepare_splits(
@@ -254,31 +255,51 @@ def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) ->
 
 
 def warm_up(
-    cfg: LearnConfig, arm: str, splits: Splits, device: str, run_dir: Path, say: Say
+    cfg: LearnConfig,
+    arm: str,
+    splits: Splits,
+    device: str,
+    run_dir: Path,
+    say: Say,
+    dist: Dist | None = None,
 ) -> dict[str, Any]:
     """`cfg.warmup_updates` untimed updates of `arm` on the train split, outside every run's clock: they
     compile its rollout step and update in this process and put them into the compile cache on disk, so
     the runs after it do not compile on their clocks (a cold compile took 58-60 s of a first run's 200 s
-    on an H200)."""
+    on an H200). As a rank of a data-parallel run (`dist`) every rank takes those updates together, with
+    the collectives the run's graphs are built around; rank 0 alone says how long they took."""
     from navi_learner.ppo.train import train
 
+    d = dist or Dist()
     started = time.perf_counter()
     tcfg = train_config(cfg, arm, cfg.seeds[0], torch.device(device))
     tcfg = replace(
-        tcfg, total_steps=cfg.warmup_updates * tcfg.n_actors * tcfg.rollout_length, time_limit_s=0.0
+        tcfg,
+        total_steps=cfg.warmup_updates * tcfg.n_actors * tcfg.rollout_length * d.world,  # every rank's
+        time_limit_s=0.0,
     )
     env = make_env(
-        splits.train, tcfg.n_actors, device, tcfg.seed, reward=dict(cfg.reward), obstacles=cfg.obstacles,
-        squad=cfg.squad, task=cfg.train.task,
+        splits.train, tcfg.n_actors, device, tcfg.seed + d.rank, reward=dict(cfg.reward),
+        obstacles=cfg.obstacles, squad=cfg.squad, task=cfg.train.task, rank=d.rank, world=d.world,
+        rank_scenes=tcfg.rank_scenes,
     )  # fmt: skip
-    train(env, tcfg, run_dir=run_dir, corpus_summary=corpus_summary(splits.train, "sdfdag"), progress=False)
+    train(
+        env,
+        tcfg,
+        run_dir=run_dir,
+        corpus_summary=corpus_summary(splits.train, "sdfdag"),
+        progress=False,
+        dist=d,
+    )
     if device.startswith("cuda"):
         torch.cuda.empty_cache()
     seconds = time.perf_counter() - started
-    say(
-        f"[bench learn] warm-up of {arm} on {device}: {cfg.warmup_updates} untimed updates in {seconds:.0f} s"
-    )
-    return {"arm": arm, "device": device, "updates": cfg.warmup_updates, "seconds": seconds}
+    where = f"{device} x {d.world} ranks" if d.active else device
+    if d.main:
+        say(
+            f"[bench learn] warm-up of {arm} on {where}: {cfg.warmup_updates} untimed updates in {seconds:.0f} s"
+        )
+    return {"arm": arm, "device": where, "updates": cfg.warmup_updates, "seconds": seconds}
 
 
 def run_one(
@@ -475,8 +496,14 @@ def rank_main(job: Path) -> None:
     d, dev = ddp.setup(run.device)
     code = 0
     try:
+        warm = None
+        if run.cfg.warmup_updates > 0:  # in these processes, so the run's graphs are compiled off its clock
+            folder = run.run_dir.parent / f"{run.run_dir.name}-warmup"
+            warm = warm_up(run.cfg, run.arm, run.splits, dev, folder, say_stderr, dist=d)
         result = run_one(*run._replace(device=dev), dist=d)
         if d.main:
+            if warm is not None:
+                result["warmup"] = {**warm, "seed": run.seed}
             rank_files(run.run_dir)[1].write_text(json.dumps(jsonable(result)))
     except ddp.DistError as err:
         print(f"error: {err}", file=sys.stderr)
@@ -515,6 +542,11 @@ def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
     return out
 
 
+def warmup_label(warm: dict[str, Any]) -> str:
+    """A warm-up as the report names it: its arm, and the seed of the data-parallel run it preceded."""
+    return f"{warm['arm']} seed {warm['seed']}" if "seed" in warm else str(warm["arm"])
+
+
 def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalMetrics]]) -> str:
     """report.md: the summary per arm, each run, and the per-split tables of every run."""
     lines = ["# navi bench learn", "", f"device {result['device']}, {result['date']}", ""]
@@ -535,10 +567,11 @@ def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalM
         )
     warm = result.get("warmups", [])
     if warm:
-        seconds = ", ".join(f"{w['arm']} {w['seconds']:.0f} s" for w in warm)
+        seconds = ", ".join(f"{warmup_label(w)} {w['seconds']:.0f} s" for w in warm)
+        each = "data-parallel run" if "seed" in warm[0] else "arm"
         lines += [
             "",
-            f"Compile warm-up before the runs, outside their clocks: {warm[0]['updates']} untimed updates per arm ({seconds}).",
+            f"Compile warm-up before the runs, outside their clocks: {warm[0]['updates']} untimed updates per {each} ({seconds}).",
         ]
     lines += [
         "",
@@ -601,8 +634,9 @@ def bench_learn(
     ]
     warmups: list[dict[str, Any]] = []
     started = time.perf_counter()
-    if cfg.nproc > 1:  # no warm-up: the data-parallel ranks compile graphs of their own
+    if cfg.nproc > 1:  # every run's ranks warm up first, in their own processes (rank_main)
         runs = [run_ranks(job, cfg.nproc) for job in jobs]
+        warmups = [run.pop("warmup") for run in runs if "warmup" in run]
     elif cfg.gpus > 0 and cfg.parallel == cfg.gpus:  # one process per GPU, its runs one after another
         lanes = gpu_lanes(len(jobs), cfg.gpus)
         with multiprocessing.get_context("spawn").Pool(cfg.gpus) as pool:

@@ -659,7 +659,8 @@ def bench_learn_cmd(
             "--warmup-updates",
             min=0,
             help="Untimed PPO updates of every arm before the runs, outside their clocks: they fill the "
-            "compile cache (0: none; the first run of each arm then compiles on its clock). Not with --nproc.",
+            "compile cache (0: none; the first run of each arm then compiles on its clock). With --nproc every "
+            "run's ranks take them before it.",
         ),
     ] = 3,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False,

@@ -515,7 +515,8 @@ def test_a_single_process_run_makes_no_collective_call(
 
 def test_bench_learn_trains_each_run_on_two_ranks(tmp_path: Path) -> None:
     """`navi bench learn --nproc 2`: one run trained data-parallel, each rank on every train scene (its
-    own spawns and seed), rank 0 evaluating during training and at the end; steps count both ranks."""
+    own spawns and seed), after an untimed warm-up on both ranks, rank 0 evaluating during training and
+    at the end; steps count both ranks."""
     from navi_env.corpus.folder import build_default_corpus
 
     root = tmp_path / "corpora"
@@ -525,7 +526,7 @@ def test_bench_learn_trains_each_run_on_two_ranks(tmp_path: Path) -> None:
     args = "bench learn --nproc 2 --seeds 1 --temporal-core gru --budget-s 2 --eval-every-s 1"
     args += f" --actors {ACTORS} --rollout-length 16 --eval-actors 4 --eval-steps 16 --eval-episode-steps 8"
     args += f" --resolution 64 --no-compile --device cpu --json --corpus-root {root} --out {out}"
-    args += f" --openarena {tmp_path / 'none.pk3'}"
+    args += f" --openarena {tmp_path / 'none.pk3'} --warmup-updates 1"
     done = run_navi(args.split(), tmp_path, 300)
     assert done.returncode == 0, done.stderr[-3000:]
     saved = json.loads((out / "result.json").read_text())
@@ -539,7 +540,15 @@ def test_bench_learn_trains_each_run_on_two_ranks(tmp_path: Path) -> None:
     assert manifest["world_size"] == 2 and manifest["actors_per_rank"] == ACTORS
     shares = [sorted(r["scenes"]) for r in manifest["ranks"]]
     assert shares == [["corridors_0001", "rooms_0000"]] * 2  # every rank flies every scene
-    assert sorted(p.name for p in (out / "runs").iterdir()) == ["gru-seed0"]  # the job's files are gone
+    # the job's files are gone; the ranks' untimed warm-up trained in a folder of its own, off the clock
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["gru-seed0", "gru-seed0-warmup"]
+    warm = json.loads((out / "runs" / "gru-seed0-warmup" / "manifests" / "run.json").read_text())
+    assert warm["world_size"] == 2 and warm["actors_per_rank"] == ACTORS
+    (entry,) = saved["warmups"]
+    assert (entry["arm"], entry["seed"], entry["updates"], entry["device"]) == ("gru", 0, 1, "cpu x 2 ranks")
+    assert entry["seconds"] > 0 and "warmup" not in run
+    report = (out / "report.md").read_text()
+    assert "1 untimed updates per data-parallel run (gru seed 0 " in report
     assert json.loads(done.stdout)["summary"]["gru"]["seeds"] == 1
 
 
