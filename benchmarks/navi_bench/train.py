@@ -28,7 +28,7 @@ from navi_learner.engine.heads import ACTION_DIM
 from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.protocol import BatchedEnv, capabilities
-from navi_learner.ppo.compile import make_forward
+from navi_learner.ppo.compile import make_forward, update_graphs
 from navi_learner.ppo.dist import Dist, Sync, entry_argv, relaunch
 from navi_learner.ppo.train import train
 
@@ -127,6 +127,7 @@ def bench_train(
         "compile": cfg.compile and device.type == "cuda",
         "compile_rollout": cfg.compile and cfg.compile_rollout and device.type == "cuda",
         "compile_update": cfg.compile and cfg.compile_update and device.type == "cuda",
+        "update_graphs": update_graphs(cfg, device),
         "tf32": cfg.tf32 and device.type == "cuda",
         "scenes": len(capabilities(env).scenes),  # this rank's (its share, or all with rank_scenes all)
         "rank_scenes": cfg.rank_scenes if d.active else "all",

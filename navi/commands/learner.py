@@ -151,6 +151,7 @@ TRAIN_OPTIONS = (
     "target_kl",
     "compile_rollout",
     "compile_update",
+    "update_graphs",
     "tf32",
     "total_steps",
     "time_limit_s",

@@ -95,10 +95,16 @@ class PooledForward:
 
 
 def compile_graph(
-    fn: Callable[..., Any], backend: str = "inductor", fullgraph: bool = True
+    fn: Callable[..., Any], backend: str = "inductor", fullgraph: bool = True, mode: str | None = None
 ) -> Callable[..., Any]:
-    """`fn` compiled for fixed shapes: one graph (fullgraph), or graphs split where it must (host reads)."""
-    return torch.compile(fn, fullgraph=fullgraph, dynamic=False, backend=backend)
+    """`fn` compiled for fixed shapes: one graph (fullgraph), or graphs split where it must (host reads);
+    `mode` torch.compile's (reduce-overhead: replayed as CUDA graphs)."""
+    return torch.compile(fn, fullgraph=fullgraph, dynamic=False, backend=backend, mode=mode)
+
+
+def update_graphs(cfg: TrainConfig, device: torch.device) -> bool:
+    """The update's compiled objective replays as CUDA graphs (cfg.update_graphs, with its compile, on CUDA)."""
+    return cfg.update_graphs and cfg.compile and cfg.compile_update and device.type == "cuda"
 
 
 def rank_forward(
@@ -180,8 +186,10 @@ def make_objective(
     advantages over the ranks before the objective (a collective the graph cannot hold) and average the
     gradients through hooks on the parameters while the update calls backward (ppo.dist.Sync.backward):
     the compiled backward, one graph (a few with gru), hands the hooks every gradient at its end, so the
-    gradient buckets are all-reduced after it rather than while it runs."""
+    gradient buckets are all-reduced after it rather than while it runs. With cfg.update_graphs the compiled
+    graphs replay as CUDA graphs (update_graphs; the update marks each minibatch a step of its own)."""
     fn = ppo_objective(policy, cfg, cfg.ppo.norm_adv and not distributed)
     if cfg.compile and cfg.compile_update and device.type == "cuda":
-        return cast(Objective, compile_graph(fn, fullgraph=cfg.engine.temporal_core != "gru"))
+        mode = "reduce-overhead" if update_graphs(cfg, device) else None
+        return cast(Objective, compile_graph(fn, fullgraph=cfg.engine.temporal_core != "gru", mode=mode))
     return fn

@@ -26,7 +26,7 @@ from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
 from navi_learner.envs.protocol import BatchedEnv
-from navi_learner.ppo.compile import Forward, Objective, ppo_objective, rank_forward
+from navi_learner.ppo.compile import Forward, Objective, ppo_objective, rank_forward, update_graphs
 from navi_learner.ppo.dist import Collectives, Dist, Solo, Sync, write_debug
 from navi_learner.ppo.gae import bootstrap_truncated, gae
 from navi_learner.ppo.learner import Learner, first_carry, setup
@@ -178,6 +178,7 @@ def update(
     count, skipped = 0, 0
     on_device = bool(optimizer.defaults.get("fused"))  # the optimizer skips a step itself on found_inf
     skips = torch.zeros((), device=params[0].device)  # () float32, steps skipped on the device
+    graphs = update_graphs(cfg, params[0].device)  # the objective replays CUDA graphs: one step each
     for _ in range(p.ppo_epochs):
         ids = buf.minibatch_ids(p.num_minibatches, gen)  # (K, M) sequences per minibatch
         pooled = None  # (K, 2) mean and std of each minibatch's advantages over all ranks
@@ -188,6 +189,8 @@ def update(
             adv = mb.advantages  # (L, M)
             if pooled is not None:
                 adv = (mb.advantages - pooled[i, 0]) / (pooled[i, 1] + 1e-8)  # (L, M) over all ranks
+            if graphs:  # the last minibatch's graph outputs are spent (its gradients were stepped)
+                torch.compiler.cudagraph_mark_step_begin()
             total, metrics = objective(
                 mb.obs, mb.resets, mb.state, mb.actions, mb.logp, adv, mb.values, mb.returns
             )  # (), {name: ()}
