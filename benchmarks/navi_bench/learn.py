@@ -254,6 +254,17 @@ def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) ->
     )
 
 
+def train_env(splits: Splits, cfg: LearnConfig, tcfg: TrainConfig, device: str, d: Dist) -> Any:
+    """This process's training env of a run (`tcfg`, train_config's): the train split's scenes as
+    tcfg.rank_scenes deals them to rank d.rank, the run's seed offset by the rank, and the job's reward
+    overrides, obstacles, squads and task."""
+    return make_env(
+        splits.train, tcfg.n_actors, device, tcfg.seed + d.rank, reward=dict(cfg.reward),
+        obstacles=cfg.obstacles, squad=cfg.squad, task=cfg.train.task, rank=d.rank, world=d.world,
+        rank_scenes=tcfg.rank_scenes,
+    )  # fmt: skip
+
+
 def warm_up(
     cfg: LearnConfig,
     arm: str,
@@ -278,13 +289,8 @@ def warm_up(
         total_steps=cfg.warmup_updates * tcfg.n_actors * tcfg.rollout_length * d.world,  # every rank's
         time_limit_s=0.0,
     )
-    env = make_env(
-        splits.train, tcfg.n_actors, device, tcfg.seed + d.rank, reward=dict(cfg.reward),
-        obstacles=cfg.obstacles, squad=cfg.squad, task=cfg.train.task, rank=d.rank, world=d.world,
-        rank_scenes=tcfg.rank_scenes,
-    )  # fmt: skip
     train(
-        env,
+        train_env(splits, cfg, tcfg, device, d),
         tcfg,
         run_dir=run_dir,
         corpus_summary=corpus_summary(splits.train, "sdfdag"),
@@ -322,11 +328,7 @@ def run_one(
     d = dist or Dist()
     dev = torch.device(device)
     tcfg = train_config(cfg, arm, seed, dev)
-    reward = dict(cfg.reward)
-    env = make_env(
-        splits.train, tcfg.n_actors, device, seed + d.rank, reward=reward, obstacles=cfg.obstacles,
-        squad=cfg.squad, task=cfg.train.task, rank=d.rank, world=d.world, rank_scenes=tcfg.rank_scenes,
-    )  # fmt: skip
+    env = train_env(splits, cfg, tcfg, device, d)
     monitor = None
     if d.main:
         monitor = CompetenceMonitor(
