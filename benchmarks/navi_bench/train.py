@@ -6,11 +6,16 @@ one process again, and reports the per-rank and total SPS with the scaling effic
 SPS(1)) of each column against the faster of the one-process runs (the one-process figure moves between
 runs on some hosts, and the faster one gives the lower ratio), and every rank's timeline of a training
 step (collect, forward, update, sync: what it waits for the others).
+
+`--versus OPTIONS` measures the command as given (the base) and the same with OPTIONS added (the
+variant), each run in a process of its own, in turn for `--rounds` rounds, and reports both medians and
+their ratio: a lever judged against its base in one job.
 """
 
 from __future__ import annotations
 
 import json
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -231,6 +236,14 @@ def scaling_report(nproc: int, singles: list[dict[str, Any]], ranks: dict[str, A
     }
 
 
+def one_process(args: list[str], path: Path, what: str) -> dict[str, Any]:
+    """`navi bench train ARGS` in a process of its own, its result read from `path` (--result-file)."""
+    cmd = [sys.executable, *entry_argv(), *args, "--result-file", str(path)]
+    if subprocess.run(cmd, check=False).returncode != 0 or not path.is_file():
+        raise RuntimeError(f"the {what} failed (its error is above)")
+    return cast(dict[str, Any], json.loads(path.read_text()))
+
+
 def bench_train_scaling(nproc: int, args: list[str], singles: int = 2) -> dict[str, Any]:
     """`navi bench train ARGS` as one process, then on nproc ranks through torchrun, then (`singles` 2)
     as one process again: one job, run one after the other so they do not share devices; ARGS is the
@@ -240,20 +253,70 @@ def bench_train_scaling(nproc: int, args: list[str], singles: int = 2) -> dict[s
     with tempfile.TemporaryDirectory() as tmp:
         ranks_file = Path(tmp) / "ranks.json"
 
-        def one_process(k: int) -> dict[str, Any]:
-            path = Path(tmp) / f"single{k}.json"
-            cmd = [sys.executable, *entry_argv(), *args, "--result-file", str(path)]
-            if subprocess.run(cmd, check=False).returncode != 0 or not path.is_file():
-                raise RuntimeError("the one-process measurement failed (its error is above)")
-            return cast(dict[str, Any], json.loads(path.read_text()))
+        def single(k: int) -> dict[str, Any]:
+            return one_process(args, Path(tmp) / f"single{k}.json", "one-process measurement")
 
-        runs = [one_process(0)]
+        runs = [single(0)]
         code = relaunch(nproc, [*args, "--result-file", str(ranks_file)])
         if code != 0 or not ranks_file.is_file():
             raise RuntimeError(
                 f"the {nproc}-rank measurement failed with exit code {code} (its error is above)"
             )
-        runs += [one_process(k) for k in range(1, singles)]
+        runs += [single(k) for k in range(1, singles)]
         report = scaling_report(nproc, runs, json.loads(ranks_file.read_text()))
     print(timeline_table(report), file=sys.stderr, flush=True)
+    return report
+
+
+def versus_report(
+    variant: list[str], base: list[dict[str, Any]], other: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """The runs of the base command and of the variant (the base with `variant`'s options added), in
+    run order, with each one's median train SPS and the ratio variant / base of the medians."""
+    if not base or len(base) != len(other):
+        raise ValueError("a comparison needs as many variant runs as base runs, at least one")
+    medians = {
+        name: statistics.median(r["env_train_sps"] for r in runs)
+        for name, runs in (("base", base), ("variant", other))
+    }
+    return {
+        "versus": " ".join(variant),
+        "rounds": len(base),
+        "base": base,
+        "variant": other,
+        "median_train_sps": medians,
+        "ratio": round(medians["variant"] / medians["base"], 4),
+    }
+
+
+def versus_table(report: dict[str, Any]) -> str:
+    """The comparison's runs as a table (train SPS and the update's ms per step, in run order)."""
+    lines = [f"base against variant ({report['versus']}), in turn:"]
+    for k, (a, b) in enumerate(zip(report["base"], report["variant"], strict=True), start=1):
+        lines.append(
+            f"  round {k}: base {a['env_train_sps']:,} SPS (update {a['timeline_ms']['update']:.2f} ms), "
+            f"variant {b['env_train_sps']:,} SPS (update {b['timeline_ms']['update']:.2f} ms)"
+        )
+    m = report["median_train_sps"]
+    lines.append(
+        f"median train SPS: base {m['base']:,}, variant {m['variant']:,}: variant / base {report['ratio']}"
+    )
+    return "\n".join(lines)
+
+
+def bench_train_versus(args: list[str], variant: list[str], rounds: int = 2) -> dict[str, Any]:
+    """`navi bench train ARGS` (the base) and the same with `variant`'s options added, each run in a
+    process of its own, base and variant in turn for `rounds` rounds: one job, so that both meet the
+    host's conditions alike (one process's speed moves between jobs on some hosts). The runs' table goes
+    to stderr."""
+    if rounds < 1:
+        raise ValueError(f"rounds must be at least 1, got {rounds}")
+    base: list[dict[str, Any]] = []
+    other: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(rounds):
+            base.append(one_process(args, Path(tmp) / f"base{k}.json", "base run"))
+            other.append(one_process([*args, *variant], Path(tmp) / f"variant{k}.json", "variant run"))
+    report = versus_report(variant, base, other)
+    print(versus_table(report), file=sys.stderr, flush=True)
     return report

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shlex
 import sys
 import time
 from collections.abc import Callable
@@ -944,6 +945,18 @@ def bench_train_cmd(
     result_file: Annotated[
         Path | None, typer.Option("--result-file", hidden=True, help="Write the JSON here instead.")
     ] = None,
+    versus: Annotated[
+        str | None,
+        typer.Option(
+            "--versus",
+            help="Also measure this command with these options added (the variant, e.g. "
+            "--versus='--update-graphs'), each run in a process of its own, the command as given and the "
+            "variant in turn for --rounds rounds: both medians and their ratio. Not with --nproc or --profile.",
+        ),
+    ] = None,
+    rounds: Annotated[
+        int, typer.Option("--rounds", min=1, help="With --versus: runs of each, base and variant in turn.")
+    ] = 2,
     engine: EngineOpt = None,
     profile: Annotated[
         Path | None,
@@ -961,11 +974,24 @@ def bench_train_cmd(
 
     import torch
 
-    from navi_bench.train import bench_train, bench_train_scaling
+    from navi_bench.train import bench_train, bench_train_scaling, bench_train_versus
     from navi_learner.config import StorageError, default_actors
     from navi_learner.ppo import dist
 
-    if nproc > 1 and not dist.launched():
+    if versus is not None:
+        if nproc > 1 or profile is not None:
+            raise fail("--versus compares one-process runs: leave out --nproc and --profile")
+        variant = shlex.split(versus)
+        if not variant:
+            raise fail("--versus needs the options that make the variant, e.g. --versus='--update-graphs'")
+        args = sys.argv[1:]
+        for name in ("--versus", "--rounds", "--record", "--result-file"):
+            args = dist.strip_option(args, name)
+        try:
+            result = bench_train_versus(args, variant, rounds)
+        except RuntimeError as err:
+            raise fail(str(err)) from err
+    elif nproc > 1 and not dist.launched():
         args = dist.strip_option(dist.strip_option(sys.argv[1:], "--nproc"), "--result-file")
         try:
             result = bench_train_scaling(nproc, dist.strip_option(args, "--single-runs"), single_runs)
