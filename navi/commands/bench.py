@@ -955,8 +955,9 @@ def bench_train_cmd(
         ),
     ] = None,
     rounds: Annotated[
-        int, typer.Option("--rounds", min=1, help="With --versus: runs of each, base and variant in turn.")
-    ] = 2,
+        int | None,
+        typer.Option("--rounds", min=1, help="With --versus: runs of each, base and variant in turn (2)."),
+    ] = None,
     engine: EngineOpt = None,
     profile: Annotated[
         Path | None,
@@ -978,6 +979,8 @@ def bench_train_cmd(
     from navi_learner.config import StorageError, default_actors
     from navi_learner.ppo import dist
 
+    if rounds is not None and versus is None:
+        raise fail("--rounds counts the runs of a --versus comparison: name --versus too")
     if versus is not None:
         if nproc > 1 or profile is not None:
             raise fail("--versus compares one-process runs: leave out --nproc and --profile")
@@ -988,7 +991,7 @@ def bench_train_cmd(
         for name in ("--versus", "--rounds", "--record", "--result-file"):
             args = dist.strip_option(args, name)
         try:
-            result = bench_train_versus(args, variant, rounds)
+            result = bench_train_versus(args, variant, rounds or 2)
         except RuntimeError as err:
             raise fail(str(err)) from err
     elif nproc > 1 and not dist.launched():

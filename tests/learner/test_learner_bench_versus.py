@@ -71,6 +71,7 @@ def test_versus_runs_base_and_variant_in_turn_each_in_its_own_process(tmp_path: 
         (["--versus", "--tf32", "--nproc", "2"], "leave out --nproc and --profile"),
         (["--versus", "--tf32", "--profile", "p"], "leave out --nproc and --profile"),
         (["--versus", " "], "--versus needs the options"),
+        (["--rounds", "3"], "name --versus too"),
     ],
 )
 def test_versus_refuses_what_it_cannot_compare(extra: list[str], said: str) -> None:
