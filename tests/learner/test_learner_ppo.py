@@ -13,7 +13,7 @@ from navi_learner.config import EngineConfig, PPOConfig, TemporalCoreName, Train
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.ppo.compile import compile_graph, make_objective, ppo_objective, update_graphs
 from navi_learner.ppo.loss import ppo_loss
-from navi_learner.ppo.rollout import RolloutStorage
+from navi_learner.ppo.rollout import CompactFrames, RolloutStorage, decode
 from navi_learner.ppo.train import adapt_lr, update
 
 
@@ -70,8 +70,14 @@ def test_ppo_loss_advantage_normalisation() -> None:
 
 
 def tiny_setup(
-    core: TemporalCoreName = "mamba2", action_input: bool = False
+    core: TemporalCoreName = "mamba2",
+    action_input: bool = False,
+    compact: bool = False,
+    device: torch.device | None = None,
 ) -> tuple[CognitiveMambaPolicy, RolloutStorage, TrainConfig]:
+    """A tiny policy and a filled rollout of 8 steps × 3 actors on `device` (CPU by default): random
+    float32 observations, or compact ones (random depths, semantic codes and episode starts)."""
+    dev = device or torch.device("cpu")
     eng = EngineConfig(
         temporal_core=core,
         action_input=action_input,
@@ -88,12 +94,15 @@ def tiny_setup(
     cfg = TrainConfig(
         n_actors=3, rollout_length=8, engine=eng, ppo=PPOConfig(bptt_chunk=4, num_minibatches=2)
     )
-    policy = CognitiveMambaPolicy((3, 8, 8), eng)
-    buf = RolloutStorage(
-        8, 3, (3, 8, 8), policy.initial_state(3, torch.device("cpu")), 4, torch.device("cpu")
-    )
+    policy = CognitiveMambaPolicy((3, 8, 8), eng).to(dev)
+    buf = RolloutStorage(8, 3, (3, 8, 8), policy.initial_state(3, dev), 4, dev, compact=compact)
     g = torch.Generator().manual_seed(0)
-    buf.obs.copy_(torch.rand(buf.obs.shape, generator=g))
+    if compact:
+        buf.depth16.copy_(torch.rand(buf.depth16.shape, generator=g))  # (T+1, N, Az, El) float16
+        buf.semantic.copy_(torch.randint(0, 256, buf.semantic.shape, generator=g))  # (T, N, Az, El) uint8
+        buf.resets.copy_(torch.rand(8, 3, generator=g) < 0.2)  # (T, N) bool
+    else:
+        buf.obs.copy_(torch.rand(buf.obs.shape, generator=g))
     buf.actions.copy_(torch.randn(buf.actions.shape, generator=g))
     buf.advantages.copy_(torch.randn(8, 3, generator=g))
     buf.returns.copy_(torch.randn(8, 3, generator=g))
@@ -226,18 +235,22 @@ def test_update_adapts_the_rate_once_per_minibatch(fused: bool) -> None:
     assert float(metrics["lr"]) == pytest.approx(mean_rate, rel=1e-5)
 
 
-@pytest.mark.parametrize(("core", "action_input"), [("mamba2", False), ("gru", False), ("mamba2", True)])
+@pytest.mark.parametrize(
+    ("core", "action_input", "compact"),
+    [("mamba2", False, False), ("gru", False, False), ("mamba2", True, False), ("mamba2", False, True)],
+)
 def test_the_compiled_objective_updates_as_the_eager_one_does(
-    core: TemporalCoreName, action_input: bool
+    core: TemporalCoreName, action_input: bool, compact: bool
 ) -> None:
     """`--compile-update` traces each minibatch's objective (sequence pass, PPO and RND losses; one graph
     with mamba2, the gru's per-episode segments break it) and its backward, also with the previous action
-    as an input: traced here with the aot_eager backend (the CPU runs the same graphs without code
-    generation), one update (2 minibatches) leaves the same weights and metrics as eager."""
+    as an input, and with compact frames decoded inside the graph: traced here with the aot_eager backend
+    (the CPU runs the same graphs without code generation), one update (2 minibatches) leaves the same
+    weights and metrics as eager."""
     results = []
     for compiled in (False, True):
         torch.manual_seed(0)
-        policy, buf, cfg = tiny_setup(core, action_input)
+        policy, buf, cfg = tiny_setup(core, action_input, compact)
         objective = ppo_objective(policy, cfg, norm_adv=True)
         if compiled:
             objective = compile_graph(objective, backend="aot_eager", fullgraph=core == "mamba2")
@@ -252,6 +265,38 @@ def test_the_compiled_objective_updates_as_the_eager_one_does(
         torch.testing.assert_close(mb[k], ma[k], rtol=1e-5, atol=1e-6, msg=k)
     for k in a:
         torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6, msg=k)
+
+
+def test_compact_frames_reach_the_objective_undecoded_and_update_as_their_float32_frames() -> None:
+    """A compact rollout's minibatch hands the objective its frames still compact (the objective decodes
+    them itself, so a compiled one folds the decode into its graph): an update over them leaves exactly
+    the weights and metrics of an update over a float32 rollout that holds the decoded frames."""
+    cpu = torch.device("cpu")
+    results = []
+    for compact in (True, False):
+        torch.manual_seed(0)
+        policy, buf, cfg = tiny_setup(compact=True)
+        if compact:
+            mb = buf.minibatch(buf.minibatch_ids(2, torch.Generator().manual_seed(0))[0])
+            assert isinstance(mb.frames, CompactFrames)
+            obs = mb.obs  # (L, M, 3, Az, El) float32
+            assert torch.equal(decode(mb.frames), obs) and decode(obs) is obs
+            assert bool(mb.resets.any()) and bool((obs[:, :, 2] != 0).any())  # starts and deltas
+        else:
+            flat = RolloutStorage(8, 3, (3, 8, 8), policy.initial_state(3, cpu), 4, cpu)
+            for t in range(8):
+                flat.obs[t].copy_(buf.obs_at(t))  # (N, 3, Az, El) float32
+            for name in ("actions", "advantages", "returns", "resets"):
+                getattr(flat, name).copy_(getattr(buf, name))
+            buf = flat
+        metrics, skipped = update(policy, adam(policy, False), buf, cfg, torch.Generator().manual_seed(0))
+        assert skipped == 0
+        results.append((metrics, policy.state_dict()))
+    (ma, a), (mb_, b) = results
+    for k in ma:
+        assert torch.equal(mb_[k], ma[k]), k
+    for k in a:
+        assert torch.equal(b[k], a[k]), k
 
 
 def test_the_update_objective_is_compiled_by_default_on_cuda_only() -> None:
@@ -282,16 +327,18 @@ def test_the_update_objective_is_compiled_by_default_on_cuda_only() -> None:
 
 
 def test_update_graphs_are_asked_for_and_need_the_compiled_update_on_cuda() -> None:
-    """CUDA graphs replay the update only where asked (--update-graphs, off by default) and only where the
-    objective is compiled on CUDA: the CPU, --no-compile and --no-compile-update leave them off."""
-    cfg = TrainConfig()
+    """CUDA graphs replay the update by default where the objective is compiled on CUDA as one graph: the
+    CPU, --no-compile, --no-compile-update, --no-update-graphs and the gru (its objective splits where it
+    reads episode starts on the host) leave them off."""
+    on = TrainConfig()
     cuda, cpu = torch.device("cuda"), torch.device("cpu")
-    assert not cfg.update_graphs and not update_graphs(cfg, cuda)
-    on = replace(cfg, update_graphs=True)
+    assert on.update_graphs and on.engine.temporal_core == "mamba2"
     assert update_graphs(on, cuda) and update_graphs(on, torch.device("cuda:1"))
     assert not update_graphs(on, cpu)
+    assert not update_graphs(replace(on, update_graphs=False), cuda)
     assert not update_graphs(replace(on, compile=False), cuda)
     assert not update_graphs(replace(on, compile_update=False), cuda)
+    assert not update_graphs(replace(on, engine=replace(on.engine, temporal_core="gru")), cuda)
     results = []  # on a CPU the option changes nothing: the same eager update
     for graphs in (False, True):
         torch.manual_seed(0)
@@ -350,11 +397,12 @@ def test_the_inductor_compiled_objective_matches_the_eager_one_on_cuda() -> None
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_update_graphs_replay_the_compiled_update_on_cuda() -> None:
+@pytest.mark.parametrize("compact", [False, True])
+def test_update_graphs_replay_the_compiled_update_on_cuda(compact: bool) -> None:
     """--update-graphs on CUDA: two updates of two minibatches each, the compiled objective and its
-    backward replayed as CUDA graphs, leave the weights and metrics that the same compiled objective
-    launched kernel by kernel leaves (the same kernels: equal within float32 rounding), and inductor
-    skipped none of the graphs."""
+    backward replayed as CUDA graphs (compact frames read in place, from the rollout's own buffers), leave
+    the weights and metrics that the same compiled objective launched kernel by kernel leaves (the same
+    kernels: equal within float32 rounding), and inductor skipped none of the graphs."""
     from torch._dynamo.utils import counters
 
     dev = torch.device("cuda")
@@ -363,12 +411,8 @@ def test_update_graphs_replay_the_compiled_update_on_cuda() -> None:
         torch._dynamo.reset()
         counters.clear()
         torch.manual_seed(0)
-        policy, cpu_buf, tiny = tiny_setup()
-        policy = policy.to(dev)
+        policy, buf, tiny = tiny_setup(compact=compact, device=dev)
         cfg = replace(tiny, device="cuda", update_graphs=graphs)
-        buf = RolloutStorage(8, 3, (3, 8, 8), policy.initial_state(3, dev), 4, dev)
-        for name in ("obs", "actions", "advantages", "returns"):
-            getattr(buf, name).copy_(getattr(cpu_buf, name))
         objective = make_objective(policy, cfg, dev, False)
         optimizer = adam(policy, True)
         gen = torch.Generator().manual_seed(0)
@@ -382,3 +426,39 @@ def test_update_graphs_replay_the_compiled_update_on_cuda() -> None:
     for ma, mb in zip(plain_metrics, graphed_metrics, strict=True):
         for k in ma:
             torch.testing.assert_close(mb[k], ma[k], rtol=1e-5, atol=1e-6, msg=k)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_compiled_objective_decodes_compact_frames_as_the_gather_does_on_cuda() -> None:
+    """On CUDA, with the default engine and bf16 autocast, the compiled objective handed a compact
+    minibatch decodes it inside its graph (one pass with the encoder's input layout): its loss, metrics
+    and gradients are those of the same compiled objective handed the float32 frames that the compiled
+    gather writes out (equal within float32 rounding)."""
+    from navi_learner.config import EngineConfig as Engine
+
+    torch.manual_seed(0)
+    dev = torch.device("cuda")
+    cfg = TrainConfig(n_actors=16, compile=True, compile_update=True)
+    policy = CognitiveMambaPolicy((3, 256, 48), Engine()).to(dev).train()
+    buf = RolloutStorage(16, 16, (3, 256, 48), policy.initial_state(16, dev), 8, dev, compact=True)
+    buf.depth16.copy_(torch.rand(buf.depth16.shape, device=dev))  # (T+1, N, Az, El) float16
+    buf.semantic.copy_(torch.randint(0, 256, buf.semantic.shape, device=dev))  # (T, N, Az, El) uint8
+    buf.resets.copy_(torch.rand(16, 16, device=dev) < 0.1)  # (T, N) bool
+    mb = buf.minibatch(buf.minibatch_ids(1, torch.Generator().manual_seed(0))[0])  # L 8, M 32
+    assert isinstance(mb.frames, CompactFrames)
+    l_len, m = mb.resets.shape
+    actions = torch.randn(l_len, m, 4, device=dev)  # (L, M, 4)
+    logp, adv, values, returns = (torch.randn(l_len, m, device=dev) for _ in range(4))  # (L, M) each
+    objective = make_objective(policy, cfg, dev, False)
+    runs = []
+    for frames in (mb.frames, mb.obs):
+        policy.zero_grad(set_to_none=True)
+        total, metrics = objective(frames, mb.resets, mb.state, actions, logp, adv, values, returns)
+        total.backward()
+        grads = [q.grad.clone() for q in policy.parameters() if q.grad is not None]
+        runs.append(([total.detach(), *(metrics[k] for k in sorted(metrics))], grads))
+    (fused_out, fused_grads), (plain_out, plain_grads) = runs
+    assert len(fused_grads) == len(plain_grads) > 0
+    for got, want in zip(fused_out + fused_grads, plain_out + plain_grads, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)

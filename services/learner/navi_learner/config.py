@@ -264,11 +264,13 @@ class TrainConfig:
     the temporal core's chunked scan, the PPO and RND losses) and its backward as one graph, fewer and
     fused kernels; False: the encoder alone is compiled. The same objective as the eager one (a CPU
     parity test)."""
-    update_graphs: bool = False
-    """With `compile_update`, on CUDA: replay the compiled minibatch objective and its backward as CUDA
-    graphs (torch.compile's reduce-overhead mode), so the host launches a few graphs per minibatch instead
-    of about 300 kernels and the update stops waiting for a slow or busy host's launches. The same kernels
-    and results (a CUDA parity test); the graphs keep a memory pool of their own."""
+    update_graphs: bool = True
+    """With `compile_update`, on CUDA, where the objective is one graph (mamba2; the gru's splits it):
+    replay the compiled minibatch objective and its backward as CUDA graphs (torch.compile's
+    reduce-overhead mode), so the host launches a few graphs per minibatch instead of about 300 kernels
+    and the update stops waiting for a slow or busy host's launches. The same kernels and results (a CUDA
+    parity test); the graphs keep a memory pool of their own. False: the compiled kernels launched one by
+    one."""
     tf32: bool = False
     """On CUDA: let float32 matrix products (the temporal core's, the heads' and RND's; the encoder runs
     in bf16 under `amp`) use TF32 tensor cores (torch.backends.cuda.matmul.allow_tf32, for the whole

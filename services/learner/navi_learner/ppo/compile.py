@@ -15,6 +15,7 @@ from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
 from navi_learner.ppo.dist import Collectives, Sync
 from navi_learner.ppo.loss import ppo_loss
+from navi_learner.ppo.rollout import CompactFrames, decode
 
 Forward = Callable[[torch.Tensor, torch.Tensor, CoreState], tuple[ActOut, torch.Tensor, torch.Tensor]]
 """The rollout's policy step: (obs, resets, state) -> (ActOut, RND novelty (N,), loop penalty (N,))."""
@@ -103,8 +104,15 @@ def compile_graph(
 
 
 def update_graphs(cfg: TrainConfig, device: torch.device) -> bool:
-    """The update's compiled objective replays as CUDA graphs (cfg.update_graphs, with its compile, on CUDA)."""
-    return cfg.update_graphs and cfg.compile and cfg.compile_update and device.type == "cuda"
+    """The update's compiled objective replays as CUDA graphs: cfg.update_graphs, with its compile, on CUDA,
+    where the objective is one graph (not the gru's, which reads episode starts on the host)."""
+    return (
+        cfg.update_graphs
+        and cfg.compile
+        and cfg.compile_update
+        and device.type == "cuda"
+        and cfg.engine.temporal_core != "gru"
+    )
 
 
 def rank_forward(
@@ -141,13 +149,14 @@ Objective = Callable[..., tuple[torch.Tensor, dict[str, torch.Tensor]]]
 
 
 def ppo_objective(policy: CognitiveMambaPolicy, cfg: TrainConfig, norm_adv: bool) -> Objective:
-    """A minibatch's objective, eager: the policy's sequence pass, the clipped PPO loss (advantages
-    normalised within the minibatch when `norm_adv`) and the RND predictor's loss ->
-    (total loss (), detached metrics {name: ()})."""
+    """A minibatch's objective, eager: the policy's sequence pass over its observations (`frames`, float32
+    or compact: decoded here, so a compiled objective fuses the decode with the encoder's input pass),
+    the clipped PPO loss (advantages normalised within the minibatch when `norm_adv`) and the RND
+    predictor's loss -> (total loss (), detached metrics {name: ()})."""
     p = cfg.ppo
 
     def objective(
-        obs: torch.Tensor,
+        frames: torch.Tensor | CompactFrames,
         resets: torch.Tensor,
         state: CoreState,
         actions: torch.Tensor,
@@ -156,6 +165,7 @@ def ppo_objective(policy: CognitiveMambaPolicy, cfg: TrainConfig, norm_adv: bool
         values: torch.Tensor,
         returns: torch.Tensor,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        obs = decode(frames)  # (L, M, 3, Az, El) float32
         ev = policy.evaluate(obs, resets, state, actions)  # (L, M) logp and value, (L·M, D) emb
         loss, metrics = ppo_loss(
             ev.logp,

@@ -9,11 +9,12 @@ independently with truncated BPTT.
 Observations are stored in one of two forms. Compact (the drone env, DistanceMatrix v2): channel 0 as
 float16 and the semantic code as a byte per ray, 3 bytes per ray; a minibatch's observations are
 rebuilt on the device by navi_env.sim.observation.unpack (channel 2 from consecutive frames and the reset
-flags), bit-identical to the float32 observations the policy acted on. On CUDA the pack, and a
-minibatch's gather with its unpack, run torch.compile'd: one pass each instead of a few eager kernels,
-the gathered frames never written out, and the same exact operations, so the same values
-(tests/learner/test_learner_rollout.py checks both devices). Float32 (any other env): the observations
-as they came, 12 bytes per ray.
+flags), bit-identical to the float32 observations the policy acted on. On CUDA the pack runs
+torch.compile'd, one pass instead of a few eager kernels. A compact minibatch hands the update its
+frames still compact (CompactFrames): the update's objective decodes them itself, so compiled, the
+gather, the unpack and the encoder's input layout are one pass that never writes the float32 frames
+out, with the same exact operations and so the same values (tests/learner/test_learner_rollout.py
+checks both devices). Float32 (any other env): the observations as they came, 12 bytes per ray.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any, TypeVar, cast
+from typing import Any, NamedTuple, TypeVar, cast
 
 import torch
 
@@ -63,11 +64,33 @@ def gather_frames(
     return unpack(depth, sequences(semantic, chunks, actors, chunk), resets, table)  # (L, M, 3, Az, El)
 
 
+class CompactFrames(NamedTuple):
+    """A minibatch's observations as compact storage holds them (decode gives the float32 frames)."""
+
+    depth16: torch.Tensor  # (T+1, N, Az, El) float16, the whole rollout's channel 0
+    semantic: torch.Tensor  # (T, N, Az, El) uint8, the whole rollout's semantic codes
+    resets: torch.Tensor  # (L, M) bool, the sequences' episode starts
+    table: torch.Tensor  # (256,) float32 semantic code -> channel 1
+    chunks: torch.Tensor  # (M,) int64 BPTT chunk of each sequence
+    actors: torch.Tensor  # (M,) int64 actor of each sequence
+    chunk: int  # L
+
+
+def decode(frames: torch.Tensor | CompactFrames, compiled: bool = False) -> torch.Tensor:
+    """A minibatch's observations (L, M, 3, Az, El) float32, exactly what the policy acted on: float32
+    frames as they are, compact ones gathered and unpacked (`compiled`: gather_frames compiled once per
+    process, else eager; called inside a compiled objective, eager, so the compile fuses it)."""
+    if not isinstance(frames, CompactFrames):
+        return frames
+    gather = _compiled(gather_frames) if compiled else gather_frames
+    return gather(*frames)  # (L, M, 3, Az, El)
+
+
 @dataclass
 class Minibatch:
     """M whole sequences of length L (time-major)."""
 
-    obs: torch.Tensor  # (L, M, 3, Az, El) float32, exactly what the policy acted on
+    frames: torch.Tensor | CompactFrames  # the observations: (L, M, 3, Az, El) float32, or compact
     actions: torch.Tensor  # (L, M, 4) float32
     logp: torch.Tensor  # (L, M) float32
     values: torch.Tensor  # (L, M) float32
@@ -77,6 +100,11 @@ class Minibatch:
     state: CoreState  # each (M, ...) float32: the recurrent state entering the first step
     chunks: torch.Tensor  # (M,) int64 BPTT chunk of each sequence: steps chunk·L .. chunk·L + L - 1
     actors: torch.Tensor  # (M,) int64 actor of each sequence
+
+    @property
+    def obs(self) -> torch.Tensor:
+        """The observations (L, M, 3, Az, El) float32, decoded (compiled on CUDA)."""
+        return decode(self.frames, compiled=self.resets.is_cuda)
 
 
 class RolloutStorage:
@@ -109,9 +137,7 @@ class RolloutStorage:
             )  # (T+1, N, Az, El)
             self.semantic = torch.zeros(t_len, n, az, el, dtype=torch.uint8, device=device)  # (T, N, Az, El)
             self.table = semantic_table(device, goal_marks)  # (256,) float32
-            fast = device.type == "cuda"
-            self._pack = _compiled(pack) if fast else pack
-            self._gather = _compiled(gather_frames) if fast else gather_frames
+            self._pack = _compiled(pack) if device.type == "cuda" else pack
         else:
             self.obs = torch.zeros(t_len, n, c, az, el, device=device)  # (T, N, 3, Az, El) float32
         self.actions = torch.zeros(t_len, n, ACTION_DIM, device=device)  # (T, N, 4) float32
@@ -177,14 +203,13 @@ class RolloutStorage:
             return sequences(buf, c, a, self.chunk)  # (L, M, ...)
 
         resets = seq(self.resets)  # (L, M) bool
-        if self.compact:
-            obs = self._gather(
-                self.depth16, self.semantic, resets, self.table, c, a, self.chunk
-            )  # (L, M, 3, Az, El)
-        else:
-            obs = seq(self.obs)  # (L, M, 3, Az, El)
+        frames: torch.Tensor | CompactFrames = (
+            CompactFrames(self.depth16, self.semantic, resets, self.table, c, a, self.chunk)
+            if self.compact
+            else seq(self.obs)  # (L, M, 3, Az, El)
+        )
         return Minibatch(
-            obs=obs,
+            frames=frames,
             actions=seq(self.actions),
             logp=seq(self.logp),
             values=seq(self.values),

@@ -179,6 +179,9 @@ def update(
     on_device = bool(optimizer.defaults.get("fused"))  # the optimizer skips a step itself on found_inf
     skips = torch.zeros((), device=params[0].device)  # () float32, steps skipped on the device
     graphs = update_graphs(cfg, params[0].device)  # the objective replays CUDA graphs: one step each
+    if graphs and buf.compact:  # the graphs read the compact frames where they lie, never a copy
+        for frames in (buf.depth16, buf.semantic, buf.table):
+            torch._dynamo.mark_static_address(frames, guard=False)
     for _ in range(p.ppo_epochs):
         ids = buf.minibatch_ids(p.num_minibatches, gen)  # (K, M) sequences per minibatch
         pooled = None  # (K, 2) mean and std of each minibatch's advantages over all ranks
@@ -192,7 +195,7 @@ def update(
             if graphs:  # the last minibatch's graph outputs are spent (its gradients were stepped)
                 torch.compiler.cudagraph_mark_step_begin()
             total, metrics = objective(
-                mb.obs, mb.resets, mb.state, mb.actions, mb.logp, adv, mb.values, mb.returns
+                mb.frames, mb.resets, mb.state, mb.actions, mb.logp, adv, mb.values, mb.returns
             )  # (), {name: ()}
             if p.target_kl > 0:
                 kl = sync.mean({"kl": metrics["approx_kl"]})["kl"]  # () over all ranks
