@@ -70,6 +70,16 @@ def near_field(depth: torch.Tensor) -> torch.Tensor:
     return torch.log(depth.clamp(0.0, 1.0) + NEAR_FIELD_EPS) * (1.0 / math.log(NEAR_FIELD_EPS))
 
 
+def with_near_field(obs: torch.Tensor) -> torch.Tensor:
+    """obs (N, 3, Az, El) -> (N, 4, Az, El) float32: near_field of channel 0, then the three channels. Each
+    element is a select on its channel rather than a concatenation, so a compiled encoder (with
+    compile.FUSED_INPUT) computes its patch tokens from the observation in one pass."""
+    x = obs.float()  # (N, 3, Az, El)
+    c = torch.arange(4, device=x.device).view(1, 4, 1, 1)  # (1, 4, 1, 1) channel of the result
+    src = torch.where(c <= 1, x[:, 0:1], torch.where(c == 2, x[:, 1:2], x[:, 2:3]))  # (N, 4, Az, El)
+    return torch.where(c == 0, near_field(src), src)  # (N, 4, Az, El)
+
+
 def cap_view(obs: torch.Tensor, view_range: float) -> torch.Tensor:
     """obs (N, 3, Az, El) as an encoder with EngineConfig.view_range reads it, (N, 3, Az, El) float32:
     depth beyond `view_range` (a fraction of the horizon; a miss reads 1) is `view_range`, the semantic
@@ -81,7 +91,9 @@ def cap_view(obs: torch.Tensor, view_range: float) -> torch.Tensor:
     before = (depth - delta).clamp(max=view_range)  # (N, Az, El) the previous frame's depth, capped
     unknown = (depth > view_range) & (semantic >= 0.0)  # (N, Az, El) bool: far, no goal mark
     semantic = torch.where(unknown, 0.5, semantic)  # (N, Az, El)
-    return torch.stack([capped, semantic, capped - before], dim=1)  # (N, 3, Az, El)
+    c = torch.arange(3, device=capped.device).view(1, 3, 1, 1)  # (1, 3, 1, 1) a select per channel
+    delta = capped - before  # (N, Az, El)
+    return torch.where(c == 0, capped[:, None], torch.where(c == 1, semantic[:, None], delta[:, None]))
 
 
 class Block(nn.Module):
@@ -149,7 +161,7 @@ class RayViTEncoder(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         if 0.0 < self.view_range < 1.0:
             obs = cap_view(obs, self.view_range)  # (N, 3, Az, El) float32
-        x = torch.cat([near_field(obs[:, :1].float()), obs.float()], dim=1)  # (N, 4, Az, El)
+        x = with_near_field(obs)  # (N, 4, Az, El)
         x = self.embed(patchify(x, self.patch).to(self.embed.weight.dtype)) + self.pos  # (N, P, D)
         for block in self.blocks:
             x = block(x)  # (N, P, D)
