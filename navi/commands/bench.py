@@ -950,7 +950,7 @@ def bench_train_cmd(
         typer.Option(
             "--versus",
             help="Also measure this command with these options added (the variant, e.g. "
-            "--versus='--update-graphs'), each run in a process of its own, the command as given and the "
+            "--versus='--no-update-graphs'), each run in a process of its own, the command as given and the "
             "variant in turn for --rounds rounds: both medians and their ratio. Not with --nproc or --profile.",
         ),
     ] = None,
@@ -986,7 +986,7 @@ def bench_train_cmd(
             raise fail("--versus compares one-process runs: leave out --nproc and --profile")
         variant = shlex.split(versus)
         if not variant:
-            raise fail("--versus needs the options that make the variant, e.g. --versus='--update-graphs'")
+            raise fail("--versus needs the options that make the variant, e.g. --versus='--no-update-graphs'")
         args = sys.argv[1:]
         for name in ("--versus", "--rounds", "--record", "--result-file"):
             args = dist.strip_option(args, name)

@@ -30,8 +30,8 @@ def test_the_report_takes_each_sides_median_and_their_ratio() -> None:
         [run(400, 9.0), run(300, 12.0), run(420, 8.9)],
         [run(440, 8.4), run(430, 8.5), run(200, 20.0)],
     )
-    got = versus_report(["--update-graphs"], base, variant)
-    assert got["versus"] == "--update-graphs" and got["rounds"] == 3
+    got = versus_report(["--no-update-graphs"], base, variant)
+    assert got["versus"] == "--no-update-graphs" and got["rounds"] == 3
     assert got["median_train_sps"] == {"base": 400, "variant": 430}  # a slow run on either side is outvoted
     assert got["ratio"] == round(430 / 400, 4)
     table = versus_table(got)

@@ -399,7 +399,7 @@ def test_the_inductor_compiled_objective_matches_the_eager_one_on_cuda() -> None
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("compact", [False, True])
 def test_update_graphs_replay_the_compiled_update_on_cuda(compact: bool) -> None:
-    """--update-graphs on CUDA: two updates of two minibatches each, the compiled objective and its
+    """Update graphs on CUDA: two updates of two minibatches each, the compiled objective and its
     backward replayed as CUDA graphs (compact frames read in place, from the rollout's own buffers), leave
     the weights and metrics that the same compiled objective launched kernel by kernel leaves (the same
     kernels: equal within float32 rounding), and inductor skipped none of the graphs."""
