@@ -283,7 +283,7 @@ def test_monitor_flies_the_weights_as_their_checkpoint_does() -> None:
     )
     assert flight(copy) == flight(plain)
     forward = policy.encoder.forward
-    policy.encoder.forward = lambda obs: forward(obs) + 1.0  # type: ignore[method-assign]
+    policy.encoder.forward = lambda obs, dtype=None: forward(obs, dtype) + 1.0  # type: ignore[method-assign]
     live = evaluate(
         env, ModulePolicy(policy.eval(), "live", noise, protocol.seed), protocol.steps, protocol.seed
     )

@@ -12,15 +12,8 @@ import torch.nn.functional as F
 
 from navi_env.sim.observation import write_observation
 from navi_learner.config import TASK_VIEW_RANGE, EngineConfig, TrainConfig, engine_overrides, resolve
-from navi_learner.engine.encoder import (
-    RayViTEncoder,
-    attention_explicit,
-    cap_view,
-    near_field,
-    patchify,
-    spherical_positions,
-    with_near_field,
-)
+from navi_learner.engine.encoder import RayViTEncoder, attention_explicit, spherical_positions
+from navi_learner.engine.tokens import cap_view, patchify
 
 
 def test_canonical_shapes() -> None:
@@ -256,19 +249,3 @@ def test_an_engine_left_at_the_task_default_outside_a_run_reads_the_whole_horizo
     whole.load_state_dict(unset.state_dict())
     with torch.no_grad():
         assert torch.equal(unset(obs), whole(obs))
-
-
-def test_the_traced_encoder_input_is_the_eager_one_bit_for_bit() -> None:
-    """Compiled, the encoder's input (near_field and the channels) and the capped view are selects per
-    channel rather than a concatenation and a stack (so inductor writes the patch tokens in one pass):
-    traced (aot_eager, the graph run by eager kernels) they give the eager values bit for bit."""
-    g = torch.Generator().manual_seed(0)
-    obs = torch.rand(6, 3, 16, 8, generator=g)  # (N, 3, Az, El)
-    obs[:, 1] = torch.where(obs[:, 1] < 0.1, -0.25, obs[:, 1])  # some goal marks
-    obs[:, 2] = obs[:, 0] - torch.rand(6, 16, 8, generator=g)  # deltas of either sign
-    want = with_near_field(obs)  # (N, 4, Az, El)
-    assert torch.equal(want, torch.cat([near_field(obs[:, :1]), obs], dim=1))
-    traced = torch.compile(with_near_field, backend="aot_eager", fullgraph=True, dynamic=False)
-    assert torch.equal(traced(obs), want)
-    capped = torch.compile(cap_view, backend="aot_eager", fullgraph=True, dynamic=False)
-    assert torch.equal(capped(obs, 0.2), cap_view(obs, 0.2))

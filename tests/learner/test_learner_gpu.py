@@ -131,6 +131,42 @@ def test_compiled_encoder_with_a_view_range_matches_eager_and_ignores_the_far_fi
     assert torch.equal(fused, fused_other)
 
 
+@pytest.mark.parametrize("patch", [(16, 16), (32, 16)], ids=["16x16", "32x16"])
+def test_the_patch_token_kernel_is_the_written_out_stage_on_cuda(patch: tuple[int, int]) -> None:
+    """The input stage's kernel at the canonical 256 × 48 view, from compact frames (a shuffled minibatch)
+    and from the float32 frames they decode to, with and without the view cap: float32 tokens within
+    1e-6 of the written-out twin on the GPU (the kernel's log is the fast one inductor uses), bf16 tokens
+    within one unit in the last place and nearly all equal, and both entries bit for bit alike."""
+    from navi_learner.engine.tokens import (
+        compact_patch_tokens_triton,
+        gather_frames,
+        patch_tokens_ref,
+        patch_tokens_triton,
+    )
+
+    from .test_learner_tokens import compact_frames
+
+    dev = torch.device("cuda")
+    frames = compact_frames(16, 64, 256, 48, 8)
+    frames = frames._replace(
+        **{k: v.to(dev) for k, v in frames._asdict().items() if isinstance(v, torch.Tensor)}
+    )
+    obs = gather_frames(*frames).flatten(0, 1)  # (L·M, 3, Az, El) float32: 1,024 frames
+    for view_range in (1.0, 0.2):
+        ref = patch_tokens_ref(obs, patch, view_range)  # (L·M, P, 4·pa·pe)
+        for dtype in (torch.float32, torch.bfloat16):
+            got = patch_tokens_triton(obs, patch, view_range, dtype)
+            assert torch.equal(compact_patch_tokens_triton(frames, patch, view_range, dtype), got)
+            assert got.shape == ref.shape and got.dtype == dtype
+            want = ref.to(dtype).float()
+            if dtype == torch.float32:
+                assert (got - want).abs().max().item() <= 1e-6
+            else:
+                diff = (got.float() - want).abs()  # (L·M, P, 4·pa·pe)
+                assert bool((diff <= want.abs() * 2**-7 + 1e-6).all())
+                assert (diff > 0).float().mean().item() < 1e-3
+
+
 def test_fused_attention_kernels_match_the_reference_on_cuda() -> None:
     """The Triton kernels of short_attention against the written-out float32 reference, in float32 and
     in bf16 (the training path under autocast), at the default 48 tokens × 4 heads of 32."""

@@ -11,9 +11,10 @@ import torch
 
 from navi_learner.config import EngineConfig, PPOConfig, TemporalCoreName, TrainConfig
 from navi_learner.engine.policy import CognitiveMambaPolicy
+from navi_learner.engine.tokens import CompactFrames
 from navi_learner.ppo.compile import compile_graph, make_objective, ppo_objective, update_graphs
 from navi_learner.ppo.loss import ppo_loss
-from navi_learner.ppo.rollout import CompactFrames, RolloutStorage, decode
+from navi_learner.ppo.rollout import RolloutStorage, decode
 from navi_learner.ppo.train import adapt_lr, update
 
 
@@ -244,7 +245,7 @@ def test_the_compiled_objective_updates_as_the_eager_one_does(
 ) -> None:
     """`--compile-update` traces each minibatch's objective (sequence pass, PPO and RND losses; one graph
     with mamba2, the gru's per-episode segments break it) and its backward, also with the previous action
-    as an input, and with compact frames decoded inside the graph: traced here with the aot_eager backend
+    as an input, and with compact frames read by the input stage's operator: traced here with the aot_eager backend
     (the CPU runs the same graphs without code generation), one update (2 minibatches) leaves the same
     weights and metrics as eager."""
     results = []
@@ -268,9 +269,9 @@ def test_the_compiled_objective_updates_as_the_eager_one_does(
 
 
 def test_compact_frames_reach_the_objective_undecoded_and_update_as_their_float32_frames() -> None:
-    """A compact rollout's minibatch hands the objective its frames still compact (the objective decodes
-    them itself, so a compiled one folds the decode into its graph): an update over them leaves exactly
-    the weights and metrics of an update over a float32 rollout that holds the decoded frames."""
+    """A compact rollout's minibatch hands the objective its frames still compact (the encoder's input
+    stage reads them as they are): an update over them leaves exactly the weights and metrics of an
+    update over a float32 rollout that holds the decoded frames."""
     cpu = torch.device("cpu")
     results = []
     for compact in (True, False):
@@ -430,11 +431,11 @@ def test_update_graphs_replay_the_compiled_update_on_cuda(compact: bool) -> None
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_the_compiled_objective_decodes_compact_frames_as_the_gather_does_on_cuda() -> None:
+def test_the_compiled_objective_reads_compact_frames_as_the_gathered_ones_on_cuda() -> None:
     """On CUDA, with the default engine and bf16 autocast, the compiled objective handed a compact
-    minibatch decodes it inside its graph (one pass with the encoder's input layout): its loss, metrics
-    and gradients are those of the same compiled objective handed the float32 frames that the compiled
-    gather writes out (equal within float32 rounding)."""
+    minibatch (the input stage's kernel reads it as stored): its loss, metrics and gradients are those of
+    the same compiled objective handed the float32 frames that the compiled gather writes out (equal
+    within float32 rounding)."""
     from navi_learner.config import EngineConfig as Engine
 
     torch.manual_seed(0)

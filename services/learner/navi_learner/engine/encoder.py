@@ -11,7 +11,8 @@ mean token is projected to the embedding.
 
 With `EngineConfig.view_range` below 1 the encoder first caps the view (`cap_view`): whatever lies beyond
 that fraction of the horizon reads as an unknown surface at it, so a drone trained in rooms meets the
-far walls and sky of a large open map as the near walls it knows.
+far walls and sky of a large open map as the near walls it knows. The cap, the near field and the patch
+layout are the input stage, engine/tokens.py (one Triton pass on CUDA, from float32 or compact frames).
 
 Ray layout (docs/ACTOR.md): azimuth bin a is at φ = 2π·a/Az (bin 0 straight ahead, increasing to
 the left); elevation bin e at θ = -π/2 + π·(e + 0.5)/El (bottom to top).
@@ -27,6 +28,7 @@ from torch import nn
 
 from navi_learner.config import ATTENTIONS, EngineConfig
 from navi_learner.engine.attention import attention_explicit, fused_attention_fits, short_attention
+from navi_learner.engine.tokens import CompactFrames, patch_tokens
 
 
 def spherical_positions(az_patches: int, el_patches: int, dim: int) -> torch.Tensor:
@@ -50,55 +52,6 @@ def spherical_positions(az_patches: int, el_patches: int, dim: int) -> torch.Ten
     pos = torch.cat(feats, dim=1)  # (P, 3 + 4F) with 3 + 4F <= D
     pad = torch.zeros(pos.shape[0], dim - pos.shape[1], dtype=torch.float64)  # (P, rest)
     return torch.cat([pos, pad], dim=1).float()  # (P, D) float32
-
-
-def patchify(obs: torch.Tensor, patch: int | tuple[int, int]) -> torch.Tensor:
-    """(N, C, Az, El) -> (N, Az/pa · El/pe, C·pa·pe) tokens, azimuth-major (patch = pa or (pa, pe))."""
-    pa, pe = (patch, patch) if isinstance(patch, int) else patch
-    n, c, az, el = obs.shape
-    x = obs.reshape(n, c, az // pa, pa, el // pe, pe)  # (N, C, Pa, pa, Pe, pe)
-    x = x.permute(0, 2, 4, 1, 3, 5)  # (N, Pa, Pe, C, pa, pe)
-    return x.reshape(n, (az // pa) * (el // pe), c * pa * pe)  # (N, P, C·pa·pe)
-
-
-NEAR_FIELD_EPS = 1e-3
-"""Depth (as a fraction of the horizon) below which near_field saturates at 1."""
-
-
-def near_field(depth: torch.Tensor) -> torch.Tensor:
-    """log(depth + eps) / log(eps) of normalised depth (any shape) in [0, 1]: 1 at contact, 0 at the horizon."""
-    return torch.log(depth.clamp(0.0, 1.0) + NEAR_FIELD_EPS) * (1.0 / math.log(NEAR_FIELD_EPS))
-
-
-def with_near_field(obs: torch.Tensor) -> torch.Tensor:
-    """obs (N, 3, Az, El) -> (N, 4, Az, El) float32: near_field of channel 0, then the three channels.
-    Compiled, each element is a select on its channel rather than a concatenation, so the compiled
-    encoder (with compile.FUSED_INPUT) computes its patch tokens from the observation in one pass; eager,
-    the concatenation, several times faster there. The same values either way."""
-    x = obs.float()  # (N, 3, Az, El)
-    if not torch.compiler.is_compiling():
-        return torch.cat([near_field(x[:, :1]), x], dim=1)  # (N, 4, Az, El)
-    c = torch.arange(4, device=x.device).view(1, 4, 1, 1)  # (1, 4, 1, 1) channel of the result
-    src = torch.where(c <= 1, x[:, 0:1], torch.where(c == 2, x[:, 1:2], x[:, 2:3]))  # (N, 4, Az, El)
-    return torch.where(c == 0, near_field(src), src)  # (N, 4, Az, El)
-
-
-def cap_view(obs: torch.Tensor, view_range: float) -> torch.Tensor:
-    """obs (N, 3, Az, El) as an encoder with EngineConfig.view_range reads it, (N, 3, Az, El) float32:
-    depth beyond `view_range` (a fraction of the horizon; a miss reads 1) is `view_range`, the semantic
-    channel there the unknown class (0.5) unless a goal mark (< 0) is painted on the ray, and delta depth
-    the difference of the capped frames (the previous frame's depth is depth - delta, exactly; with
-    `view_range` a float16 value, as the encoder rounds it, the capped delta is exact too)."""
-    depth, semantic, delta = obs.float().unbind(1)  # (N, Az, El) each
-    capped = depth.clamp(max=view_range)  # (N, Az, El)
-    before = (depth - delta).clamp(max=view_range)  # (N, Az, El) the previous frame's depth, capped
-    unknown = (depth > view_range) & (semantic >= 0.0)  # (N, Az, El) bool: far, no goal mark
-    semantic = torch.where(unknown, 0.5, semantic)  # (N, Az, El)
-    delta = capped - before  # (N, Az, El)
-    if not torch.compiler.is_compiling():  # eager: a stack; compiled: a select per channel (one pass)
-        return torch.stack([capped, semantic, delta], dim=1)  # (N, 3, Az, El)
-    c = torch.arange(3, device=capped.device).view(1, 3, 1, 1)  # (1, 3, 1, 1)
-    return torch.where(c == 0, capped[:, None], torch.where(c == 1, semantic[:, None], delta[:, None]))
 
 
 class Block(nn.Module):
@@ -163,11 +116,14 @@ class RayViTEncoder(nn.Module):
         """Number of patch tokens P."""
         return int(self.pos.shape[0])
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        if 0.0 < self.view_range < 1.0:
-            obs = cap_view(obs, self.view_range)  # (N, 3, Az, El) float32
-        x = with_near_field(obs)  # (N, 4, Az, El)
-        x = self.embed(patchify(x, self.patch).to(self.embed.weight.dtype)) + self.pos  # (N, P, D)
+    def forward(self, obs: torch.Tensor | CompactFrames, dtype: torch.dtype | None = None) -> torch.Tensor:
+        """obs (N, 3, Az, El) float32 frames, or a compact minibatch (L steps of M sequences, N = L·M) ->
+        embedding (N, D) float32. `dtype`: what the patch embedding multiplies in (bf16 under amp; None,
+        its weight's dtype)."""
+        tokens = patch_tokens(
+            obs, self.patch, self.view_range, dtype or self.embed.weight.dtype
+        )  # (N, P, 4·pa·pe)
+        x = self.embed(tokens) + self.pos  # (N, P, D)
         for block in self.blocks:
             x = block(x)  # (N, P, D)
         return self.out(self.norm(x.mean(dim=1))).float()  # (N, D) float32

@@ -21,6 +21,7 @@ from navi_learner.engine.encoder import RayViTEncoder
 from navi_learner.engine.heads import ActorCriticHeads, gaussian_entropy, gaussian_log_prob
 from navi_learner.engine.rnd import RND
 from navi_learner.engine.temporal import CoreState, TemporalCore, make_core
+from navi_learner.engine.tokens import CompactFrames, frames_device
 
 ACTION_DIM = 4
 """[forward, vertical, lateral, yaw_rate] (navi_env.sim.physics)."""
@@ -88,10 +89,13 @@ class CognitiveMambaPolicy(nn.Module):
         prev = previous.clamp(-1.0, 1.0) * ~resets[..., None]  # (..., 4)
         return emb + self.action_embed(prev)  # (..., D)
 
-    def encode(self, obs: torch.Tensor) -> torch.Tensor:
-        """obs (B, 3, Az, El) -> embedding (B, D) float32; bf16 autocast on CUDA when amp is set."""
-        with torch.autocast(obs.device.type, dtype=torch.bfloat16, enabled=self.amp and obs.is_cuda):
-            return self.encoder(obs)
+    def encode(self, obs: torch.Tensor | CompactFrames) -> torch.Tensor:
+        """obs (B, 3, Az, El), or a compact minibatch of B = L·M frames -> embedding (B, D) float32; bf16
+        autocast on CUDA when amp is set."""
+        device = frames_device(obs)
+        amp = self.amp and device.type == "cuda"
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+            return self.encoder(obs, torch.bfloat16 if amp else None)
 
     def act(
         self,
@@ -128,12 +132,13 @@ class CognitiveMambaPolicy(nn.Module):
         return ActOut(action, gaussian_log_prob(action, mean, log_std), value, emb, core_state)
 
     def sequence(
-        self, obs: torch.Tensor, resets: torch.Tensor, state: CoreState, actions: torch.Tensor
+        self, obs: torch.Tensor | CompactFrames, resets: torch.Tensor, state: CoreState, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, CoreState]:
-        """Core features over a sequence: obs (T, N, 3, Az, El), resets (T, N), state at t=0, the actions
-        taken (T, N, 4) -> features (T, N, D), embedding (T·N, D) and the state after step T-1."""
-        t_len, n = obs.shape[:2]
-        emb = self.encode(obs.flatten(0, 1))  # (T·N, D)
+        """Core features over a sequence: obs (T, N, 3, Az, El) (or compact frames of T steps of N
+        sequences), resets (T, N), state at t=0, the actions taken (T, N, 4) -> features (T, N, D),
+        embedding (T·N, D) and the state after step T-1."""
+        t_len, n = resets.shape
+        emb = self.encode(obs if isinstance(obs, CompactFrames) else obs.flatten(0, 1))  # (T·N, D)
         core_state, first = self._split(state)
         x = emb.view(t_len, n, -1)  # (T, N, D)
         if first is not None:
@@ -145,9 +150,10 @@ class CognitiveMambaPolicy(nn.Module):
         return feat, emb, core_state
 
     def evaluate(
-        self, obs: torch.Tensor, resets: torch.Tensor, state: CoreState, actions: torch.Tensor
+        self, obs: torch.Tensor | CompactFrames, resets: torch.Tensor, state: CoreState, actions: torch.Tensor
     ) -> EvalOut:
-        """PPO pass: obs (T, N, 3, Az, El), resets (T, N), state at t=0, actions (T, N, 4) -> EvalOut."""
+        """PPO pass: obs (T, N, 3, Az, El) or compact frames, resets (T, N), state at t=0, actions (T, N, 4)
+        -> EvalOut."""
         feat, emb, _ = self.sequence(obs, resets, state, actions)  # (T, N, D), (T·N, D)
         mean, value = self.heads(feat)  # (T, N, 4), (T, N)
         log_std = self.heads.log_std  # (4,)

@@ -13,9 +13,9 @@ from navi_learner.config import TrainConfig
 from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
+from navi_learner.engine.tokens import CompactFrames
 from navi_learner.ppo.dist import Collectives, Sync
 from navi_learner.ppo.loss import ppo_loss
-from navi_learner.ppo.rollout import CompactFrames, decode
 
 Forward = Callable[[torch.Tensor, torch.Tensor, CoreState], tuple[ActOut, torch.Tensor, torch.Tensor]]
 """The rollout's policy step: (obs, resets, state) -> (ActOut, RND novelty (N,), loop penalty (N,))."""
@@ -95,21 +95,14 @@ class PooledForward:
         return out, novelty, loop
 
 
-FUSED_INPUT = {"realize_reads_threshold": 16, "realize_opcount_threshold": 100}
-"""Inductor's settings for the policy's graphs: a pointwise value of up to 16 reads and 100 operations is
-computed where it is read instead of written out first (inductor's defaults: 4 and 30). The observations'
-gather, decode, view cap and near-field select then fold into the one pass that writes the encoder's
-patch tokens, in the update's objective and in the rollout's step."""
-
-
 def compile_graph(
     fn: Callable[..., Any], backend: str = "inductor", fullgraph: bool = True, graphs: bool = False
 ) -> Callable[..., Any]:
     """`fn` compiled for fixed shapes: one graph (fullgraph), or graphs split where it must (host reads);
-    with inductor, FUSED_INPUT, and `graphs`: replayed as CUDA graphs (torch.compile's reduce-overhead)."""
+    with inductor and `graphs`: replayed as CUDA graphs (torch.compile's reduce-overhead)."""
     if backend != "inductor":
         return torch.compile(fn, fullgraph=fullgraph, dynamic=False, backend=backend)
-    options: dict[str, Any] = {**FUSED_INPUT, "triton.cudagraphs": graphs}
+    options: dict[str, Any] = {"triton.cudagraphs": graphs}
     return torch.compile(fn, fullgraph=fullgraph, dynamic=False, backend=backend, options=options)
 
 
@@ -160,7 +153,7 @@ Objective = Callable[..., tuple[torch.Tensor, dict[str, torch.Tensor]]]
 
 def ppo_objective(policy: CognitiveMambaPolicy, cfg: TrainConfig, norm_adv: bool) -> Objective:
     """A minibatch's objective, eager: the policy's sequence pass over its observations (`frames`, float32
-    or compact: decoded here, so a compiled objective fuses the decode with the encoder's input pass),
+    or compact, which the encoder's input stage reads as they are),
     the clipped PPO loss (advantages normalised within the minibatch when `norm_adv`) and the RND
     predictor's loss -> (total loss (), detached metrics {name: ()})."""
     p = cfg.ppo
@@ -175,8 +168,7 @@ def ppo_objective(policy: CognitiveMambaPolicy, cfg: TrainConfig, norm_adv: bool
         values: torch.Tensor,
         returns: torch.Tensor,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        obs = decode(frames)  # (L, M, 3, Az, El) float32
-        ev = policy.evaluate(obs, resets, state, actions)  # (L, M) logp and value, (L·M, D) emb
+        ev = policy.evaluate(frames, resets, state, actions)  # (L, M) logp and value, (L·M, D) emb
         loss, metrics = ppo_loss(
             ev.logp,
             logp,

@@ -11,10 +11,9 @@ float16 and the semantic code as a byte per ray, 3 bytes per ray; a minibatch's 
 rebuilt on the device by navi_env.sim.observation.unpack (channel 2 from consecutive frames and the reset
 flags), bit-identical to the float32 observations the policy acted on. On CUDA the pack runs
 torch.compile'd, one pass instead of a few eager kernels. A compact minibatch hands the update its
-frames still compact (CompactFrames): the update's objective decodes them itself, so compiled, the
-gather, the unpack and the encoder's input layout are one pass that never writes the float32 frames
-out, with the same exact operations and so the same values (tests/learner/test_learner_rollout.py
-checks both devices). Float32 (any other env): the observations as they came, 12 bytes per ray.
+frames still compact (CompactFrames): the encoder's input stage (engine/tokens.py) reads them as they
+are and writes the patch tokens, on CUDA in one Triton pass that never writes the float32 frames out
+(tests/learner/test_learner_rollout.py checks the decode on both devices). Float32 (any other env): the observations as they came, 12 bytes per ray.
 """
 
 from __future__ import annotations
@@ -22,13 +21,14 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any, NamedTuple, TypeVar, cast
+from typing import Any, TypeVar, cast
 
 import torch
 
 from navi_env.sim.observation import pack, semantic_table, unpack
 from navi_learner.engine.heads import ACTION_DIM
 from navi_learner.engine.temporal import CoreState
+from navi_learner.engine.tokens import CompactFrames, gather_frames, sequences
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -37,43 +37,6 @@ F = TypeVar("F", bound=Callable[..., Any])
 def _compiled(fn: F) -> F:
     """fn compiled once per process (one program per input shape)."""
     return cast(F, torch.compile(fn, fullgraph=True, dynamic=False))
-
-
-def sequences(buf: torch.Tensor, chunks: torch.Tensor, actors: torch.Tensor, chunk: int) -> torch.Tensor:
-    """The whole BPTT sequences (chunk c, actor a) of a (T, N, ...) buffer -> (L, M, ...), time-major."""
-    view = buf.view(buf.shape[0] // chunk, chunk, *buf.shape[1:])  # (T/L, L, N, ...)
-    return view[chunks, :, actors].transpose(0, 1)  # (L, M, ...)
-
-
-def gather_frames(
-    depth16: torch.Tensor,
-    semantic: torch.Tensor,
-    resets: torch.Tensor,
-    table: torch.Tensor,
-    chunks: torch.Tensor,
-    actors: torch.Tensor,
-    chunk: int,
-) -> torch.Tensor:
-    """The observations (L, M, 3, Az, El) float32 of the sequences (chunk c, actor a) from compact storage:
-    depth16 (T+1, N, Az, El) float16 from the frame before the rollout, semantic (T, N, Az, El) uint8,
-    the sequences' resets (L, M) bool. Compiled on CUDA, the gathers become indirect loads of unpack's
-    one pass."""
-    steps = torch.arange(chunk + 1, device=chunks.device)[:, None]  # (L+1, 1) int64
-    frames = chunks[None] * chunk + steps  # (L+1, M) from the frame before each sequence
-    depth = depth16[frames, actors[None]]  # (L+1, M, Az, El) float16
-    return unpack(depth, sequences(semantic, chunks, actors, chunk), resets, table)  # (L, M, 3, Az, El)
-
-
-class CompactFrames(NamedTuple):
-    """A minibatch's observations as compact storage holds them (decode gives the float32 frames)."""
-
-    depth16: torch.Tensor  # (T+1, N, Az, El) float16, the whole rollout's channel 0
-    semantic: torch.Tensor  # (T, N, Az, El) uint8, the whole rollout's semantic codes
-    resets: torch.Tensor  # (L, M) bool, the sequences' episode starts
-    table: torch.Tensor  # (256,) float32 semantic code -> channel 1
-    chunks: torch.Tensor  # (M,) int64 BPTT chunk of each sequence
-    actors: torch.Tensor  # (M,) int64 actor of each sequence
-    chunk: int  # L
 
 
 def decode(frames: torch.Tensor | CompactFrames, compiled: bool = False) -> torch.Tensor:
