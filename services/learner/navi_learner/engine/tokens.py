@@ -10,11 +10,12 @@ semantic bytes, 3 bytes per ray), decoded as `gather_frames` does.
 `patch_tokens` is the stage. On a CPU it runs `patch_tokens_ref` (the decode, the cap, the near field and
 the patch layout written out in torch). On CUDA one Triton program per (sample, patch) reads the patch's
 rays once, float32 frames or compact ones, and writes their four values in the dtype the embedding
-multiplies in (bf16 under amp). Traced by torch.compile, the same four values per element made one pass
-that recomputed the ray's decode for each of its four values (docs/PERFORMANCE.md). The kernel makes the
-same float32 operations in the same order; its log is the GPU's fast log, as in inductor's code, so it
-agrees with the written-out twin to the last bit of float32 (and so nearly always exactly after the bf16
-rounding; tests/learner/test_learner_tokens.py, and the CUDA checks in test_learner_gpu.py).
+multiplies in (bf16 under amp). Compiled by inductor, the stage was one pass that computed each output
+element on its own, so each ray's gather and decode ran once for each of its four values
+(docs/PERFORMANCE.md). The kernel makes the same float32 operations in the same order; its log is the
+GPU's fast log, as in inductor's code, so its float32 tokens lie within 1e-6 of the twin's and its bf16
+tokens within one unit in the last place, nearly all equal (tests/learner/test_learner_tokens.py, and
+the CUDA check in test_learner_gpu.py).
 
 Legend: N samples, C channels, Az × El rays, pa × pe patch, P patches, T rollout steps, L sequence
 length, M sequences (N = L·M in the update).

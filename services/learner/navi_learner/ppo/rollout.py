@@ -13,7 +13,8 @@ flags), bit-identical to the float32 observations the policy acted on. On CUDA t
 torch.compile'd, one pass instead of a few eager kernels. A compact minibatch hands the update its
 frames still compact (CompactFrames): the encoder's input stage (engine/tokens.py) reads them as they
 are and writes the patch tokens, on CUDA in one Triton pass that never writes the float32 frames out
-(tests/learner/test_learner_rollout.py checks the decode on both devices). Float32 (any other env): the observations as they came, 12 bytes per ray.
+(tests/learner/test_learner_rollout.py checks the decode on both devices). Float32 (any other env): the
+observations as they came, 12 bytes per ray.
 """
 
 from __future__ import annotations
