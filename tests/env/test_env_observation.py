@@ -219,8 +219,8 @@ def test_compact_form_gives_back_every_channel_bit_for_bit() -> None:
     assert bool((back[1:, :, 2] != 0).any()) and torch.all(back[fresh][:, 2] == 0)
     # the reset flags matter: without them a fresh frame's delta is taken across two episodes
     assert not torch.equal(unpack(depth16, semantic, torch.zeros_like(fresh), table), back)
-    # compiled, unpack is a select per channel instead of a stack: the same bits (aot_eager: the traced
-    # graph run by eager kernels)
+    # compiled (the minibatch decode compiles it): the same bits (aot_eager: the traced graph run by eager
+    # kernels)
     traced = torch.compile(unpack, backend="aot_eager", fullgraph=True, dynamic=False)
     assert torch.equal(traced(depth16, semantic, fresh, table), back)
 

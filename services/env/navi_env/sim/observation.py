@@ -129,13 +129,7 @@ def unpack(
     ch0 = depth16.to(torch.float32)  # (T + 1, B, Az, El)
     now = ch0[1:]  # (T, B, Az, El)
     delta = torch.where(fresh[:, :, None, None], 0.0, now - ch0[:-1])  # (T, B, Az, El)
-    sem = table[semantic.to(torch.int64)]  # (T, B, Az, El)
-    if not torch.compiler.is_compiling():  # eager, a stack is faster
-        return torch.stack((now, sem, delta), dim=2)  # (T, B, 3, Az, El)
-    # compiled, a select per channel: a consumer computes its elements without a copy between (same values)
-    c = torch.arange(3, device=depth16.device).view(1, 1, 3, 1, 1)  # (1, 1, 3, 1, 1)
-    rest = torch.where(c == 1, sem[:, :, None], delta[:, :, None])  # (T, B, 3, Az, El) channels 1, 2
-    return torch.where(c == 0, now[:, :, None], rest)  # (T, B, 3, Az, El)
+    return torch.stack((now, table[semantic.to(torch.int64)], delta), dim=2)  # (T, B, 3, Az, El)
 
 
 def is_front(azimuth: torch.Tensor, azimuth_bins: int) -> torch.Tensor:

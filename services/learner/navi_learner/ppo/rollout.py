@@ -43,8 +43,8 @@ def _compiled(fn: F) -> F:
 def decode(frames: torch.Tensor | CompactFrames, compiled: bool = False) -> torch.Tensor:
     """A minibatch's observations (L, M, 3, Az, El) float32, exactly what the policy acted on: float32
     frames as they are, compact ones gathered and unpacked, by gather_frames compiled once per process
-    (`compiled`) or eager. A compiled objective calls it with `compiled` False: its own compile traces
-    the decode into its graph."""
+    (`compiled`) or eager. The update does not call it: the encoder's input stage reads compact frames
+    as they are (engine/tokens.py)."""
     if not isinstance(frames, CompactFrames):
         return frames
     gather = _compiled(gather_frames) if compiled else gather_frames
