@@ -61,8 +61,6 @@ def readme_benches(text: str) -> set[str]:
 
 
 BENCHES = readme_benches((RESULTS / "README.md").read_text())
-
-
 ROWS = target_rows(PERFORMANCE.read_text())
 
 
@@ -79,7 +77,9 @@ def test_the_table_has_rows_and_each_says_met_or_not() -> None:
     assert {row["met"] for row in ROWS} <= {"yes", "no"}
 
 
-@pytest.mark.parametrize("row", ROWS, ids=[f"{i}" for i in range(len(ROWS))])
+@pytest.mark.parametrize(
+    "row", ROWS, ids=[f"{i}-{row['target'].split('**')[1]}" for i, row in enumerate(ROWS)]
+)
 def test_each_target_figure_has_its_record(row: dict[str, str]) -> None:
     named = re.findall(r"`([^`/]+\.jsonl)`", row["record"])
     assert len(named) == 1, f"the row must name one record file: {row['record']!r}"
