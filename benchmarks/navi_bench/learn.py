@@ -13,7 +13,8 @@ Protocol (docs/TRAINING.md, "The learning benchmark"):
   (EvalProtocol) and record a curve point; stop at competence (at most half the reactive baseline's collisions per
   1,000 steps and at least 1.5x its coverage) or at the time budget.
 - Report per run the training time and env steps to competence (null if never), the final metrics
-  per unseen part with 95% bootstrap intervals, and per arm the median over seeds.
+  per unseen part with 95% bootstrap intervals, and per arm the median over all its seeds (a seed that
+  never got there counts as beyond the budget: censored_median).
 - With `nproc` > 1 every run trains data-parallel (DD-PPO, ppo/dist.py) on that many ranks through
   torchrun, `actors` per rank, each rank on every train scene; rank 0 runs the monitor and
   the final evaluation (run_ranks, rank_main), and its clock is the run's training time.
@@ -23,6 +24,7 @@ Output folder: result.json, curves.json, learning_curves.png, report.md.
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing
 import os
 import pickle
@@ -515,19 +517,32 @@ def rank_main(job: Path) -> None:
     ddp.leave(d, code)
 
 
+def censored_median(values: list[float | None]) -> float | None:
+    """The median of `values` where None is a run that never got there (beyond its budget, so larger
+    than every number): None when the median falls on such a run. Over seeds 0-2 with one competent at
+    62 s it is None, not 62: a median of the competent seeds alone would flatter an arm that mostly fails."""
+    if not values:
+        return None
+    mid = statistics.median(math.inf if v is None else v for v in values)
+    return None if math.isinf(mid) else mid
+
+
 def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
     """Per arm (in the order of `runs`): competent seeds, median training seconds and env steps to
-    competence (over the competent seeds; null if none), and the median final unseen metrics."""
+    competence over all its seeds (a seed that did not get there counts as beyond the budget, so the
+    median is null unless more than half got there; censored_median), and the median final unseen
+    metrics."""
     out: dict[str, Any] = {}
     for arm in dict.fromkeys(r["arm"] for r in runs):
         mine = [r for r in runs if r["arm"] == arm]
         hits = [r["competence"] for r in mine if r["competence"] is not None]
         last = [r["curve"][-1] for r in mine if r["curve"]]
+        reached = [r["competence"] for r in mine]
         out[arm] = {
             "seeds": len(mine),
             "competent_seeds": len(hits),
-            "median_train_s_to_competence": statistics.median(h["train_s"] for h in hits) if hits else None,
-            "median_steps_to_competence": statistics.median(h["step"] for h in hits) if hits else None,
+            "median_train_s_to_competence": censored_median([c and c["train_s"] for c in reached]),
+            "median_steps_to_competence": censored_median([c and c["step"] for c in reached]),
             "competent_within_budget": len(hits) == len(mine),
             "budget_s": budget_s,
             "median_final_collisions_per_1k": statistics.median(p["collisions_per_1k"] for p in last)
@@ -558,14 +573,16 @@ def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalM
         "median_final_collisions_per_1k", "median_final_coverage_per_1k"
     )  # fmt: skip
     lines += [
-        "| arm | seeds | competent | median s to competence | median steps | "
+        "| arm | seeds | competent | median s to competence (all seeds) | median steps | "
         f"final {finals[0]} | final {finals[1]} | SPS |"
     ]
     lines += ["| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for arm, s in result["summary"].items():
+        t, n = s["median_train_s_to_competence"], s["median_steps_to_competence"]
+        beyond = f"> {s['budget_s']:.0f} (not reached)"
         lines.append(
-            f"| {arm} | {s['seeds']} | {s['competent_seeds']} | {s['median_train_s_to_competence']} | "
-            f"{s['median_steps_to_competence']} | {s.get(keys[0])} | {s.get(keys[1])} | {s['median_sps']:.0f} |"
+            f"| {arm} | {s['seeds']} | {s['competent_seeds']} | {beyond if t is None else f'{t:.0f}'} | "
+            f"{'-' if n is None else f'{n:,.0f}'} | {s.get(keys[0])} | {s.get(keys[1])} | {s['median_sps']:.0f} |"
         )
     warm = result.get("warmups", [])
     if warm:

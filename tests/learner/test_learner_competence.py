@@ -19,7 +19,16 @@ import numpy as np
 import pytest
 import torch
 
-from navi_bench.learn import LearnConfig, bench_learn, gpu_lanes, parse_arm, run_devices, run_order
+from navi_bench.learn import (
+    LearnConfig,
+    bench_learn,
+    censored_median,
+    gpu_lanes,
+    parse_arm,
+    run_devices,
+    run_order,
+)
+from navi_bench.learn import summarise as summarise_arms
 from navi_env.corpus.folder import build_default_corpus
 from navi_env.corpus.openarena import split_openarena
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe
@@ -310,6 +319,31 @@ def small_learn_config(task: str = "explore", **overrides: object) -> LearnConfi
         warmup_updates=0,
     )
     return LearnConfig(**(small | overrides))  # type: ignore[arg-type]
+
+
+def test_median_to_competence_counts_the_seeds_that_never_got_there() -> None:
+    # One seed of three competent: the median seed never got there, so there is no median time.
+    assert censored_median([62.0, None, None]) is None
+    assert censored_median([62.0, 162.0, None]) == 162.0
+    assert censored_median([41.0, 82.0, 164.0]) == 82.0
+    assert censored_median([30.0, None]) is None and censored_median([30.0, 50.0]) == 40.0
+    assert censored_median([]) is None
+
+    def run(arm: str, seed: int, hit: float | None) -> dict[str, object]:
+        point = {"step": 100 * seed, "collisions_per_1k": 0.1 * seed, "coverage_per_1k": 200.0 + seed}
+        competence = None if hit is None else {"train_s": hit, "step": int(hit) * 1000}
+        return {"arm": arm, "seed": seed, "competence": competence, "curve": [point], "sps": 1e5 + seed}
+
+    runs = [run("a", 0, 121.0), run("b", 0, None), run("a", 1, None), run("b", 1, 40.0)]
+    runs += [run("a", 2, None), run("b", 2, 90.0)]
+    summary = summarise_arms(runs, budget_s=120.0)
+    assert list(summary) == ["a", "b"]
+    a, b = summary["a"], summary["b"]
+    assert a["competent_seeds"] == 1 and a["median_train_s_to_competence"] is None
+    assert a["median_steps_to_competence"] is None and not a["competent_within_budget"]
+    assert b["competent_seeds"] == 2 and b["median_train_s_to_competence"] == 90.0
+    assert b["median_steps_to_competence"] == 90_000
+    assert b["median_final_collisions_per_1k"] == pytest.approx(0.1)
 
 
 def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
