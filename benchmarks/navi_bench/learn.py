@@ -535,15 +535,15 @@ def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for arm in dict.fromkeys(r["arm"] for r in runs):
         mine = [r for r in runs if r["arm"] == arm]
-        hits = [r["competence"] for r in mine if r["competence"] is not None]
+        reached = [r["competence"] for r in mine]  # None where the seed never got there
+        hits = sum(c is not None for c in reached)
         last = [r["curve"][-1] for r in mine if r["curve"]]
-        reached = [r["competence"] for r in mine]
         out[arm] = {
             "seeds": len(mine),
-            "competent_seeds": len(hits),
+            "competent_seeds": hits,
             "median_train_s_to_competence": censored_median([c and c["train_s"] for c in reached]),
             "median_steps_to_competence": censored_median([c and c["step"] for c in reached]),
-            "competent_within_budget": len(hits) == len(mine),
+            "competent_within_budget": hits == len(mine),
             "budget_s": budget_s,
             "median_final_collisions_per_1k": statistics.median(p["collisions_per_1k"] for p in last)
             if last
