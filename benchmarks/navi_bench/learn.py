@@ -527,17 +527,44 @@ def censored_median(values: list[float | None]) -> float | None:
     return None if math.isinf(mid) else mid
 
 
+LATE_METRICS = ("collisions_per_1k", "coverage_per_1k", "success_rate", "spl")
+"""The curve's metrics that late_means averages (those a point carries: point-goal runs add the last two)."""
+
+
+def late_means(curve: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
+    """The mean of each of a run's unseen metrics over its evaluations in the second half of the training
+    budget (train_s >= budget_s / 2), and their count ("evaluations"; the metrics None where there are
+    none). Near the explore bar one evaluation of 256 actors decides whether a seed is competent (its
+    collisions interval spans about ±0.1 per 1,000 steps against a bar of 0.035), so arms are compared
+    on these means as well as on the first evaluation that met the bar. A run stopped at competence
+    holds fewer of them (`--full-budget` keeps every run to its budget)."""
+    late = [p for p in curve if p["train_s"] >= budget_s / 2]
+    out: dict[str, Any] = {"evaluations": len(late)}
+    for key in LATE_METRICS:
+        values = [p[key] for p in late if p.get(key) is not None]
+        out[key] = statistics.fmean(values) if values else None
+    return out
+
+
+def median_of(values: list[float | None]) -> float | None:
+    """The median of the values that are not None; None where none are."""
+    present = [v for v in values if v is not None]
+    return statistics.median(present) if present else None
+
+
 def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
     """Per arm (in the order of `runs`): competent seeds, median training seconds and env steps to
     competence over all its seeds (a seed that did not get there counts as beyond the budget, so the
-    median is null unless more than half got there; censored_median), and the median final unseen
-    metrics."""
+    median is null unless more than half got there; censored_median), the median final unseen
+    metrics, and the median over seeds of each run's late means (late_means: collisions and coverage,
+    and point-goal's success and SPL)."""
     out: dict[str, Any] = {}
     for arm in dict.fromkeys(r["arm"] for r in runs):
         mine = [r for r in runs if r["arm"] == arm]
         reached = [r["competence"] for r in mine]  # None where the seed never got there
         hits = sum(c is not None for c in reached)
         last = [r["curve"][-1] for r in mine if r["curve"]]
+        late = [late_means(r["curve"], budget_s) for r in mine]
         out[arm] = {
             "seeds": len(mine),
             "competent_seeds": hits,
@@ -552,10 +579,14 @@ def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
             if last
             else None,
             "median_sps": statistics.median(r["sps"] for r in mine),
+            "median_late_collisions_per_1k": median_of([m["collisions_per_1k"] for m in late]),
+            "median_late_coverage_per_1k": median_of([m["coverage_per_1k"] for m in late]),
         }
         if last and last[0].get("success_rate") is not None:  # point-goal runs
             out[arm]["median_final_success_rate"] = statistics.median(p["success_rate"] for p in last)
             out[arm]["median_final_spl"] = statistics.median(p["spl"] for p in last)
+            out[arm]["median_late_success_rate"] = median_of([m["success_rate"] for m in late])
+            out[arm]["median_late_spl"] = median_of([m["spl"] for m in late])
     return out
 
 
@@ -564,26 +595,36 @@ def warmup_label(warm: dict[str, Any]) -> str:
     return f"{warm['arm']} seed {warm['seed']}" if "seed" in warm else str(warm["arm"])
 
 
+def figure(value: float | None) -> str:
+    """A metric as the report prints it: 4 significant digits, "-" where there is none."""
+    return "-" if value is None else f"{value:.4g}"
+
+
 def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalMetrics]]) -> str:
     """report.md: the summary per arm, each run, and the per-split tables of every run."""
     lines = ["# navi bench learn", "", f"device {result['device']}, {result['date']}", ""]
     goal = result["config"]["train"].get("task") == "pointgoal"
+    budget = float(next(iter(result["summary"].values()))["budget_s"]) if result["summary"] else 0.0
     finals = ("success", "SPL") if goal else ("coll/1k", "cov/1k")
-    keys = ("median_final_success_rate", "median_final_spl") if goal else (
-        "median_final_collisions_per_1k", "median_final_coverage_per_1k"
-    )  # fmt: skip
+    metrics = ("success_rate", "spl") if goal else ("collisions_per_1k", "coverage_per_1k")
     lines += [
         "| arm | seeds | competent | median s to competence (all seeds) | median steps | "
-        f"final {finals[0]} | final {finals[1]} | SPS |"
+        f"final {finals[0]} | final {finals[1]} | late {finals[0]} | late {finals[1]} | SPS |"
     ]
-    lines += ["| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines += ["| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for arm, s in result["summary"].items():
         t, n = s["median_train_s_to_competence"], s["median_steps_to_competence"]
         beyond = f"> {s['budget_s']:.0f} (not reached)"
+        shown = [figure(s.get(f"median_{when}_{m}")) for when in ("final", "late") for m in metrics]
         lines.append(
             f"| {arm} | {s['seeds']} | {s['competent_seeds']} | {beyond if t is None else f'{t:.0f}'} | "
-            f"{'-' if n is None else f'{n:,.0f}'} | {s.get(keys[0])} | {s.get(keys[1])} | {s['median_sps']:.0f} |"
+            f"{'-' if n is None else f'{n:,.0f}'} | {' | '.join(shown)} | {s['median_sps']:.0f} |"
         )
+    lines += [
+        "",
+        f"Final: the last evaluation of each seed; late: the mean of each seed's evaluations in the second half "
+        f"of the budget (from {budget / 2:.0f} s of training); both the median over the seeds.",
+    ]
     warm = result.get("warmups", [])
     if warm:
         seconds = ", ".join(f"{warmup_label(w)} {w['seconds']:.0f} s" for w in warm)
@@ -594,13 +635,18 @@ def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalM
         ]
     lines += [
         "",
-        "| arm | seed | competence (train s, steps) | steps | train s |",
-        "| --- | --- | --- | --- | --- |",
+        f"| arm | seed | competence (train s, steps) | steps | train s | late {finals[0]} | late {finals[1]} "
+        "| late evaluations |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in result["runs"]:
         c = r["competence"]
         hit = f"{c['train_s']:.0f} s, {c['step']:,}" if c else "not reached"
-        lines.append(f"| {r['arm']} | {r['seed']} | {hit} | {r['steps']:,} | {r['train_s']:.0f} |")
+        late = late_means(r["curve"], budget)
+        lines.append(
+            f"| {r['arm']} | {r['seed']} | {hit} | {r['steps']:,} | {r['train_s']:.0f} | "
+            f"{figure(late[metrics[0]])} | {figure(late[metrics[1]])} | {late['evaluations']} |"
+        )
     for r in result["runs"]:
         for part, metrics in r["final_by_split"].items():
             rows = [EvalMetrics(**metrics), *baselines[part].values()]

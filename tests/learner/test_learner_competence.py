@@ -24,7 +24,9 @@ from navi_bench.learn import (
     bench_learn,
     censored_median,
     gpu_lanes,
+    late_means,
     parse_arm,
+    report_markdown,
     run_devices,
     run_order,
 )
@@ -330,7 +332,12 @@ def test_median_to_competence_counts_the_seeds_that_never_got_there() -> None:
     assert censored_median([]) is None
 
     def run(arm: str, seed: int, hit: float | None) -> dict[str, object]:
-        point = {"step": 100 * seed, "collisions_per_1k": 0.1 * seed, "coverage_per_1k": 200.0 + seed}
+        point = {
+            "step": 100 * seed,
+            "train_s": 120.0,
+            "collisions_per_1k": 0.1 * seed,
+            "coverage_per_1k": 200.0 + seed,
+        }
         competence = None if hit is None else {"train_s": hit, "step": int(hit) * 1000}
         return {"arm": arm, "seed": seed, "competence": competence, "curve": [point], "sps": 1e5 + seed}
 
@@ -344,6 +351,50 @@ def test_median_to_competence_counts_the_seeds_that_never_got_there() -> None:
     assert b["competent_seeds"] == 2 and b["median_train_s_to_competence"] == 90.0
     assert b["median_steps_to_competence"] == 90_000
     assert b["median_final_collisions_per_1k"] == pytest.approx(0.1)
+
+
+def test_late_means_average_the_second_half_of_the_budget_only() -> None:
+    def point(train_s: float, coll: float, cov: float) -> dict[str, object]:
+        return {
+            "train_s": train_s,
+            "step": int(train_s) * 1000,
+            "collisions_per_1k": coll,
+            "coverage_per_1k": cov,
+        }
+
+    # Evaluations every 20 s of a 120 s budget: those from 60 s on are the late ones.
+    curve = [point(20, 0.9, 100.0), point(40, 0.5, 200.0), point(61, 0.2, 280.0), point(81, 0.05, 300.0)]
+    curve += [point(101, 0.35, 320.0), point(120, 0.02, 310.0)]
+    late = late_means(curve, budget_s=120.0)
+    assert late["evaluations"] == 4
+    assert late["collisions_per_1k"] == pytest.approx((0.2 + 0.05 + 0.35 + 0.02) / 4)
+    assert late["coverage_per_1k"] == pytest.approx((280 + 300 + 320 + 310) / 4)
+    assert late["success_rate"] is None and late["spl"] is None  # explore curves carry neither
+    # A run stopped at competence before half its budget has no late evaluations.
+    early = late_means(curve[:2], budget_s=120.0)
+    assert early["evaluations"] == 0 and early["collisions_per_1k"] is None
+
+    # The summary's late figure is the median over seeds of each seed's late mean: a seed whose last
+    # evaluation drew 0.02 after a late mean of 0.155 moves its final figure, not its late one.
+    def run(seed: int, points: list[dict[str, object]]) -> dict[str, object]:
+        return {
+            "arm": "a",
+            "seed": seed,
+            "competence": None,
+            "curve": points,
+            "sps": 2e5,
+            "steps": 1,
+            "train_s": 120.0,
+        }
+
+    runs = [run(0, curve), run(1, [point(70, 0.4, 250.0), point(120, 0.1, 260.0)]), run(2, curve[:2])]
+    summary = summarise_arms(runs, budget_s=120.0)["a"]
+    assert summary["median_late_collisions_per_1k"] == pytest.approx((0.155 + 0.25) / 2)  # seed 2 has none
+    assert summary["median_final_collisions_per_1k"] == pytest.approx(0.1)
+    result = {"device": "cpu", "date": "now", "config": {"train": {}}, "summary": {"a": summary}, "runs": []}
+    text = report_markdown(result, {})
+    assert "| late coll/1k | late cov/1k |" in text and "from 60 s of training" in text
+    assert f"| {summary['median_late_collisions_per_1k']:.4g} |" in text
 
 
 def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
