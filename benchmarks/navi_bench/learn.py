@@ -5,9 +5,11 @@ Protocol (docs/TRAINING.md, "The learning benchmark"):
   scenes of seed 1000 + every fifth OpenArena map (sorted by name, starting with the first). The
   split, with every scene name, is written into the result. Without the OpenArena package the
   OpenArena parts are left out and the result says why.
-- Arms: a temporal core, optionally followed by `/KEY=VALUE[,KEY=VALUE...]`, EngineConfig fields the
-  arm's fresh engine replaces (`mamba2/attention=fused`). The runs go seed by seed, every arm of a seed
-  before the next seed, so that arms compared in one job share its conditions.
+- Arms: a temporal core, optionally followed by `/KEY=VALUE[,KEY=VALUE...]`: EngineConfig fields the
+  arm's fresh engine replaces (`mamba2/attention=fused`) and RewardConfig weights its training env
+  replaces on top of the job's (`mamba2/collision_weight=9`; evaluations and baselines fly the job's
+  reward, and the collisions and coverage they count do not read it). The runs go seed by seed, every
+  arm of a seed before the next seed, so that arms compared in one job share its conditions.
 - For every arm and seed: train from scratch on the train split; every `eval_every_s`
   seconds of training evaluate the live policy, flown as its task is (ACTION_NOISE), on the unseen split
   (EvalProtocol) and record a curve point; stop at competence (at most half the reactive baseline's collisions per
@@ -32,7 +34,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -41,13 +43,14 @@ import torch
 from navi_env.corpus.openarena import openarena_maps, split_openarena
 from navi_learner.config import (
     TEMPORAL_CORES,
+    EngineConfig,
     TemporalCoreName,
     TrainConfig,
     engine_overrides,
     learning_recipe,
     learning_size,
 )
-from navi_learner.envs.factory import corpus_summary, make_env, reward_config
+from navi_learner.envs.factory import corpus_summary, make_env, parse_reward_overrides, reward_config
 from navi_learner.evaluation.competence import (
     CompetenceMonitor,
     EvalProtocol,
@@ -205,9 +208,22 @@ def prepare_splits(
     return Splits(train, unseen, unseen_parts, scenes, notes)
 
 
-def parse_arm(spec: str) -> tuple[TemporalCoreName, dict[str, Any]]:
-    """An arm `CORE[/KEY=VALUE[,KEY=VALUE...]]` as (temporal core, EngineConfig fields it replaces);
-    ValueError names an unknown core or engine field."""
+class ArmSpec(NamedTuple):
+    """An arm as parse_arm reads it."""
+
+    core: TemporalCoreName
+    engine: dict[str, Any]
+    """EngineConfig fields its fresh engine replaces."""
+    reward: dict[str, float]
+    """RewardConfig weights its training env replaces, on top of the job's."""
+
+
+def parse_arm(spec: str) -> ArmSpec:
+    """An arm `CORE[/KEY=VALUE[,KEY=VALUE...]]`: a KEY that names a RewardConfig weight goes to its
+    training env's reward, any other must be an EngineConfig field; ValueError names an unknown core or
+    field."""
+    from navi_env.config import RewardConfig
+
     core, _, rest = (part.strip() for part in spec.partition("/"))
     if core not in TEMPORAL_CORES:
         raise ValueError(
@@ -216,12 +232,27 @@ def parse_arm(spec: str) -> tuple[TemporalCoreName, dict[str, Any]]:
     items = [item for item in rest.split(",") if item.strip()]
     if "/" in spec and not items:
         raise ValueError(f"arm {spec!r}: name KEY=VALUE after /")
+    weights = {f.name for f in fields(RewardConfig)}
+    shapes = {f.name for f in fields(EngineConfig)} - {"temporal_core"}  # the core comes before the /
+    for key in (item.partition("=")[0].strip() for item in items):
+        if key not in weights | shapes:
+            raise ValueError(
+                f"arm {spec!r}: unknown field {key!r}: name an EngineConfig field (e.g. patch_size) or a "
+                "RewardConfig weight (e.g. collision_weight)"
+            )
+    to_reward = [item for item in items if item.partition("=")[0].strip() in weights]
     try:
-        overrides = engine_overrides(items)
+        engine = engine_overrides([item for item in items if item not in to_reward])
+        reward = parse_reward_overrides(to_reward)
     except ValueError as err:
         raise ValueError(f"arm {spec!r}: {err}") from err
     name: TemporalCoreName = "gru" if core == "gru" else "mambapy" if core == "mambapy" else "mamba2"
-    return name, overrides
+    return ArmSpec(name, engine, reward)
+
+
+def arm_reward(cfg: LearnConfig, arm: str) -> dict[str, float]:
+    """The RewardConfig weights an arm's training env replaces: the job's (--reward), then the arm's own."""
+    return dict(cfg.reward) | parse_arm(arm).reward
 
 
 def arm_slug(spec: str) -> str:
@@ -244,7 +275,7 @@ def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) ->
     """The TrainConfig of one run of the benchmark: the job's settings (its engine with the arm's core
     and fields), sized by learning_size, with the run's seed, device and time budget and no periodic
     checkpoints."""
-    core, overrides = parse_arm(arm)
+    core, overrides, _ = parse_arm(arm)
     engine = replace(cfg.train.engine, temporal_core=core, **overrides)
     return replace(
         learning_size(cfg.train, device.type == "cuda"),
@@ -256,12 +287,12 @@ def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) ->
     )
 
 
-def train_env(splits: Splits, cfg: LearnConfig, tcfg: TrainConfig, device: str, d: Dist) -> Any:
-    """This process's training env of a run (`tcfg`, train_config's): the train split's scenes as
-    tcfg.rank_scenes deals them to rank d.rank, the run's seed offset by the rank, and the job's reward
-    overrides, obstacles, squads and task."""
+def train_env(splits: Splits, cfg: LearnConfig, arm: str, tcfg: TrainConfig, device: str, d: Dist) -> Any:
+    """This process's training env of a run of `arm` (`tcfg`, train_config's): the train split's scenes as
+    tcfg.rank_scenes deals them to rank d.rank, the run's seed offset by the rank, the reward weights of
+    the job and of the arm (arm_reward), and the job's obstacles, squads and task."""
     return make_env(
-        splits.train, tcfg.n_actors, device, tcfg.seed + d.rank, reward=dict(cfg.reward),
+        splits.train, tcfg.n_actors, device, tcfg.seed + d.rank, reward=arm_reward(cfg, arm),
         obstacles=cfg.obstacles, squad=cfg.squad, task=cfg.train.task, rank=d.rank, world=d.world,
         rank_scenes=tcfg.rank_scenes,
     )  # fmt: skip
@@ -292,7 +323,7 @@ def warm_up(
         time_limit_s=0.0,
     )
     train(
-        train_env(splits, cfg, tcfg, device, d),
+        train_env(splits, cfg, arm, tcfg, device, d),
         tcfg,
         run_dir=run_dir,
         corpus_summary=corpus_summary(splits.train, "sdfdag"),
@@ -330,7 +361,7 @@ def run_one(
     d = dist or Dist()
     dev = torch.device(device)
     tcfg = train_config(cfg, arm, seed, dev)
-    env = train_env(splits, cfg, tcfg, device, d)
+    env = train_env(splits, cfg, arm, tcfg, device, d)
     monitor = None
     if d.main:
         monitor = CompetenceMonitor(
@@ -377,6 +408,7 @@ def run_one(
         "curve": monitor.curve,
         "final_by_split": final,
         "train_config": tcfg.to_dict(),
+        "reward_overrides": arm_reward(cfg, arm),
         "ranks": d.world,
     }
 

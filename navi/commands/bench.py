@@ -577,8 +577,10 @@ def bench_learn_cmd(
         typer.Option(
             "--arm",
             help="CORE[/KEY=VALUE[,KEY=VALUE...]]: an arm to compare, a core with EngineConfig fields on top "
-            "of --engine (repeatable; replaces --temporal-core), e.g. --arm mamba2 --arm mamba2/attention=fused. "
-            "Runs go seed by seed, every arm of a seed before the next.",
+            "of --engine and RewardConfig weights on top of --reward for its training (evaluations fly the "
+            "job's reward) (repeatable; replaces --temporal-core), e.g. --arm mamba2 --arm "
+            "mamba2/attention=fused --arm mamba2/collision_weight=9. Runs go seed by seed, every arm of a "
+            "seed before the next.",
         ),
     ] = None,
     budget: Annotated[

@@ -21,6 +21,7 @@ import torch
 
 from navi_bench.learn import (
     LearnConfig,
+    arm_reward,
     bench_learn,
     censored_median,
     gpu_lanes,
@@ -480,15 +481,28 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
         ("mamba2", 0), ("mamba2/attention=fused,patch_size=32", 0),
         ("mamba2", 1), ("mamba2/attention=fused,patch_size=32", 1),
     ]  # fmt: skip
-    assert parse_arm("gru") == ("gru", {})
+    assert parse_arm("gru") == ("gru", {}, {})
     assert parse_arm("mamba2/attention=fused,patch_size=32") == (
         "mamba2",
         {"attention": "fused", "patch_size": 32},
+        {},
     )
+    # A RewardConfig weight goes to the arm's training env, on top of the job's --reward.
+    arm = parse_arm("mamba2/collision_weight=9,patch_size=32")
+    assert arm.engine == {"patch_size": 32} and arm.reward == {"collision_weight": 9.0}
+    job = LearnConfig(reward=(("collision_weight", 6.0), ("exploration_weight", 0.25)))
+    assert arm_reward(job, "mamba2/collision_weight=9") == {
+        "collision_weight": 9.0,
+        "exploration_weight": 0.25,
+    }
+    assert arm_reward(job, "mamba2") == {"collision_weight": 6.0, "exploration_weight": 0.25}
     for bad, why in (
         ("lstm", "unknown temporal core"),
         ("mamba2/", "KEY=VALUE"),
-        ("mamba2/temporal_core=gru", "unknown engine field"),
+        ("mamba2/temporal_core=gru", "unknown field 'temporal_core'"),
+        ("mamba2/colision_weight=9", "RewardConfig weight"),
+        ("mamba2/collision_weight=high", "KEY=NUMBER"),
+        ("mamba2/exploration_table_bits=12", "unknown reward weight"),
         ("mamba2/attention=flash", "attention expects one of"),
     ):
         with pytest.raises(ValueError, match=why):
@@ -506,7 +520,8 @@ def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
     build_default_corpus(root / "procedural-train-64", resolution=64, count=1, seed=0)
     build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
     out = tmp_path / "out"
-    args = "bench learn --seeds 1 --first-seed 2 --arm gru --arm gru/head_hidden=16 --budget-s 1 --eval-every-s 1"
+    args = "bench learn --seeds 1 --first-seed 2 --arm gru --arm gru/head_hidden=16,existential_tax=-1"
+    args += " --budget-s 1 --eval-every-s 1 --reward existential_tax=-0.5 --reward exploration_weight=0.25"
     args += " --actors 4 --rollout-length 8 --eval-actors 4 --eval-steps 16 --eval-episode-steps 8"
     args += f" --resolution 64 --no-compile --device cpu --json --corpus-root {root} --out {out}"
     args += f" --openarena {tmp_path / 'none.pk3'} --engine head_hidden=24"
@@ -514,19 +529,30 @@ def test_bench_learn_cli_first_seed_picks_the_seeds(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     saved = json.loads((out / "result.json").read_text())
     assert saved["config"]["seeds"] == [2]
-    assert [(r["arm"], r["seed"]) for r in saved["runs"]] == [("gru", 2), ("gru/head_hidden=16", 2)]
+    arm = "gru/head_hidden=16,existential_tax=-1"
+    assert [(r["arm"], r["seed"]) for r in saved["runs"]] == [("gru", 2), (arm, 2)]
     assert [r["train_config"]["engine"]["head_hidden"] for r in saved["runs"]] == [24, 16]
     assert all(r["train_config"]["seed"] == 2 and r["temporal_core"] == "gru" for r in saved["runs"])
-    assert list(saved["summary"]) == ["gru", "gru/head_hidden=16"]
-    assert (out / "runs" / "gru-head_hidden=16-seed2").is_dir()
+    # The arm's reward weight replaces the job's in its training env alone; the other weight stays.
+    assert [r["reward_overrides"] for r in saved["runs"]] == [
+        {"existential_tax": -0.5, "exploration_weight": 0.25},
+        {"existential_tax": -1.0, "exploration_weight": 0.25},
+    ]
+    for run, tax in zip(saved["runs"], (-0.5, -1.0), strict=True):
+        rows = (Path(run["checkpoint"]).parents[1] / "metrics" / "metrics.jsonl").read_text().splitlines()
+        logged = [json.loads(row) for row in rows]  # every step of every actor paid the constant term
+        assert logged and all(row["reward/existential_per_step"] == pytest.approx(tax) for row in logged)
+    assert saved["reward"]["existential_tax"] == -0.5  # evaluations and baselines fly the job's reward
+    assert list(saved["summary"]) == ["gru", arm]
+    assert (out / "runs" / "gru-head_hidden=16-existential_tax=-1-seed2").is_dir()
     warm = saved["warmups"]  # the compile warm-up: once per arm, before every run and off their clocks
-    assert [(w["arm"], w["updates"]) for w in warm] == [("gru", 3), ("gru/head_hidden=16", 3)]
-    assert (out / "runs" / "gru-head_hidden=16-warmup-cpu").is_dir()
+    assert [(w["arm"], w["updates"]) for w in warm] == [("gru", 3), (arm, 3)]
+    assert (out / "runs" / "gru-head_hidden=16-existential_tax=-1-warmup-cpu").is_dir()
     assert (
         "Compile warm-up before the runs, outside their clocks: 3 untimed updates per arm"
         in (out / "report.md").read_text()
     )
-    assert "| gru/head_hidden=16 | 1 |" in (out / "report.md").read_text()
+    assert f"| {arm} | 1 |" in (out / "report.md").read_text()
 
 
 def test_obstacle_collisions_are_measured_and_counted_among_collisions(tmp_path: Path) -> None:
