@@ -604,19 +604,15 @@ def summarise(runs: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
             "median_steps_to_competence": censored_median([c and c["step"] for c in reached]),
             "competent_within_budget": hits == len(mine),
             "budget_s": budget_s,
-            "median_final_collisions_per_1k": statistics.median(p["collisions_per_1k"] for p in last)
-            if last
-            else None,
-            "median_final_coverage_per_1k": statistics.median(p["coverage_per_1k"] for p in last)
-            if last
-            else None,
+            "median_final_collisions_per_1k": median_of([p["collisions_per_1k"] for p in last]),
+            "median_final_coverage_per_1k": median_of([p["coverage_per_1k"] for p in last]),
             "median_sps": statistics.median(r["sps"] for r in mine),
             "median_late_collisions_per_1k": median_of([m["collisions_per_1k"] for m in late]),
             "median_late_coverage_per_1k": median_of([m["coverage_per_1k"] for m in late]),
         }
         if last and last[0].get("success_rate") is not None:  # point-goal runs
-            out[arm]["median_final_success_rate"] = statistics.median(p["success_rate"] for p in last)
-            out[arm]["median_final_spl"] = statistics.median(p["spl"] for p in last)
+            out[arm]["median_final_success_rate"] = median_of([p["success_rate"] for p in last])
+            out[arm]["median_final_spl"] = median_of([p["spl"] for p in last])
             out[arm]["median_late_success_rate"] = median_of([m["success_rate"] for m in late])
             out[arm]["median_late_spl"] = median_of([m["spl"] for m in late])
     return out
