@@ -12,7 +12,7 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
   - either followed by `/KEY=VALUE[,KEY=VALUE...]`: the arm trains with those RewardConfig fields
     replaced (`procedural/structure_weight=0`) or a fresh engine with those EngineConfig fields
     (`procedural/action_input=1`), or starting from a checkpoint's weights (`procedural/init_from=explore`:
-    the shipped explore reference), on the same corpus as the arm without them, so that a reward, engine
+    the shipped explore reference, in the engine it stored with the arm's fields on top), on the same corpus as the arm without them, so that a reward, engine
     or initialisation lever is measured beside the recipe in one job; evaluation never reads the reward.
 - Evaluation. Every arm's final checkpoint flies (EvalProtocol, same env seed; as its task is flown
   everywhere, ACTION_NOISE, or once per `action_noise` scale S: its mean action at 0, its actions sampled
@@ -383,6 +383,7 @@ class RunJob:
 
     def __call__(self, device: str, say: Say) -> list[dict[str, Any]]:
         """One row per action noise (TransferConfig.action_noise), each of the same trained checkpoint."""
+        from navi_learner.ppo.learner import init_engine
         from navi_learner.ppo.train import train
 
         dev = torch.device(device)
@@ -395,8 +396,9 @@ class RunJob:
         )
         if self.arm.engine:
             tcfg = replace(tcfg, engine=replace(tcfg.engine, **dict(self.arm.engine)))
-        if self.arm.init_from:
-            tcfg = replace(tcfg, init_from=self.arm.init_from)
+        if self.arm.init_from:  # the checkpoint's engine, the arm's fields on top
+            engine = init_engine(self.arm.init_from, tcfg.engine.temporal_core, dict(self.arm.engine))
+            tcfg = replace(tcfg, init_from=self.arm.init_from, engine=engine)
         say(f"[bench transfer] {self.arm.spec} seed {self.seed}: training on {self.train} ({device})")
         reward = dict(self.arm.reward) or None
         env = make_env(self.train, tcfg.n_actors, device, self.seed, task=tcfg.task, reward=reward)

@@ -758,7 +758,7 @@ def bench_transfer_cmd(
             "openarena (the maps outside the held-out fifth); either may end in /KEY=VALUE[,KEY=VALUE...]: "
             "train with those RewardConfig weights (or a fresh engine with those EngineConfig fields, e.g. "
             "action_input=1) replaced, or from init_from=CHECKPOINT's weights (explore or pointgoal: the "
-            "shipped reference), on the same corpus. Default: procedural and openarena.",
+            "shipped reference) in the engine it stored, on the same corpus. Default: procedural and openarena.",
         ),
     ] = None,
     seeds: Annotated[

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -124,8 +124,6 @@ def train_config(settings: Settings, device: str, engine_items: list[str] | None
     """The TrainConfig of a command's generated options on `device` (its --device, resolved), with the
     temporal core, observation storage and task checked; `engine_items` (--engine KEY=VALUE) replace
     fields of the engine."""
-    from dataclasses import replace
-
     from navi_env.config import TASKS
     from navi_env.corpus.folder import RANK_SCENES
     from navi_learner.config import OBS_STORAGE, TEMPORAL_CORES, engine_overrides
@@ -307,10 +305,10 @@ def train(
     data-parallel PPO; --actors is per rank."""
     import torch
 
-    from navi_learner.config import StorageError, default_actors
+    from navi_learner.config import StorageError, default_actors, engine_overrides
     from navi_learner.envs.factory import corpus_summary
     from navi_learner.ppo import dist
-    from navi_learner.ppo.learner import InitError
+    from navi_learner.ppo.learner import InitError, init_engine
     from navi_learner.ppo.train import train as run_train
     from navi_learner.serving.registry import ModelRegistry
 
@@ -325,6 +323,9 @@ def train(
         cfg = train_config(settings, dev, engine)
         if cfg.init_from and checkpoint is not None:
             raise fail("--init-from starts a fresh run from a checkpoint's weights; --checkpoint resumes one")
+        if cfg.init_from:  # the checkpoint's engine, --engine's fields on top
+            overrides = engine_overrides(engine or [])
+            cfg = replace(cfg, engine=init_engine(cfg.init_from, cfg.engine.temporal_core, overrides))
         resume, cfg = (None, cfg) if cfg.init_from else resume_choice(checkpoint, fresh, cfg)
         if resume is not None and engine:
             typer.echo(f"note: --engine is ignored: the engine comes from {resume}", err=True)

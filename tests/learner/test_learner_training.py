@@ -18,7 +18,7 @@ from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy, reactive_for_env
 from navi_learner.evaluation.evaluate import CheckpointPolicy, evaluate
 from navi_learner.ppo import timing as timing_module
-from navi_learner.ppo.learner import InitError, init_weights
+from navi_learner.ppo.learner import InitError, init_engine, init_weights
 from navi_learner.ppo.timing import StageTimers
 from navi_learner.ppo.train import train
 from navi_learner.serving.checkpoint import load_checkpoint
@@ -257,13 +257,24 @@ def test_a_run_started_from_a_checkpoints_weights_takes_nothing_else(tmp_path: P
 
 
 def test_init_from_names_a_fitting_checkpoint_or_the_run_stops_with_why() -> None:
-    """A task's name loads its shipped reference, bit for bit; a missing file, another temporal core or
-    another engine shape is an InitError naming the checkpoint."""
+    """A task's name loads its shipped reference, bit for bit, into an engine of the shape it stored
+    (init_engine), whatever today's default; a missing file, another temporal core or another engine
+    shape is an InitError naming the checkpoint and, for a shape, the fields that differ."""
     obs_shape = (3, 256, 48)
-    policy = CognitiveMambaPolicy(obs_shape, EngineConfig())
-    assert init_weights(policy, "explore", TrainConfig()) == REFERENCES["explore"]
+    stored = EngineConfig.from_dict(load_checkpoint(REFERENCES["explore"]).meta.config["engine"])
+    engine = init_engine("explore", "mamba2", {"attention": "sdpa"})
+    assert engine == replace(stored, attention="sdpa")  # the run's own fields on top of the stored shape
+    policy = CognitiveMambaPolicy(obs_shape, engine)
+    assert init_weights(policy, "explore", TrainConfig(engine=engine)) == REFERENCES["explore"]
     reference = load_checkpoint(REFERENCES["explore"]).model
     assert all(torch.equal(v, reference[k]) for k, v in policy.state_dict().items())
+    with pytest.raises(InitError, match="does not exist"):
+        init_engine("absent.pt", "mamba2", {})
+    other = replace(stored, encoder_layers=stored.encoder_layers + 1)
+    with pytest.raises(
+        InitError, match=f"encoder_layers={stored.encoder_layers} \\(the run's {other.encoder_layers}\\)"
+    ):
+        init_weights(CognitiveMambaPolicy(obs_shape, other), "explore", TrainConfig(engine=other))
     tiny = CognitiveMambaPolicy(obs_shape, ENGINE)
     for spec, cfg, why in (
         ("absent.pt", TrainConfig(engine=ENGINE), "does not exist"),

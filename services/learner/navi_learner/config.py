@@ -43,8 +43,10 @@ class EngineConfig:
     """Patch side along azimuth in rays; Az must be divisible by it (16 × 16 → 16·3 = 48 tokens at 256×48)."""
     patch_el: int = 16
     """Patch side along elevation in rays (0: patch_size, a square patch); El must be divisible by it."""
-    encoder_layers: int = 2
-    """Number of pre-norm transformer blocks in the RayViT encoder."""
+    encoder_layers: int = 1
+    """Number of pre-norm transformer blocks in the RayViT encoder. One block learns as well as two in
+    `navi bench learn` (three seeds interleaved in one job) and trains about 27% faster at 8,192 actors
+    (docs/PERFORMANCE.md, "Learner"); checkpoints store their own count."""
     encoder_heads: int = 4
     """Attention heads per encoder block."""
     attention: AttentionName = "auto"
@@ -293,7 +295,8 @@ class TrainConfig:
     init_from: str = ""
     """Weights a fresh run starts from: a checkpoint's path, or explore / pointgoal for that task's shipped
     reference (navi_learner.serving.references). It brings the policy's weights and the novelty normaliser's
-    statistics (the checkpoint's engine must be the run's); the optimizer, the counters and the reward
+    statistics (its engine must be the run's: `navi train` and `navi bench transfer` take the engine the
+    checkpoint stored, with their --engine fields on top, ppo.learner.init_engine); the optimizer, the counters and the reward
     average start fresh. Empty: random weights. A resumed run takes everything from its checkpoint instead."""
     sync_timers: bool = False
     """Exact per-stage times on CUDA (benchmarks): CUDA events bracket every stage and are read once per

@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from navi_learner.config import TrainConfig, compact_storage, resolve
+from navi_learner.config import EngineConfig, TemporalCoreName, TrainConfig, compact_storage, resolve
 from navi_learner.engine.memory import EpisodicMemory
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
@@ -33,6 +33,7 @@ from navi_learner.serving.checkpoint import (
     newest_good_checkpoint,
     os_reason,
     prune_checkpoints,
+    read_meta,
     save_checkpoint,
 )
 from navi_learner.serving.references import checkpoint_path
@@ -163,6 +164,26 @@ class InitError(ValueError):
     """TrainConfig.init_from names no checkpoint, or one whose weights do not fit the run's engine."""
 
 
+def init_engine(spec: str, temporal_core: TemporalCoreName, overrides: Mapping[str, Any]) -> EngineConfig:
+    """The engine of a fresh run that starts from `spec`'s weights (TrainConfig.init_from): the one the
+    checkpoint stored (its shape and view range), with the run's temporal core and `overrides` (the run's
+    own EngineConfig fields, a CLI's --engine) on top, so a checkpoint of another shape than today's
+    default engine starts a run of its own shape. InitError when `spec` is not a checkpoint; a temporal
+    core or override that does not fit its weights fails later, in init_weights."""
+    path = checkpoint_path(spec)
+    try:
+        meta = read_meta(path)
+    except CheckpointError as err:
+        raise InitError(f"init_from: {err}") from err
+    return replace(EngineConfig.from_dict(meta.config["engine"]), temporal_core=temporal_core, **overrides)
+
+
+def engine_differences(stored: EngineConfig, run: EngineConfig) -> str:
+    """The fields where a checkpoint's engine and a run's differ, as `name=stored (the run's value)`."""
+    names = [f.name for f in fields(EngineConfig) if getattr(stored, f.name) != getattr(run, f.name)]
+    return ", ".join(f"{n}={getattr(stored, n)!r} (the run's {getattr(run, n)!r})" for n in names)
+
+
 def init_weights(policy: CognitiveMambaPolicy, spec: str, cfg: TrainConfig) -> Path:
     """Load a checkpoint's weights and novelty statistics (the policy's state) into a fresh run's
     policy; `spec` a path, or a task's name for its shipped reference (references.checkpoint_path).
@@ -181,7 +202,11 @@ def init_weights(policy: CognitiveMambaPolicy, spec: str, cfg: TrainConfig) -> P
         policy.load_state_dict(ckpt.model)
     except RuntimeError as err:
         first = (str(err).strip().splitlines() or [type(err).__name__])[0]
-        raise InitError(f"init_from {path}: its weights do not fit this run's engine ({first})") from err
+        differ = engine_differences(EngineConfig.from_dict(ckpt.meta.config["engine"]), cfg.engine)
+        raise InitError(
+            f"init_from {path}: its weights do not fit this run's engine ({first}); "
+            f"the checkpoint's engine has {differ or 'the same fields'}"
+        ) from err
     return path
 
 
