@@ -12,8 +12,9 @@ Protocol (docs/TRAINING.md, "Real maps never seen"):
   - either followed by `/KEY=VALUE[,KEY=VALUE...]`: the arm trains with those RewardConfig fields
     replaced (`procedural/structure_weight=0`) or a fresh engine with those EngineConfig fields
     (`procedural/action_input=1`), or starting from a checkpoint's weights (`procedural/init_from=explore`:
-    the shipped explore reference, in the engine it stored with the arm's fields on top), on the same corpus as the arm without them, so that a reward, engine
-    or initialisation lever is measured beside the recipe in one job; evaluation never reads the reward.
+    the shipped explore reference, in the engine it stored with the arm's fields on top), on the same
+    corpus as the arm without them, so that a reward, engine or initialisation lever is measured beside
+    the recipe in one job; evaluation never reads the reward.
 - Evaluation. Every arm's final checkpoint flies (EvalProtocol, same env seed; as its task is flown
   everywhere, ACTION_NOISE, or once per `action_noise` scale S: its mean action at 0, its actions sampled
   with S times its learned std above, each scale but the task's a row of its own, `ARM, mean action` or
@@ -394,11 +395,11 @@ class RunJob:
             seed=self.seed,
             device=device,
         )
-        if self.arm.engine:
-            tcfg = replace(tcfg, engine=replace(tcfg.engine, **dict(self.arm.engine)))
         if self.arm.init_from:  # the checkpoint's engine, the arm's fields on top
             engine = init_engine(self.arm.init_from, tcfg.engine.temporal_core, dict(self.arm.engine))
             tcfg = replace(tcfg, init_from=self.arm.init_from, engine=engine)
+        elif self.arm.engine:
+            tcfg = replace(tcfg, engine=replace(tcfg.engine, **dict(self.arm.engine)))
         say(f"[bench transfer] {self.arm.spec} seed {self.seed}: training on {self.train} ({device})")
         reward = dict(self.arm.reward) or None
         env = make_env(self.train, tcfg.n_actors, device, self.seed, task=tcfg.task, reward=reward)

@@ -296,8 +296,9 @@ class TrainConfig:
     """Weights a fresh run starts from: a checkpoint's path, or explore / pointgoal for that task's shipped
     reference (navi_learner.serving.references). It brings the policy's weights and the novelty normaliser's
     statistics (its engine must be the run's: `navi train` and `navi bench transfer` take the engine the
-    checkpoint stored, with their --engine fields on top, ppo.learner.init_engine); the optimizer, the counters and the reward
-    average start fresh. Empty: random weights. A resumed run takes everything from its checkpoint instead."""
+    checkpoint stored, with their --engine fields on top, ppo.learner.init_engine); the optimizer, the
+    counters and the reward average start fresh. Empty: random weights. A resumed run takes everything
+    from its checkpoint instead."""
     sync_timers: bool = False
     """Exact per-stage times on CUDA (benchmarks): CUDA events bracket every stage and are read once per
     log line, with no host wait inside the loop (StageTimers)."""
