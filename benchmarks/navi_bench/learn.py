@@ -698,7 +698,11 @@ def bench_learn(
 ) -> dict[str, Any]:
     """The whole benchmark; writes and returns result.json's content."""
     for arm in cfg.temporal_cores:
-        parse_arm(arm)
+        weights = arm_reward(cfg, arm)  # parse_arm's errors name the arm
+        try:
+            reward_config(weights, cfg.train.task)  # and so does a weight the task does not read, up front
+        except ValueError as err:
+            raise ValueError(f"arm {arm!r}: {err}") from err
     if len(set(cfg.temporal_cores)) != len(cfg.temporal_cores):
         raise ValueError(f"an arm is named twice: {', '.join(cfg.temporal_cores)}")
     if cfg.nproc < 1:
@@ -757,7 +761,7 @@ def bench_learn(
         + (f" x {cfg.nproc} (each run data-parallel on {cfg.nproc} ranks)" if cfg.nproc > 1 else ""),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "config": asdict(replace(cfg, seeds=list(cfg.seeds), temporal_cores=list(cfg.temporal_cores))),  # type: ignore[arg-type]
-        "reward": asdict(reward_config(dict(cfg.reward))),
+        "reward": asdict(reward_config(dict(cfg.reward), cfg.train.task)),
         "resolution": resolution,
         "splits": {
             "scenes": splits.scenes,

@@ -44,6 +44,20 @@ def test_collision_penalty_scales_with_speed() -> None:
     assert float(out[2]) < float(out[1]) < 0.0
 
 
+def test_each_task_prices_a_contact_with_its_own_weight() -> None:
+    """Explore's contact costs collision_weight, point-goal's pointgoal_collision_weight; the terms and
+    the documented bounds of each task use its own, and a full-speed crash in explore costs 75 novel cells."""
+    contact, speed = torch.tensor([True]), t(CFG.max_speed)
+    goal = replace(CFG, task="pointgoal")
+    assert R.collision_weight != R.pointgoal_collision_weight
+    for cfg, weight in ((CFG, R.collision_weight), (goal, R.pointgoal_collision_weight)):
+        price = -weight * (R.collision_base + 1.0)
+        out = collision_term(contact, speed, cfg.max_speed, R, cfg.task)
+        assert math.isclose(float(out[0]), price, rel_tol=1e-6)
+        assert term_bounds(cfg, 0.5)["collision"] == (price, 0.0)
+    assert math.isclose(R.collision_weight * (R.collision_base + 1.0) / R.exploration_weight, 75.0)
+
+
 def test_proximity_shaping_grows_toward_the_surface() -> None:
     d = R.proximity_distance
     out = proximity_term(t(2.5 * d, d, 0.5 * d, 0.0), R)

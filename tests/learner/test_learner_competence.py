@@ -36,7 +36,7 @@ from navi_env.corpus.folder import build_default_corpus
 from navi_env.corpus.openarena import split_openarena
 from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe
 from navi_learner.engine.policy import CognitiveMambaPolicy
-from navi_learner.envs.factory import make_env, parse_reward_overrides
+from navi_learner.envs.factory import make_env, parse_reward_overrides, reward_config
 from navi_learner.envs.protocol import StepLike, capabilities
 from navi_learner.envs.toy import ToyEnv
 from navi_learner.evaluation.baselines import RandomPolicy
@@ -462,6 +462,21 @@ def test_reward_overrides_change_exactly_the_named_term(tmp_path: Path) -> None:
     for bad in (["existential_tax"], ["no_such_weight=1"], ["exploration_table_bits=3"]):
         with pytest.raises(ValueError):
             parse_reward_overrides(bad)
+    with pytest.raises(ValueError, match="explore episodes do not read pointgoal_collision_weight"):
+        make_env(corpus, 4, "cpu", 3, reward={"pointgoal_collision_weight": 9.0})
+
+
+def test_a_collision_weight_the_task_does_not_read_is_refused(tmp_path: Path) -> None:
+    """Each task prices contacts with its own weight, so overriding the other task's fails with the name
+    of the right one, in make_env and before a bench learn job builds anything."""
+    assert reward_config({"pointgoal_collision_weight": 5.0}, "pointgoal").pointgoal_collision_weight == 5.0
+    assert reward_config({"collision_weight": 9.0}, "explore").collision_weight == 9.0
+    with pytest.raises(ValueError, match="their collision weight is pointgoal_collision_weight"):
+        reward_config({"collision_weight": 9.0}, "pointgoal")
+    cfg = small_learn_config("pointgoal", temporal_cores=("gru/collision_weight=9",))
+    with pytest.raises(ValueError, match="arm 'gru/collision_weight=9': pointgoal episodes do not read"):
+        bench_learn(cfg, tmp_path / "out", "cpu", 32, tmp_path / "corpus", None, say=lambda m: None)
+    assert not (tmp_path / "out").exists()
 
 
 def test_runs_spread_over_gpus_round_robin() -> None:

@@ -42,8 +42,9 @@ class RewardConfig:
     docs/SIMULATION.md gives every term's formula and its bound per step.
     """
 
-    collision_weight: float = 3.0
-    """Weight of the collision penalty: -(collision_base + speed / max_speed) on a contact step."""
+    collision_weight: float = 15.0
+    """Explore: weight of the collision penalty, -(collision_base + speed / max_speed) on a contact step, so
+    a full-speed crash costs as much as 75 novel cells (point-goal's is pointgoal_collision_weight)."""
     collision_base: float = 0.5
     """Part of the collision penalty paid even at zero speed (grazing)."""
     proximity_weight: float = 0.2
@@ -89,6 +90,12 @@ class RewardConfig:
     each meter of progress and charges the same for each meter lost."""
     success_weight: float = 5.0
     """Point-goal: paid once, on the step that ends the episode at the goal."""
+    pointgoal_collision_weight: float = 3.0
+    """Point-goal: weight of the collision penalty (explore's is collision_weight)."""
+
+    def collision_price(self, task: str) -> float:
+        """The collision penalty's weight in `task`'s episodes (EnvConfig.task)."""
+        return self.pointgoal_collision_weight if task == "pointgoal" else self.collision_weight
 
 
 OBSTACLE_SHAPES: tuple[str, ...] = ("sphere", "capsule", "box", "obb")

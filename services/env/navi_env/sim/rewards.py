@@ -70,10 +70,12 @@ class RewardInputs:
 
 
 def collision_term(
-    contact: torch.Tensor, speed: torch.Tensor, max_speed: float, cfg: RewardConfig
+    contact: torch.Tensor, speed: torch.Tensor, max_speed: float, cfg: RewardConfig, task: str = "explore"
 ) -> torch.Tensor:
-    """-(base + speed / max_speed) on contact, 0 otherwise: fast crashes cost more than grazing."""
-    return -cfg.collision_weight * contact.to(speed.dtype) * (cfg.collision_base + speed / max_speed)  # (N,)
+    """-(base + speed / max_speed) on contact, 0 otherwise: fast crashes cost more than grazing; weighted
+    by the task's collision price (RewardConfig.collision_price)."""
+    weight = cfg.collision_price(task)
+    return -weight * contact.to(speed.dtype) * (cfg.collision_base + speed / max_speed)  # (N,)
 
 
 def proximity_ratio(clearance: torch.Tensor, cfg: RewardConfig) -> torch.Tensor:
@@ -129,7 +131,7 @@ def reward_terms(x: RewardInputs, config: EnvConfig) -> dict[str, torch.Tensor]:
     if config.task == "pointgoal":
         assert x.progress_before is not None and x.progress is not None and x.success is not None
         return {
-            "collision": collision_term(x.contact, x.speed, config.max_speed, cfg),
+            "collision": collision_term(x.contact, x.speed, config.max_speed, cfg, config.task),
             "proximity": proximity_term(x.clearance, cfg),
             "escape": escape,
             "progress": shaping(goal_potential(x.progress_before, cfg), goal_potential(x.progress, cfg), cfg),
@@ -175,7 +177,7 @@ def term_bounds(config: EnvConfig, clearance_change: float) -> dict[str, tuple[f
         "success": (0.0, cfg.success_weight),
     }
     bounds = {
-        "collision": (-cfg.collision_weight * (cfg.collision_base + 1.0), 0.0),
+        "collision": (-cfg.collision_price(config.task) * (cfg.collision_base + 1.0), 0.0),
         "proximity": (-cfg.proximity_weight, 0.0),
         "escape": (-escape_swing - (1.0 - g) * escape_max, escape_swing),
         "exploration": (0.0, cfg.exploration_weight),
