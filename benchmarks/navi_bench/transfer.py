@@ -53,7 +53,7 @@ from navi_bench.learn import Say, say_stderr
 from navi_env.config import EnvConfig
 from navi_env.corpus.openarena import openarena_maps, split_openarena
 from navi_learner.config import TrainConfig, learning_recipe, learning_size
-from navi_learner.envs.factory import corpus_summary, make_env
+from navi_learner.envs.factory import corpus_summary, make_env, reward_config
 from navi_learner.evaluation.collisions import COUNTS, PINNED_STEPS, CollisionSites
 from navi_learner.evaluation.competence import EvalProtocol, baseline_policies
 from navi_learner.evaluation.evaluate import (
@@ -799,6 +799,11 @@ def bench_transfer(
     """The whole benchmark; writes and returns result.json's content."""
     if not cfg.arms:
         raise ValueError("name at least one arm")
+    for arm in cfg.arms:  # a weight the task does not read fails before any corpus is built
+        try:
+            reward_config(dict(arm.reward), cfg.train.task)
+        except ValueError as err:
+            raise ValueError(f"arm {arm.spec!r}: {err}") from err
     if cfg.gpus > 0 and (not device.startswith("cuda") or torch.cuda.device_count() < cfg.gpus):
         raise ValueError(f"--gpus {cfg.gpus} needs that many CUDA devices")
     started = time.perf_counter()

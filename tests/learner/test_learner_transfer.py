@@ -4,6 +4,7 @@ tiny job runs end to end on a CPU with every part, baseline and summary in its r
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -75,6 +76,18 @@ def test_arms_parse_and_bad_ones_are_refused() -> None:
     ):
         with pytest.raises(ValueError, match=why):
             parse_arm(bad)
+
+
+def test_a_point_goal_job_refuses_explore_s_collision_weight_before_building(tmp_path: Path) -> None:
+    """Point-goal episodes price a contact with pointgoal_collision_weight: an arm naming explore's weight
+    stops the job with the right name before any corpus is built."""
+    train = replace(learning_recipe(TrainConfig(n_actors=4, rollout_length=16)), task="pointgoal")
+    cfg = TransferConfig(arms=(parse_arm("procedural:object:maze/collision_weight=9"),), train=train)
+    with pytest.raises(
+        ValueError, match="do not read collision_weight; their collision weight is pointgoal_"
+    ):
+        bench_transfer(cfg, tmp_path / "out", "cpu", 32, tmp_path / "corpora", None, say=lambda _: None)
+    assert not (tmp_path / "corpora").exists() and not (tmp_path / "out").exists()
 
 
 def test_the_bar_on_real_maps() -> None:
