@@ -94,8 +94,12 @@ class RewardConfig:
     """Point-goal: weight of the collision penalty (explore's is collision_weight)."""
 
     def collision_price(self, task: str) -> float:
-        """The collision penalty's weight in `task`'s episodes (EnvConfig.task)."""
-        return self.pointgoal_collision_weight if task == "pointgoal" else self.collision_weight
+        """The collision penalty's weight in `task`'s episodes (EnvConfig.task; COLLISION_WEIGHT names it)."""
+        return float(getattr(self, COLLISION_WEIGHT[task]))
+
+
+COLLISION_WEIGHT: dict[str, str] = {"explore": "collision_weight", "pointgoal": "pointgoal_collision_weight"}
+"""Per task, the RewardConfig field that prices a contact in its episodes."""
 
 
 OBSTACLE_SHAPES: tuple[str, ...] = ("sphere", "capsule", "box", "obb")

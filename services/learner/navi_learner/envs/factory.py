@@ -39,23 +39,19 @@ def corpus_summary(corpus: Path | None, kind: EnvKind) -> dict[str, Any]:
     return {"kind": kind, "path": str(corpus), **manifest.summary()}
 
 
-TASK_COLLISION_WEIGHT = {"explore": "collision_weight", "pointgoal": "pointgoal_collision_weight"}
-"""The RewardConfig field that prices a contact in each task's episodes (RewardConfig.collision_price)."""
-
-
 def reward_config(overrides: Mapping[str, float], task: str | None = None) -> RewardConfig:
     """The default RewardConfig with the named float fields replaced; ValueError names an unknown
     field or one that is not a float weight (exploration_table_bits is a size, not a weight), and, for
     a `task`, a collision weight that only the other task reads (RewardConfig.collision_price)."""
-    from navi_env.config import RewardConfig
+    from navi_env.config import COLLISION_WEIGHT, RewardConfig
 
     floats = {f.name for f in fields(RewardConfig) if f.type in ("float", float)}
     unknown = sorted(set(overrides) - floats)
     if unknown:
         raise ValueError(f"unknown reward weight(s) {', '.join(unknown)}; known: {', '.join(sorted(floats))}")
-    if task in TASK_COLLISION_WEIGHT:
-        own = TASK_COLLISION_WEIGHT[task]
-        foreign = sorted(set(overrides) & (set(TASK_COLLISION_WEIGHT.values()) - {own}))
+    if task in COLLISION_WEIGHT:
+        own = COLLISION_WEIGHT[task]
+        foreign = sorted(set(overrides) & (set(COLLISION_WEIGHT.values()) - {own}))
         if foreign:
             raise ValueError(f"{task} episodes do not read {foreign[0]}; their collision weight is {own}")
     values: dict[str, Any] = {k: float(v) for k, v in overrides.items()}
