@@ -216,12 +216,27 @@ class ArmSpec(NamedTuple):
     """EngineConfig fields its fresh engine replaces."""
     reward: dict[str, float]
     """RewardConfig weights its training env replaces, on top of the job's."""
+    ppo: dict[str, Any]
+    """PPOConfig settings (ARM_PPO_FIELDS) its training replaces, on top of the job's."""
+
+
+ARM_PPO_FIELDS = ("mean_bound_coef", "ent_coef", "clip_coef", "vf_coef", "gae_lambda", "gamma")
+"""The PPOConfig settings an arm may name (numbers of the objective and the returns; the job's options set
+the rest)."""
+
+
+def ppo_number(key: str, value: str) -> float:
+    """An arm's PPO setting as a number: ValueError names the setting where `value` is not one."""
+    try:
+        return float(value)
+    except ValueError:
+        raise ValueError(f"{key} expects a number, got {value.strip()!r}") from None
 
 
 def parse_arm(spec: str) -> ArmSpec:
     """An arm `CORE[/KEY=VALUE[,KEY=VALUE...]]`: a KEY that names a RewardConfig weight goes to its
-    training env's reward, any other must be an EngineConfig field; ValueError names an unknown core or
-    field."""
+    training env's reward, one of ARM_PPO_FIELDS to its PPO settings, any other must be an EngineConfig
+    field; ValueError names an unknown core or field, or a value that is not a number."""
     from navi_env.config import RewardConfig
 
     core, _, rest = (part.strip() for part in spec.partition("/"))
@@ -235,19 +250,25 @@ def parse_arm(spec: str) -> ArmSpec:
     weights = {f.name for f in fields(RewardConfig)}
     shapes = {f.name for f in fields(EngineConfig)} - {"temporal_core"}  # the core comes before the /
     for key in (item.partition("=")[0].strip() for item in items):
-        if key not in weights | shapes:
+        if key not in weights | shapes | set(ARM_PPO_FIELDS):
             raise ValueError(
-                f"arm {spec!r}: unknown field {key!r}: name an EngineConfig field (e.g. patch_size) or a "
-                "RewardConfig weight (e.g. collision_weight)"
+                f"arm {spec!r}: unknown field {key!r}: name an EngineConfig field (e.g. patch_size), a "
+                "RewardConfig weight (e.g. collision_weight) or a PPO setting "
+                f"({', '.join(ARM_PPO_FIELDS)})"
             )
     to_reward = [item for item in items if item.partition("=")[0].strip() in weights]
+    to_ppo = [item for item in items if item.partition("=")[0].strip() in ARM_PPO_FIELDS]
     try:
-        engine = engine_overrides([item for item in items if item not in to_reward])
+        engine = engine_overrides([item for item in items if item not in to_reward and item not in to_ppo])
         reward = parse_reward_overrides(to_reward)
+        ppo: dict[str, Any] = {
+            key.strip(): ppo_number(key.strip(), value)
+            for key, _, value in (i.partition("=") for i in to_ppo)
+        }
     except ValueError as err:
         raise ValueError(f"arm {spec!r}: {err}") from err
     name: TemporalCoreName = "gru" if core == "gru" else "mambapy" if core == "mambapy" else "mamba2"
-    return ArmSpec(name, engine, reward)
+    return ArmSpec(name, engine, reward, ppo)
 
 
 def arm_reward(cfg: LearnConfig, arm: str) -> dict[str, float]:
@@ -273,12 +294,14 @@ def run_order(cfg: LearnConfig) -> list[tuple[str, int]]:
 
 def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) -> TrainConfig:
     """The TrainConfig of one run of the benchmark: the job's settings (its engine with the arm's core
-    and fields), sized by learning_size, with the run's seed, device and time budget and no periodic
+    and engine fields, its PPO settings with the arm's), sized by learning_size, with the run's seed, device and time budget and no periodic
     checkpoints."""
-    core, overrides, _ = parse_arm(arm)
+    core, overrides, _, ppo = parse_arm(arm)
     engine = replace(cfg.train.engine, temporal_core=core, **overrides)
+    sized = learning_size(cfg.train, device.type == "cuda")
     return replace(
-        learning_size(cfg.train, device.type == "cuda"),
+        sized,
+        ppo=replace(sized.ppo, **ppo),
         time_limit_s=cfg.time_budget_s,
         checkpoint_every=10**12,
         seed=seed,
@@ -409,6 +432,7 @@ def run_one(
         "final_by_split": final,
         "train_config": tcfg.to_dict(),
         "reward_overrides": arm_reward(cfg, arm),
+        "mean_outside": float(result.last_metrics.get("mean_outside", math.nan)),
         "ranks": d.world,
     }
 

@@ -538,6 +538,7 @@ LEARN_OPTIONS = (
     "ppo_epochs",
     "lr",
     "target_kl",
+    "mean_bound_coef",
     "compile_rollout",
     "compile_update",
     "update_graphs",

@@ -31,6 +31,7 @@ from navi_bench.learn import (
     report_markdown,
     run_devices,
     run_order,
+    train_config,
 )
 from navi_bench.learn import summarise as summarise_arms
 from navi_env.corpus.folder import build_default_corpus
@@ -521,12 +522,21 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
         ("mamba2", 0), ("mamba2/attention=fused,patch_size=32", 0),
         ("mamba2", 1), ("mamba2/attention=fused,patch_size=32", 1),
     ]  # fmt: skip
-    assert parse_arm("gru") == ("gru", {}, {})
+    assert parse_arm("gru") == ("gru", {}, {}, {})
     assert parse_arm("mamba2/attention=fused,patch_size=32") == (
         "mamba2",
         {"attention": "fused", "patch_size": 32},
         {},
+        {},
     )
+    # A PPO setting goes to the arm's training alone, on top of the job's.
+    bounded = parse_arm("mamba2/mean_bound_coef=1,patch_size=32")
+    assert bounded.ppo == {"mean_bound_coef": 1.0} and bounded.engine == {"patch_size": 32}
+    job_cfg = LearnConfig(temporal_cores=("mamba2", "mamba2/mean_bound_coef=1,ent_coef=0.01"))
+    plain = train_config(job_cfg, "mamba2", 0, torch.device("cpu"))
+    tcfg = train_config(job_cfg, "mamba2/mean_bound_coef=1,ent_coef=0.01", 0, torch.device("cpu"))
+    assert (tcfg.ppo.mean_bound_coef, tcfg.ppo.ent_coef) == (1.0, 0.01)
+    assert replace(tcfg.ppo, mean_bound_coef=0.0, ent_coef=plain.ppo.ent_coef) == plain.ppo
     # A RewardConfig weight goes to the arm's training env, on top of the job's --reward.
     arm = parse_arm("mamba2/collision_weight=9,patch_size=32")
     assert arm.engine == {"patch_size": 32} and arm.reward == {"collision_weight": 9.0}
@@ -544,6 +554,8 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
         ("mamba2/collision_weight=high", "KEY=NUMBER"),
         ("mamba2/exploration_table_bits=12", "unknown reward weight"),
         ("mamba2/attention=flash", "attention expects one of"),
+        ("mamba2/mean_bound_coef=strong", "mean_bound_coef expects a number"),
+        ("mamba2/max_grad_norm=1", "unknown field 'max_grad_norm'"),
     ):
         with pytest.raises(ValueError, match=why):
             parse_arm(bad)

@@ -13,7 +13,7 @@ from navi_learner.config import EngineConfig, PPOConfig, TemporalCoreName, Train
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.engine.tokens import CompactFrames
 from navi_learner.ppo.compile import compile_graph, make_objective, ppo_objective, update_graphs
-from navi_learner.ppo.loss import ppo_loss
+from navi_learner.ppo.loss import mean_bound_loss, ppo_loss
 from navi_learner.ppo.rollout import RolloutStorage, decode
 from navi_learner.ppo.train import adapt_lr, update
 
@@ -68,6 +68,22 @@ def test_ppo_loss_advantage_normalisation() -> None:
     )
     # ratio 1 everywhere: policy loss = -mean(normalised A) = 0
     assert abs(float(m1["policy_loss"])) < 1e-6
+
+
+def test_mean_bound_loss_is_zero_inside_and_pulls_outside_means_back() -> None:
+    """Σ_a relu(|μ_a| − 1)² averaged over samples: nothing for means within [-1, 1], the squared excess
+    beyond it (either side), a gradient that moves each outside mean towards the bound and leaves the
+    inside ones alone; the share it reports counts the entries outside."""
+    mean = torch.tensor([[0.5, -1.0, 1.5, -3.0], [0.0, 0.9, -0.2, 1.0]], requires_grad=True)  # (2, 4)
+    loss, outside = mean_bound_loss(mean)
+    assert float(loss.detach()) == pytest.approx((0.5**2 + 2.0**2) / 2)  # two samples
+    assert float(outside) == pytest.approx(2 / 8)
+    loss.backward()
+    assert mean.grad is not None
+    expected = torch.tensor([[0.0, 0.0, 0.5, -2.0], [0.0, 0.0, 0.0, 0.0]])  # d/dμ of excess² / 2 samples
+    torch.testing.assert_close(mean.grad, expected)
+    inside, none_outside = mean_bound_loss(torch.rand(5, 3, 4) * 2 - 1)
+    assert float(inside) == 0.0 and float(none_outside) == 0.0
 
 
 def tiny_setup(
@@ -463,3 +479,23 @@ def test_the_compiled_objective_reads_compact_frames_as_the_gathered_ones_on_cud
     assert len(fused_grads) == len(plain_grads) > 0
     for got, want in zip(fused_out + fused_grads, plain_out + plain_grads, strict=True):
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_the_objective_adds_the_weighted_mean_bound_and_reports_the_share_outside() -> None:
+    """`mean_bound_coef` adds exactly coef × mean_bound_loss of the minibatch's action means to the
+    objective, and nothing at 0; `mean_outside` is reported either way, the same for both."""
+    policy, buf, cfg = tiny_setup()
+    mean_out = policy.heads.actor[-1]
+    assert isinstance(mean_out, torch.nn.Linear)
+    with torch.no_grad():
+        mean_out.bias.fill_(1.4)  # every mean near 1.4 (its weights start near 0): all outside
+    mb = buf.minibatch(buf.minibatch_ids(2, torch.Generator().manual_seed(0))[0])
+    args = (mb.frames, mb.resets, mb.state, mb.actions, mb.logp, mb.advantages, mb.values, mb.returns)
+    plain, m0 = ppo_objective(policy, cfg, norm_adv=True)(*args)
+    bounded = replace(cfg, ppo=replace(cfg.ppo, mean_bound_coef=2.0))
+    total, m2 = ppo_objective(policy, bounded, norm_adv=True)(*args)
+    ev = policy.evaluate(mb.frames, mb.resets, mb.state, mb.actions)
+    expected, outside = mean_bound_loss(ev.mean)
+    assert float(expected) > 0.1
+    torch.testing.assert_close(total - plain, 2.0 * expected.detach(), rtol=1e-5, atol=1e-6)
+    assert float(m0["mean_outside"]) == float(m2["mean_outside"]) == float(outside) == 1.0

@@ -214,6 +214,12 @@ class PPOConfig:
     """Entropy bonus weight."""
     vf_coef: float = 0.5
     """Value loss weight."""
+    mean_bound_coef: Annotated[float, CliOption(min=0.0)] = 0.0
+    """Weight of the penalty on action means outside [-1, 1], where the env clips every action:
+    `coef · Σ_a relu(|μ_a| − 1)²`, averaged over the minibatch's samples (ppo.loss.mean_bound_loss). A mean
+    beyond the bound flies as the bound does, so nothing holds it there and it drifts out; a drone whose
+    mean sits far out then samples the bound almost every step, and one that pushes into a wall stays
+    pinned. 0: no penalty."""
     rnd_coef: float = 1.0
     """Weight of the RND predictor loss in the total loss."""
     max_grad_norm: float = 0.5

@@ -46,6 +46,7 @@ class EvalOut:
     entropy: torch.Tensor  # () float32 (state-independent log-std)
     value: torch.Tensor  # (T, N) float32
     emb: torch.Tensor  # (T·N, D) float32
+    mean: torch.Tensor  # (T, N, 4) float32 action means, before the env's clip
 
 
 class CognitiveMambaPolicy(nn.Module):
@@ -157,4 +158,4 @@ class CognitiveMambaPolicy(nn.Module):
         feat, emb, _ = self.sequence(obs, resets, state, actions)  # (T, N, D), (T·N, D)
         mean, value = self.heads(feat)  # (T, N, 4), (T, N)
         log_std = self.heads.log_std  # (4,)
-        return EvalOut(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std), value, emb)
+        return EvalOut(gaussian_log_prob(actions, mean, log_std), gaussian_entropy(log_std), value, emb, mean)

@@ -15,7 +15,7 @@ from navi_learner.engine.policy import ActOut, CognitiveMambaPolicy
 from navi_learner.engine.temporal import CoreState
 from navi_learner.engine.tokens import CompactFrames
 from navi_learner.ppo.dist import Collectives, Sync
-from navi_learner.ppo.loss import ppo_loss
+from navi_learner.ppo.loss import mean_bound_loss, ppo_loss
 
 Forward = Callable[[torch.Tensor, torch.Tensor, CoreState], tuple[ActOut, torch.Tensor, torch.Tensor]]
 """The rollout's policy step: (obs, resets, state) -> (ActOut, RND novelty (N,), loop penalty (N,))."""
@@ -154,8 +154,9 @@ Objective = Callable[..., tuple[torch.Tensor, dict[str, torch.Tensor]]]
 def ppo_objective(policy: CognitiveMambaPolicy, cfg: TrainConfig, norm_adv: bool) -> Objective:
     """A minibatch's objective, eager: the policy's sequence pass over its observations (`frames`, float32
     or compact, which the encoder's input stage reads as they are),
-    the clipped PPO loss (advantages normalised within the minibatch when `norm_adv`) and the RND
-    predictor's loss -> (total loss (), detached metrics {name: ()})."""
+    the clipped PPO loss (advantages normalised within the minibatch when `norm_adv`), the penalty on
+    action means beyond ±1 (weighted by `mean_bound_coef`; the metrics report the share outside either
+    way) and the RND predictor's loss -> (total loss (), detached metrics {name: ()})."""
     p = cfg.ppo
 
     def objective(
@@ -184,7 +185,14 @@ def ppo_objective(policy: CognitiveMambaPolicy, cfg: TrainConfig, norm_adv: bool
             norm_adv=norm_adv,
         )
         rnd_loss = policy.rnd.loss(ev.emb)  # ()
-        return loss + p.rnd_coef * rnd_loss, {**metrics, "rnd_loss": rnd_loss.detach()}
+        bound_loss, outside = mean_bound_loss(ev.mean)  # (), () share of means beyond ±1
+        if p.mean_bound_coef > 0:
+            loss = loss + p.mean_bound_coef * bound_loss
+        return loss + p.rnd_coef * rnd_loss, {
+            **metrics,
+            "rnd_loss": rnd_loss.detach(),
+            "mean_outside": outside,
+        }
 
     return objective
 

@@ -53,3 +53,12 @@ def ppo_loss(
             "clipfrac": ((ratio - 1).abs() > clip_coef).float().mean(),
         }
     return loss, metrics
+
+
+def mean_bound_loss(mean: torch.Tensor, bound: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Penalty on action means beyond ±bound: mean (..., A) -> (Σ_a relu(|μ_a| − bound)² averaged over the
+    samples (), the share of mean entries outside the bound () detached). Zero inside the bound, its
+    gradient pulls each mean outside back towards it."""
+    excess = (mean.abs() - bound).clamp(min=0.0)  # (..., A)
+    loss = excess.pow(2).sum(dim=-1).mean()  # ()
+    return loss, (excess > 0).float().mean().detach()
