@@ -222,6 +222,12 @@ def print_metrics(
         typer.echo(json.dumps(jsonable({"results": [asdict(r) for r in rows], **extra})))
     else:
         tables = [comparison_table(rows)]
+        tables += [
+            f"Action means outside [-1, 1], forward / vertical / lateral / yaw rate ({r.policy}): "
+            + " / ".join(f"{x:.1%}" for x in r.mean_outside)
+            for r in rows
+            if r.mean_outside
+        ]
         tables += [] if collisions is None else [collision_table(collisions)]
         tables += [] if flights is None else [flight_table(flights)]
         typer.echo("\n\n".join(tables))

@@ -76,6 +76,14 @@ def test_train_promote_list_evaluate_compare(tmp_path: Path) -> None:
     (row,) = json.loads(out)["results"]
     assert row["steps"] == 50 and row["actors"] == 4 and row["per_actor"]["steps"] == [50.0] * 4
     assert row["policy"].endswith("v001.pt") and -1.0 <= row["reward_per_step"] <= 1.0
+    assert len(row["mean_outside"]) == 4 and all(0.0 <= x <= 1.0 for x in row["mean_outside"])
+    code, out, err = invoke("evaluate", "v001", "--env", "toy", "--steps", "50", "--device", "cpu")
+    assert code == 0, err
+    shares = " / ".join(f"{x:.1%}" for x in row["mean_outside"])  # the same flight, seeded
+    assert (
+        f"Action means outside [-1, 1], forward / vertical / lateral / yaw rate ({row['policy']}): {shares}"
+        in out
+    )
     code, out, err = invoke(
         "compare", "random", "reactive", "--env", "toy", "--steps", "50", "--device", "cpu", "--json"
     )

@@ -305,6 +305,24 @@ def test_monitor_flies_the_weights_as_their_checkpoint_does() -> None:
     assert flight(monitor.evaluate_policy(policy)) == flight(plain)
 
 
+def test_an_evaluation_reports_how_often_the_action_means_lie_outside_the_clip_box() -> None:
+    """A trained policy's evaluation counts, per action axis, the actor-steps whose mean lay outside
+    [-1, 1]: all of them on the axis whose mean is pushed to 1.5, none on an axis held at 0, the same
+    whether the flight samples or takes the mean; a baseline has no mean and reports nothing."""
+    env = ToyEnv(8, seed=3, max_steps=16)
+    torch.manual_seed(0)
+    policy = CognitiveMambaPolicy(env.obs_shape, ENGINE).eval()
+    mean_out = policy.heads.actor[-1]
+    assert isinstance(mean_out, torch.nn.Linear)
+    with torch.no_grad():
+        mean_out.weight.zero_()
+        mean_out.bias.copy_(torch.tensor([1.5, 0.0, -0.5, -2.0]))  # (4,) every step's mean
+    for noise in (0.0, 1.0):
+        m = evaluate(env, ModulePolicy(policy, "pushed", noise, seed=3), 32, seed=3)
+        assert m.mean_outside == [1.0, 0.0, 0.0, 1.0]
+    assert evaluate(env, RandomPolicy(seed=0), 32, seed=3).mean_outside == []
+
+
 def test_split_openarena_holds_out_every_fifth_map() -> None:
     maps = [f"m{i:02d}" for i in range(12)]
     train_maps, held = split_openarena(maps)

@@ -36,6 +36,7 @@ class ActOut:
     value: torch.Tensor  # (N,) float32
     emb: torch.Tensor  # (N, D) float32 encoder embedding
     state: CoreState  # the temporal core's state after this step
+    mean: torch.Tensor  # (N, 4) float32 action mean, before the env's clip
 
 
 @dataclass
@@ -130,7 +131,7 @@ class CognitiveMambaPolicy(nn.Module):
             action = mean + eps * std  # (N, 4)
         if previous is not None:
             core_state = (*core_state, action.detach().clamp(-1.0, 1.0))  # (N, 4) what the env flies
-        return ActOut(action, gaussian_log_prob(action, mean, log_std), value, emb, core_state)
+        return ActOut(action, gaussian_log_prob(action, mean, log_std), value, emb, core_state, mean)
 
     def sequence(
         self, obs: torch.Tensor | CompactFrames, resets: torch.Tensor, state: CoreState, actions: torch.Tensor

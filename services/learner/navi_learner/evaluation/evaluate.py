@@ -108,16 +108,32 @@ class ModulePolicy:
         self.seed = seed
         self.state: CoreState = ()
         self.generator: torch.Generator | None = None
+        self.outside: torch.Tensor | None = (
+            None  # (4,) float64 actor-steps whose mean lay beyond ±1, per axis
+        )
+        self.steps = 0  # actor-steps since the last reset
 
     def reset(self, n: int, device: torch.device) -> None:
         self.state = self.policy.initial_state(n, device)
         self.generator = torch.Generator(device).manual_seed(self.seed) if self.noise > 0 else None
+        self.outside = torch.zeros(4, dtype=torch.float64, device=device)  # (4,)
+        self.steps = 0
 
     def act(self, obs: torch.Tensor, resets: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
             out = self.policy.act(obs, resets, self.state, self.noise == 0, self.noise, self.generator)
         self.state = out.state
+        if self.outside is not None:
+            self.outside += (out.mean.abs() > 1.0).sum(dim=0)  # (4,)
+            self.steps += out.mean.shape[0]
         return out.action.clamp(-1.0, 1.0)  # (N, 4)
+
+    def mean_outside(self) -> list[float]:
+        """Per action axis [forward, vertical, lateral, yaw_rate], the share of the actor-steps since the last
+        reset whose action mean lay outside [-1, 1], the box the env clips every action to (one host read)."""
+        if self.outside is None or self.steps == 0:
+            return [math.nan] * 4
+        return (self.outside / self.steps).tolist()
 
 
 class CheckpointPolicy(ModulePolicy):
@@ -161,6 +177,9 @@ class EvalMetrics:
     time_to_goal_s: float = math.nan
     task: str = "explore"  # pointgoal when the env reported point-goal episodes
     ci: dict[str, list[float]] = field(default_factory=dict)
+    mean_outside: list[float] = field(default_factory=list)
+    """A trained policy's share of actor-steps whose action mean lay outside [-1, 1], where the env clips,
+    per axis [forward, vertical, lateral, yaw_rate] (ModulePolicy.mean_outside); empty for the baselines."""
     per_actor: dict[str, list[float]] = field(default_factory=dict)
     """Per-actor sums behind the paired comparisons (PAIRED_SUMS: steps, cells, collision), (N,) each."""
     per_scene: dict[str, dict[str, float]] = field(default_factory=dict)
@@ -389,6 +408,8 @@ def evaluate(
     result = summarise(policy.name, sums, steps, has, elapsed)
     if first_scene is not None:
         result.per_scene = scene_values(sums, first_scene.cpu().numpy(), capabilities(env).scenes, has)
+    if isinstance(policy, ModulePolicy):
+        result.mean_outside = policy.mean_outside()
     return result
 
 
