@@ -263,7 +263,7 @@ def bootstrap_ci(
 
 def summarise(name: str, sums: ActorSums, steps: int, has: dict[str, bool], elapsed: float) -> EvalMetrics:
     """EvalMetrics with bootstrap intervals from per-actor sums; metrics without their info key are NaN."""
-    values: dict[str, float] = {}
+    values: dict[str, Any] = {}  # metric name -> float, unpacked into EvalMetrics
     ci: dict[str, list[float]] = {}
     for metric, (num, den, scale) in sums.ratios().items():
         if not has.get(NEEDS.get(metric, ""), True):
