@@ -209,11 +209,11 @@ def print_metrics(
     collisions: dict[str, dict[str, int]] | None = None,
     flights: dict[str, dict[str, float]] | None = None,
 ) -> None:
-    """One JSON object, or a markdown table; with `collisions` (CollisionSites.classify rows) also the
+    """One JSON object, or a markdown table (under it each trained policy's mean_outside line); with `collisions` (CollisionSites.classify rows) also the
     collision table, under "collisions" in the JSON, and with `flights` (GoalFlights.summary rows) the
     point-goal episodes' table, under "goal_flights"."""
     from navi_learner.evaluation.collisions import collision_table
-    from navi_learner.evaluation.evaluate import comparison_table, jsonable
+    from navi_learner.evaluation.evaluate import comparison_table, jsonable, mean_outside_line
     from navi_learner.evaluation.goal_flights import flight_table
 
     if as_json:
@@ -222,12 +222,7 @@ def print_metrics(
         typer.echo(json.dumps(jsonable({"results": [asdict(r) for r in rows], **extra})))
     else:
         tables = [comparison_table(rows)]
-        tables += [
-            f"Action means outside [-1, 1], forward / vertical / lateral / yaw rate ({r.policy}): "
-            + " / ".join(f"{x:.1%}" for x in r.mean_outside)
-            for r in rows
-            if r.mean_outside
-        ]
+        tables += [line for line in map(mean_outside_line, rows) if line]
         tables += [] if collisions is None else [collision_table(collisions)]
         tables += [] if flights is None else [flight_table(flights)]
         typer.echo("\n\n".join(tables))

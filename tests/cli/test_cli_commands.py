@@ -28,6 +28,7 @@ from navi_learner.evaluation.evaluate import (
     competent_supported,
     evaluate,
     jsonable,
+    mean_outside_line,
 )
 from navi_learner.evaluation.main_job import POINTGOAL_REFERENCE, REFERENCE, UNSEEN_SEED
 from navi_learner.serving.checkpoint import load_checkpoint
@@ -203,7 +204,7 @@ def test_navi_infer_prints_what_the_checkpoint_does_in_process(
 ) -> None:
     """`navi infer --deterministic --json` (the console script) reports exactly the metrics, per-actor sums
     included, of the same checkpoint flown in-process from the same seed (a random pilot's differ); without
-    --json the same row as a markdown table."""
+    --json the same row as a markdown table, and under it the share of its action means outside [-1, 1]."""
     train, _ = corpora
     args = ["infer", "--checkpoint", str(REFERENCE), "--corpus", str(train), "--device", "cpu"]
     sizes = ["--actors", str(INFER_ACTORS), "--total-steps", str(INFER_STEPS), "--seed", str(INFER_SEED)]
@@ -218,7 +219,7 @@ def test_navi_infer_prints_what_the_checkpoint_does_in_process(
     assert (rand.distance_per_1k, rand.mean_clearance) != (want.distance_per_1k, want.mean_clearance)
     table = runner.invoke(build_app(), [*args, *sizes, "--deterministic"])  # without --json: a table
     assert table.exit_code == 0, table.output[-3000:]
-    assert table.stdout.strip() == comparison_table([want])
+    assert table.stdout.strip() == comparison_table([want]) + "\n\n" + mean_outside_line(want)
 
 
 def test_navi_infer_samples_actions_from_its_seed(corpora: tuple[Path, Path], tmp_path: Path) -> None:

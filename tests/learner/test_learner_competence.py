@@ -54,6 +54,7 @@ from navi_learner.evaluation.evaluate import (
     competent_supported,
     evaluate,
     goal_competent,
+    mean_outside_line,
     paired_intervals,
     summarise,
 )
@@ -320,7 +321,9 @@ def test_an_evaluation_reports_how_often_the_action_means_lie_outside_the_clip_b
     for noise in (0.0, 1.0):
         m = evaluate(env, ModulePolicy(policy, "pushed", noise, seed=3), 32, seed=3)
         assert m.mean_outside == [1.0, 0.0, 0.0, 1.0]
-    assert evaluate(env, RandomPolicy(seed=0), 32, seed=3).mean_outside == []
+        assert mean_outside_line(m).endswith("(pushed): 100.0% / 0.0% / 0.0% / 100.0%")
+    baseline = evaluate(env, RandomPolicy(seed=0), 32, seed=3)
+    assert baseline.mean_outside == [] and mean_outside_line(baseline) == ""
 
 
 def test_split_openarena_holds_out_every_fifth_map() -> None:

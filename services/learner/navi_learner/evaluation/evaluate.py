@@ -529,6 +529,15 @@ def goal_competent(
     return trained.success_rate >= success and trained.spl >= spl and fewer
 
 
+def mean_outside_line(m: EvalMetrics) -> str:
+    """The line printed under an evaluation's table for a trained policy: its `mean_outside` shares per
+    action axis; "" for a policy without action means (the baselines)."""
+    if not m.mean_outside:
+        return ""
+    shares = " / ".join(f"{x:.1%}" for x in m.mean_outside)
+    return f"Action means outside [-1, 1], forward / vertical / lateral / yaw rate ({m.policy}): {shares}"
+
+
 def comparison_table(rows: list[EvalMetrics]) -> str:
     """A markdown table of several evaluations: each metric with its 95% interval (the point-goal
     metrics when the evaluations have them)."""
