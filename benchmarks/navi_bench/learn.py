@@ -294,8 +294,8 @@ def run_order(cfg: LearnConfig) -> list[tuple[str, int]]:
 
 def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) -> TrainConfig:
     """The TrainConfig of one run of the benchmark: the job's settings (its engine with the arm's core
-    and engine fields, its PPO settings with the arm's), sized by learning_size, with the run's seed, device and time budget and no periodic
-    checkpoints."""
+    and engine fields, its PPO settings with the arm's), sized by learning_size, with the run's seed,
+    device and time budget and no periodic checkpoints."""
     core, overrides, _, ppo = parse_arm(arm)
     engine = replace(cfg.train.engine, temporal_core=core, **overrides)
     sized = learning_size(cfg.train, device.type == "cuda")

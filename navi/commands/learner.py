@@ -209,9 +209,9 @@ def print_metrics(
     collisions: dict[str, dict[str, int]] | None = None,
     flights: dict[str, dict[str, float]] | None = None,
 ) -> None:
-    """One JSON object, or a markdown table (under it each trained policy's mean_outside line); with `collisions` (CollisionSites.classify rows) also the
-    collision table, under "collisions" in the JSON, and with `flights` (GoalFlights.summary rows) the
-    point-goal episodes' table, under "goal_flights"."""
+    """One JSON object, or a markdown table (under it each trained policy's mean_outside_line); with
+    `collisions` (CollisionSites.classify rows) also the collision table, under "collisions" in the JSON,
+    and with `flights` (GoalFlights.summary rows) the point-goal episodes' table, under "goal_flights"."""
     from navi_learner.evaluation.collisions import collision_table
     from navi_learner.evaluation.evaluate import comparison_table, jsonable, mean_outside_line
     from navi_learner.evaluation.goal_flights import flight_table

@@ -108,9 +108,8 @@ class ModulePolicy:
         self.seed = seed
         self.state: CoreState = ()
         self.generator: torch.Generator | None = None
-        self.outside: torch.Tensor | None = (
-            None  # (4,) float64 actor-steps whose mean lay beyond ±1, per axis
-        )
+        # (4,) float64 per action axis: the actor-steps since the last reset whose mean lay beyond ±1
+        self.outside: torch.Tensor | None = None
         self.steps = 0  # actor-steps since the last reset
 
     def reset(self, n: int, device: torch.device) -> None:
