@@ -220,17 +220,21 @@ class ArmSpec(NamedTuple):
     """PPOConfig settings (ARM_PPO_FIELDS) its training replaces, on top of the job's."""
 
 
-ARM_PPO_FIELDS = ("mean_bound_coef", "ent_coef", "clip_coef", "vf_coef", "gae_lambda", "gamma")
-"""The PPOConfig settings an arm may name (numbers of the objective and the returns; the job's options set
-the rest)."""
+ARM_PPO_FIELDS = ("lr", "mean_bound_coef", "ent_coef", "clip_coef", "vf_coef", "gae_lambda", "gamma")
+"""The PPOConfig settings an arm may name (numbers of the optimizer, the objective and the returns; the
+job's options set the rest)."""
 
 
 def ppo_number(key: str, value: str) -> float:
-    """An arm's PPO setting as a number: ValueError names the setting where `value` is not one."""
+    """An arm's PPO setting as a number: ValueError names the setting where `value` is not one, or is not a
+    positive learning rate."""
     try:
-        return float(value)
+        number = float(value)
     except ValueError:
         raise ValueError(f"{key} expects a number, got {value.strip()!r}") from None
+    if key == "lr" and not number > 0.0:
+        raise ValueError(f"lr expects a positive learning rate, got {value.strip()!r}")
+    return number
 
 
 def parse_arm(spec: str) -> ArmSpec:

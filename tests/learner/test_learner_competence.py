@@ -553,11 +553,13 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
     # A PPO setting goes to the arm's training alone, on top of the job's.
     bounded = parse_arm("mamba2/mean_bound_coef=1,patch_size=32")
     assert bounded.ppo == {"mean_bound_coef": 1.0} and bounded.engine == {"patch_size": 32}
-    job_cfg = LearnConfig(temporal_cores=("mamba2", "mamba2/mean_bound_coef=1,ent_coef=0.01"))
+    arm_spec = "mamba2/mean_bound_coef=1,ent_coef=0.01,lr=6e-4"
+    job_cfg = LearnConfig(temporal_cores=("mamba2", arm_spec))
     plain = train_config(job_cfg, "mamba2", 0, torch.device("cpu"))
-    tcfg = train_config(job_cfg, "mamba2/mean_bound_coef=1,ent_coef=0.01", 0, torch.device("cpu"))
-    assert (tcfg.ppo.mean_bound_coef, tcfg.ppo.ent_coef) == (1.0, 0.01)
-    assert replace(tcfg.ppo, mean_bound_coef=0.0, ent_coef=plain.ppo.ent_coef) == plain.ppo
+    tcfg = train_config(job_cfg, arm_spec, 0, torch.device("cpu"))
+    assert (tcfg.ppo.mean_bound_coef, tcfg.ppo.ent_coef, tcfg.ppo.lr) == (1.0, 0.01, 6e-4)
+    assert plain.ppo.lr == 3e-4  # the learning recipe's rate, which the arm replaces
+    assert replace(tcfg.ppo, mean_bound_coef=0.0, ent_coef=plain.ppo.ent_coef, lr=plain.ppo.lr) == plain.ppo
     # A RewardConfig weight goes to the arm's training env, on top of the job's --reward.
     arm = parse_arm("mamba2/collision_weight=9,patch_size=32")
     assert arm.engine == {"patch_size": 32} and arm.reward == {"collision_weight": 9.0}
@@ -576,6 +578,8 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
         ("mamba2/exploration_table_bits=12", "unknown reward weight"),
         ("mamba2/attention=flash", "attention expects one of"),
         ("mamba2/mean_bound_coef=strong", "mean_bound_coef expects a number"),
+        ("mamba2/lr=0", "lr expects a positive learning rate"),
+        ("mamba2/lr=-1e-4", "lr expects a positive learning rate"),
         ("mamba2/max_grad_norm=1", "unknown field 'max_grad_norm'"),
     ):
         with pytest.raises(ValueError, match=why):
