@@ -218,11 +218,29 @@ class ArmSpec(NamedTuple):
     """RewardConfig weights its training env replaces, on top of the job's."""
     ppo: dict[str, Any]
     """PPOConfig settings (ARM_PPO_FIELDS) its training replaces, on top of the job's."""
+    size: dict[str, int]
+    """TrainConfig sizes (ARM_SIZE_FIELDS' values: n_actors, rollout_length) its training replaces."""
 
 
 ARM_PPO_FIELDS = ("lr", "mean_bound_coef", "ent_coef", "clip_coef", "vf_coef", "gae_lambda", "gamma")
 """The PPOConfig settings an arm may name (numbers of the optimizer, the objective and the returns; the
 job's options set the rest)."""
+
+
+ARM_SIZE_FIELDS = {"actors": "n_actors", "rollout_length": "rollout_length"}
+"""The run sizes an arm may name (its key -> the TrainConfig field): actors per run (per rank with --nproc)
+and steps per rollout, in place of the job's --actors and --rollout-length."""
+
+
+def size_number(key: str, value: str) -> int:
+    """An arm's run size as a positive whole number: ValueError names the size where `value` is not one."""
+    try:
+        number = int(value)
+    except ValueError:
+        number = 0
+    if number < 1:
+        raise ValueError(f"{key} expects a positive whole number, got {value.strip()!r}")
+    return number
 
 
 def ppo_number(key: str, value: str) -> float:
@@ -239,8 +257,9 @@ def ppo_number(key: str, value: str) -> float:
 
 def parse_arm(spec: str) -> ArmSpec:
     """An arm `CORE[/KEY=VALUE[,KEY=VALUE...]]`: a KEY that names a RewardConfig weight goes to its
-    training env's reward, one of ARM_PPO_FIELDS to its PPO settings, any other must be an EngineConfig
-    field; ValueError names an unknown core or field, or a value that is not a number."""
+    training env's reward, one of ARM_PPO_FIELDS to its PPO settings, one of ARM_SIZE_FIELDS to its run
+    size, any other must be an EngineConfig field; ValueError names an unknown core or field, or a value
+    that is not a number (a positive whole one for a size)."""
     from navi_env.config import RewardConfig
 
     core, _, rest = (part.strip() for part in spec.partition("/"))
@@ -254,25 +273,33 @@ def parse_arm(spec: str) -> ArmSpec:
     weights = {f.name for f in fields(RewardConfig)}
     shapes = {f.name for f in fields(EngineConfig)} - {"temporal_core"}  # the core comes before the /
     for key in (item.partition("=")[0].strip() for item in items):
-        if key not in weights | shapes | set(ARM_PPO_FIELDS):
+        if key not in weights | shapes | set(ARM_PPO_FIELDS) | set(ARM_SIZE_FIELDS):
             raise ValueError(
                 f"arm {spec!r}: unknown field {key!r}: name an EngineConfig field (e.g. patch_size), a "
-                "RewardConfig weight (e.g. collision_weight) or a PPO setting "
-                f"({', '.join(ARM_PPO_FIELDS)})"
+                "RewardConfig weight (e.g. collision_weight), a PPO setting "
+                f"({', '.join(ARM_PPO_FIELDS)}) or a run size ({', '.join(ARM_SIZE_FIELDS)})"
             )
     to_reward = [item for item in items if item.partition("=")[0].strip() in weights]
     to_ppo = [item for item in items if item.partition("=")[0].strip() in ARM_PPO_FIELDS]
+    to_size = [item for item in items if item.partition("=")[0].strip() in ARM_SIZE_FIELDS]
+    rest_items = [
+        item for item in items if item not in to_reward and item not in to_ppo and item not in to_size
+    ]
     try:
-        engine = engine_overrides([item for item in items if item not in to_reward and item not in to_ppo])
+        engine = engine_overrides(rest_items)
         reward = parse_reward_overrides(to_reward)
         ppo: dict[str, Any] = {
             key.strip(): ppo_number(key.strip(), value)
             for key, _, value in (i.partition("=") for i in to_ppo)
         }
+        size = {
+            ARM_SIZE_FIELDS[key.strip()]: size_number(key.strip(), value)
+            for key, _, value in (i.partition("=") for i in to_size)
+        }
     except ValueError as err:
         raise ValueError(f"arm {spec!r}: {err}") from err
     name: TemporalCoreName = "gru" if core == "gru" else "mambapy" if core == "mambapy" else "mamba2"
-    return ArmSpec(name, engine, reward, ppo)
+    return ArmSpec(name, engine, reward, ppo, size)
 
 
 def arm_reward(cfg: LearnConfig, arm: str) -> dict[str, float]:
@@ -298,11 +325,17 @@ def run_order(cfg: LearnConfig) -> list[tuple[str, int]]:
 
 def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) -> TrainConfig:
     """The TrainConfig of one run of the benchmark: the job's settings (its engine with the arm's core
-    and engine fields, its PPO settings with the arm's), sized by learning_size, with the run's seed,
-    device and time budget and no periodic checkpoints."""
-    core, overrides, _, ppo = parse_arm(arm)
+    and engine fields, its PPO settings and run sizes with the arm's), sized by learning_size where
+    neither sets a size, with the run's seed, device and time budget and no periodic checkpoints."""
+    core, overrides, _, ppo, size = parse_arm(arm)
     engine = replace(cfg.train.engine, temporal_core=core, **overrides)
-    sized = learning_size(cfg.train, device.type == "cuda")
+    job = cfg.train
+    arm_sized = replace(
+        job,
+        n_actors=size.get("n_actors", job.n_actors),
+        rollout_length=size.get("rollout_length", job.rollout_length),
+    )
+    sized = learning_size(arm_sized, device.type == "cuda")
     return replace(
         sized,
         ppo=replace(sized.ppo, **ppo),

@@ -578,11 +578,12 @@ def bench_learn_cmd(
         typer.Option(
             "--arm",
             help="CORE[/KEY=VALUE[,KEY=VALUE...]]: an arm to compare, a core with EngineConfig fields on top "
-            "of --engine, RewardConfig weights on top of --reward and PPO settings (lr, mean_bound_coef, "
-            "ent_coef, clip_coef, vf_coef, gae_lambda, gamma) on top of the job's for its training "
-            "(evaluations fly the job's reward) (repeatable; replaces --temporal-core), e.g. --arm mamba2 "
-            "--arm mamba2/attention=fused --arm mamba2/collision_weight=9 --arm mamba2/lr=6e-4. Runs go "
-            "seed by seed, every arm of a seed before the next.",
+            "of --engine, RewardConfig weights on top of --reward, and PPO settings (lr, mean_bound_coef, "
+            "ent_coef, clip_coef, vf_coef, gae_lambda, gamma) and run sizes (actors, rollout_length) in "
+            "place of the job's, for its training (evaluations fly the job's reward) (repeatable; replaces "
+            "--temporal-core), e.g. --arm mamba2 --arm mamba2/attention=fused --arm "
+            "mamba2/collision_weight=9 --arm mamba2/actors=8192. Runs go seed by seed, every arm of a seed "
+            "before the next.",
         ),
     ] = None,
     budget: Annotated[

@@ -123,13 +123,14 @@ def test_engine_option_shapes_a_fresh_engine_and_is_ignored_on_resume() -> None:
     assert engine["head_hidden"] == 16
 
 
-def test_bench_learn_help_names_every_ppo_setting_an_arm_takes() -> None:
-    from navi_bench.learn import ARM_PPO_FIELDS
+def test_bench_learn_help_names_every_ppo_setting_and_run_size_an_arm_takes() -> None:
+    from navi_bench.learn import ARM_PPO_FIELDS, ARM_SIZE_FIELDS
 
     shown = CliRunner().invoke(build_app(), ["bench", "learn", "--help"], env={"COLUMNS": "400"})
     assert shown.exit_code == 0, shown.output
     arm_help = " ".join(shown.output.split("--arm", 1)[1].split("--budget-s", 1)[0].split())
     assert "PPO settings (" + ", ".join(ARM_PPO_FIELDS) + ")" in arm_help
+    assert "run sizes (" + ", ".join(ARM_SIZE_FIELDS) + ")" in arm_help
 
 
 def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
@@ -160,6 +161,8 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     assert code == 2 and "unknown engine field" in err and "patch_el" in err
     code, _, err = invoke("bench", "learn", "--arm", "mamba2/lr=0", "--device", "cpu")
     assert code == 2 and "lr expects a positive learning rate" in err
+    code, _, err = invoke("bench", "learn", "--arm", "mamba2/actors=many", "--device", "cpu")
+    assert code == 2 and "actors expects a positive whole number" in err
     code, _, err = invoke("train", "--env", "toy", "--engine", "patch_el=wide", "--device", "cpu")
     assert code == 2 and "patch_el expects int" in err
     code, _, err = invoke("train", "--env", "toy", "--engine", "attention=flash", "--device", "cpu")

@@ -449,7 +449,10 @@ def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     root = tmp_path / "corpora"
     build_default_corpus(root / "procedural-train-64", resolution=64, count=2, seed=0)
     build_default_corpus(root / "procedural-unseen-64", resolution=64, count=1, seed=1000)
-    cfg = small_learn_config(seeds=(0, 1), reward=(("exploration_weight", 0.25),))
+    # Two arms of one seed: the recipe's 4 actors, and an arm that trains 2 in their place.
+    cfg = small_learn_config(
+        seeds=(0,), temporal_cores=("gru", "gru/actors=2"), reward=(("exploration_weight", 0.25),)
+    )
     out = tmp_path / "out"
     result = bench_learn(cfg, out, "cpu", 64, root, None, say=lambda _: None)
     saved = json.loads((out / "result.json").read_text())
@@ -460,17 +463,24 @@ def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     }
     assert any("OpenArena" in note for note in saved["splits"]["notes"])
     assert set(saved["baselines"]) == {"all", "procedural"}
-    assert [(r["temporal_core"], r["seed"]) for r in saved["runs"]] == [("gru", 0), ("gru", 1)]
+    runs = saved["runs"]
+    assert [(r["arm"], r["temporal_core"], r["seed"]) for r in runs] == [
+        ("gru", "gru", 0),
+        ("gru/actors=2", "gru", 0),
+    ]
+    assert [r["train_config"]["n_actors"] for r in runs] == [4, 2]
     curves = json.loads((out / "curves.json").read_text())
-    for run in saved["runs"]:
+    for run in runs:
         assert run["curve"] and run["curve"][-1]["step"] == run["steps"] and run["train_s"] >= 1.0
-        assert curves[f"gru seed {run['seed']}"] == run["curve"]
+        assert run["steps"] % (run["train_config"]["n_actors"] * 16) == 0  # whole rollouts of its actors
+        assert curves[f"{run['arm']} seed 0"] == run["curve"]
         assert set(run["final_by_split"]) == {"procedural"}
-    summary = result["summary"]["gru"]
-    assert summary["seeds"] == 2
-    assert summary["competent_seeds"] == sum(r["competence"] is not None for r in saved["runs"])
+    for arm in ("gru", "gru/actors=2"):
+        summary = result["summary"][arm]
+        assert summary["seeds"] == 1
+        assert summary["competent_seeds"] == sum(r["competence"] is not None for r in runs if r["arm"] == arm)
+        assert f"| {arm} | 1 |" in (out / "report.md").read_text()
     assert (out / "learning_curves.png").stat().st_size > 10_000
-    assert "| gru | 2 |" in (out / "report.md").read_text()
     assert saved["warmups"] == []  # small_learn_config turns it off
 
 
@@ -543,10 +553,11 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
         ("mamba2", 0), ("mamba2/attention=fused,patch_size=32", 0),
         ("mamba2", 1), ("mamba2/attention=fused,patch_size=32", 1),
     ]  # fmt: skip
-    assert parse_arm("gru") == ("gru", {}, {}, {})
+    assert parse_arm("gru") == ("gru", {}, {}, {}, {})
     assert parse_arm("mamba2/attention=fused,patch_size=32") == (
         "mamba2",
         {"attention": "fused", "patch_size": 32},
+        {},
         {},
         {},
     )
@@ -560,6 +571,14 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
     assert (tcfg.ppo.mean_bound_coef, tcfg.ppo.ent_coef, tcfg.ppo.lr) == (1.0, 0.01, 6e-4)
     assert plain.ppo.lr == 3e-4  # the learning recipe's rate, which the arm replaces
     assert replace(tcfg.ppo, mean_bound_coef=0.0, ent_coef=plain.ppo.ent_coef, lr=plain.ppo.lr) == plain.ppo
+    # A run size replaces the job's (here learning_size's on a CPU: 8 actors, 32-step rollouts) in that arm alone.
+    wide = "mamba2/actors=16,rollout_length=8"
+    assert parse_arm(wide).size == {"n_actors": 16, "rollout_length": 8}
+    sized = LearnConfig(temporal_cores=("mamba2", wide))
+    assert (train_config(sized, "mamba2", 0, torch.device("cpu")).n_actors, plain.rollout_length) == (8, 32)
+    tsized = train_config(sized, wide, 0, torch.device("cpu"))
+    assert (tsized.n_actors, tsized.rollout_length) == (16, 8)
+    assert replace(tsized, n_actors=8, rollout_length=32) == plain
     # A RewardConfig weight goes to the arm's training env, on top of the job's --reward.
     arm = parse_arm("mamba2/collision_weight=9,patch_size=32")
     assert arm.engine == {"patch_size": 32} and arm.reward == {"collision_weight": 9.0}
@@ -579,6 +598,9 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
         ("mamba2/attention=flash", "attention expects one of"),
         ("mamba2/mean_bound_coef=strong", "mean_bound_coef expects a number"),
         ("mamba2/lr=0", "lr expects a positive learning rate"),
+        ("mamba2/actors=0", "actors expects a positive whole number"),
+        ("mamba2/rollout_length=6.5", "rollout_length expects a positive whole number"),
+        ("mamba2/n_actors=16", r"or a run size \(actors, rollout_length\)"),
         ("mamba2/lr=-1e-4", "lr expects a positive learning rate"),
         ("mamba2/max_grad_norm=1", "unknown field 'max_grad_norm'"),
     ):
