@@ -335,7 +335,7 @@ def train_config(cfg: LearnConfig, arm: str, seed: int, device: torch.device) ->
         n_actors=size.get("n_actors", job.n_actors),
         rollout_length=size.get("rollout_length", job.rollout_length),
     )
-    sized = learning_size(arm_sized, device.type == "cuda")
+    sized = learning_size(arm_sized, device)
     return replace(
         sized,
         ppo=replace(sized.ppo, **ppo),

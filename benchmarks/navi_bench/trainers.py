@@ -207,7 +207,7 @@ def run_navi(
     """Navi's own PPO with the learning recipe, `actors` drones, `core`, the time budget."""
     from navi_learner.ppo.train import train as train_navi
 
-    recipe = learning_size(learning_recipe(), device.startswith("cuda"))
+    recipe = learning_size(learning_recipe(), torch.device(device))
     tcfg = replace(
         recipe,
         n_actors=actors,

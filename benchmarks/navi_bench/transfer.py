@@ -389,7 +389,7 @@ class RunJob:
 
         dev = torch.device(device)
         tcfg = replace(
-            learning_size(self.cfg.train, dev.type == "cuda"),
+            learning_size(self.cfg.train, dev),
             time_limit_s=self.cfg.budget_s,
             checkpoint_every=10**12,
             seed=self.seed,
@@ -477,7 +477,7 @@ class WarmupJob:
         from navi_learner.ppo.train import train
 
         started = time.perf_counter()
-        tcfg = learning_size(self.cfg.train, torch.device(device).type == "cuda")
+        tcfg = learning_size(self.cfg.train, torch.device(device))
         tcfg = replace(
             tcfg,
             total_steps=WARMUP_UPDATES * tcfg.n_actors * tcfg.rollout_length,

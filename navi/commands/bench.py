@@ -557,7 +557,7 @@ LEARN_OPTIONS = (
     LEARN_OPTIONS,
     defaults=COMMAND_DEVICE,
     helps={
-        "n_actors": "Actors per run (0: 2,048 on CUDA, 8 on CPU).",
+        "n_actors": "Actors per run (0: 8,192 on CUDA, 2,048 on a GPU under 36 GiB, 8 on CPU).",
         "rollout_length": "Steps per rollout (0: 64 on CUDA, 32 on CPU).",
     },
 )
@@ -746,7 +746,7 @@ def bench_learn_cmd(
     LEARN_OPTIONS,
     defaults=COMMAND_DEVICE,
     helps={
-        "n_actors": "Actors per run (0: 2,048 on CUDA, 8 on CPU).",
+        "n_actors": "Actors per run (0: 8,192 on CUDA, 2,048 on a GPU under 36 GiB, 8 on CPU).",
         "rollout_length": "Steps per rollout (0: 64 on CUDA, 32 on CPU).",
     },
 )

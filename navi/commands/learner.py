@@ -568,7 +568,7 @@ def export(
 
 
 @app.command(name="run", rich_help_panel=PANEL)
-@config_options(RunBudget(), ("budget_s", "eval_every_s", "cpu_steps"))
+@config_options(RunBudget(), ("budget_s", "eval_every_s", "n_actors", "cpu_steps"))
 def run_cmd(
     *,
     corpus: Annotated[

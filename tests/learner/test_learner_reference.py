@@ -17,11 +17,14 @@ from pathlib import Path
 
 import pytest
 import torch
+from typer.testing import CliRunner
 
+from navi.cli import build_app
 from navi_bench.learn import LearnConfig
 from navi_bench.learn import train_config as bench_train_config
 from navi_env.corpus.folder import build_default_corpus
 from navi_env.corpus.openarena import openarena_maps, split_openarena
+from navi_learner import config
 from navi_learner.envs.factory import make_env
 from navi_learner.evaluation.baselines import goal_seeker_for_env
 from navi_learner.evaluation.competence import EvalProtocol
@@ -122,6 +125,38 @@ def test_main_job_trains_on_a_gpu_with_the_learning_benchmarks_settings(tmp_path
         bench.engine,
     )
     assert ours.time_limit_s == job.budget_s
+    # `navi run --actors N` sizes the CUDA run and keeps the rest of the recipe.
+    chosen = cuda_config(replace(job, n_actors=1024))
+    assert chosen.n_actors == 1024 and replace(chosen, n_actors=ours.n_actors) == ours
+
+
+def test_the_learning_run_takes_fewer_actors_on_a_gpu_too_small_for_its_size(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """8,192 actors on a GPU with room for them (or whose memory cannot be read here), 2,048 under
+    SMALL_GPU_GIB, 8 on a CPU; a size the caller set is kept. The help of every command that takes the size
+    names these numbers."""
+    cuda = torch.device("cuda")
+    memory: list[float | None] = [None]
+    monkeypatch.setattr(config, "gpu_memory_gib", lambda device: memory[0])
+    sizes = {}
+    for gib in (None, 80.0, config.SMALL_GPU_GIB, 24.0):
+        memory[0] = gib
+        sized = config.learning_size(config.TrainConfig(), cuda)
+        sizes[gib] = (sized.n_actors, sized.rollout_length)
+    big, small = (config.LEARNING_ACTORS, 64), (config.SMALL_GPU_ACTORS, 64)
+    assert sizes == {None: big, 80.0: big, config.SMALL_GPU_GIB: big, 24.0: small}
+    own = config.learning_size(config.TrainConfig(n_actors=512, rollout_length=16), cuda)
+    assert (own.n_actors, own.rollout_length) == (512, 16)
+    cpu = config.learning_size(config.TrainConfig(), torch.device("cpu"))
+    assert (cpu.n_actors, cpu.rollout_length) == (8, 32)
+    named = (f"{config.LEARNING_ACTORS:,}", f"{config.SMALL_GPU_ACTORS:,}", f"{config.SMALL_GPU_GIB:g} GiB")
+    runner = CliRunner()
+    for command in (["run", "--help"], ["bench", "learn", "--help"], ["bench", "transfer", "--help"]):
+        shown = runner.invoke(build_app(), command, env={"COLUMNS": "400"})
+        assert shown.exit_code == 0, shown.output
+        line = next(x for x in shown.output.splitlines() if "--actors" in x)
+        assert all(n in line for n in named), (command, line)
 
 
 def test_main_job_point_goal_cpu_path_fine_tunes_its_reference_and_compares_with_the_seekers(

@@ -349,14 +349,38 @@ def learning_recipe(cfg: TrainConfig | None = None) -> TrainConfig:
     return replace(base, total_steps=10**12, ppo=ppo)
 
 
-def learning_size(cfg: TrainConfig, cuda: bool) -> TrainConfig:
-    """The learning run's actors and rollout length where `cfg` leaves them 0: 2,048 actors and 64-step
-    rollouts on CUDA, 8 actors and 32-step rollouts on a CPU."""
-    return replace(
-        cfg,
-        n_actors=cfg.n_actors or (2048 if cuda else 8),
-        rollout_length=cfg.rollout_length or (64 if cuda else 32),
-    )
+LEARNING_ACTORS = 8192
+"""The learning run's actors on a GPU: in one job of seeds 0-2 interleaved with 2,048 (explore, 120 s, one
+H200) they reached the bar no later (median 100 against 101 s, 3 of 3 seeds against 2 of 3) and flew a
+third of the late collisions (docs/PERFORMANCE.md). The run peaked at about 28 GiB of GPU memory."""
+
+SMALL_GPU_ACTORS = 2048
+"""The learning run's actors on a GPU with less than SMALL_GPU_GIB of memory."""
+
+SMALL_GPU_GIB = 36.0
+"""Total GPU memory (GiB) below which LEARNING_ACTORS would not fit beside the CUDA context and caches."""
+
+
+def gpu_memory_gib(device: torch.device) -> float | None:
+    """Total memory of the CUDA `device` in GiB; None on a CPU or where CUDA is absent."""
+    import torch
+
+    if device.type != "cuda" or not torch.cuda.is_available():
+        return None
+    return torch.cuda.get_device_properties(device).total_memory / 2**30
+
+
+def learning_size(cfg: TrainConfig, device: torch.device) -> TrainConfig:
+    """The learning run's actors and rollout length where `cfg` leaves them 0: LEARNING_ACTORS (8,192;
+    SMALL_GPU_ACTORS, 2,048, on a GPU under SMALL_GPU_GIB) and 64-step rollouts on CUDA, 8 actors and
+    32-step rollouts on a CPU. A GPU whose memory cannot be read (no CUDA here) counts as large."""
+    if device.type == "cuda":
+        gib = gpu_memory_gib(device)
+        actors = SMALL_GPU_ACTORS if gib is not None and gib < SMALL_GPU_GIB else LEARNING_ACTORS
+        rollout = 64
+    else:
+        actors, rollout = 8, 32
+    return replace(cfg, n_actors=cfg.n_actors or actors, rollout_length=cfg.rollout_length or rollout)
 
 
 OBS_STORAGE = ("auto", "compact", "float32")
@@ -420,3 +444,5 @@ class RunBudget:
     """CUDA: training seconds between two unseen evaluations."""
     cpu_steps: Annotated[int, CliOption(min=0)] = 2048
     """CPU: env steps of fine-tuning the task's reference checkpoint."""
+    n_actors: Annotated[int, CliOption("--actors", min=0)] = 0
+    """CUDA: drones trained at once (0: the learning benchmark's 8,192; 2,048 on a GPU under 36 GiB)."""

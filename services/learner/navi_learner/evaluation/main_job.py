@@ -174,10 +174,10 @@ def ensure_corpus(corpus: Path, device: torch.device, seed: int = 0, count: int 
 
 
 def cuda_config(job: MainJobConfig) -> TrainConfig:
-    """Training on a GPU: the learning benchmark's run (config.learning_recipe at learning_size's 2,048
-    actors and 64-step rollouts), time-limited by the job's budget."""
+    """Training on a GPU: the learning benchmark's run (config.learning_recipe at learning_size's 8,192
+    actors, or the job's `n_actors`, and 64-step rollouts), time-limited by the job's budget."""
     return replace(
-        learning_size(learning_recipe(), cuda=True),
+        learning_size(replace(learning_recipe(), n_actors=job.n_actors), torch.device(job.device)),
         time_limit_s=job.budget_s,
         seed=job.seed,
         device=job.device,
