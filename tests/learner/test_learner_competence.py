@@ -569,7 +569,9 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
     plain = train_config(job_cfg, "mamba2", 0, torch.device("cpu"))
     tcfg = train_config(job_cfg, arm_spec, 0, torch.device("cpu"))
     assert (tcfg.ppo.mean_bound_coef, tcfg.ppo.ent_coef, tcfg.ppo.lr) == (1.0, 0.01, 6e-4)
-    assert plain.ppo.lr == 3e-4  # the learning recipe's rate, which the arm replaces
+    assert (
+        plain.ppo.lr == 0.0
+    )  # the learning recipe's: the task's rate, chosen by resolve; the arm sets its own
     assert replace(tcfg.ppo, mean_bound_coef=0.0, ent_coef=plain.ppo.ent_coef, lr=plain.ppo.lr) == plain.ppo
     # A run size replaces the job's (here learning_size's on a CPU: 8 actors, 32-step rollouts) in that arm alone.
     wide = "mamba2/actors=16,rollout_length=8"

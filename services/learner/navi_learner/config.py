@@ -182,8 +182,9 @@ def engine_overrides(items: Sequence[str]) -> dict[str, Any]:
 class PPOConfig:
     """PPO hyper-parameters and the weights of the intrinsic rewards."""
 
-    lr: float = 5e-4
-    """Adam learning rate (policy and RND predictor); the starting value when target_kl > 0."""
+    lr: Annotated[float, CliOption(min=0.0)] = 5e-4
+    """Adam learning rate (policy and RND predictor); the starting value when target_kl > 0. 0: the
+    learning recipe's rate for the run's task (TASK_LR: explore 6e-4, point-goal 3e-4)."""
     target_kl: Annotated[float, CliOption(min=0.0)] = 0.0
     """> 0: adaptive learning rate. Before each minibatch's optimizer step the approximate KL divergence
     from the rollout's policy is compared with this target: above 2× it the rate is divided by 1.5,
@@ -340,12 +341,27 @@ def default_actors(device: torch.device) -> int:
     return 4096 if device.type == "cuda" else 4
 
 
+TASK_LR: dict[str, float] = {"explore": 6e-4, "pointgoal": 3e-4}
+"""The learning recipe's Adam rate per task, where a run leaves PPOConfig.lr 0. Explore at 6e-4: in one job
+of seeds 0-2 interleaved with 3e-4 (8,192 actors, 120 s, one H200) it held the bar after 60 / 41 / 41 s
+against 102 / 63 / 120 s, with fewer late collisions on every seed and about 5% less coverage
+(docs/TRAINING.md, "Levers"). Point-goal keeps 3e-4 until an A/B of its own says otherwise."""
+
+
+def task_lr(task: str) -> float:
+    """TASK_LR of a task; ValueError names the known ones."""
+    if task not in TASK_LR:
+        raise ValueError(f"unknown task {task!r}: expected one of {', '.join(TASK_LR)}")
+    return TASK_LR[task]
+
+
 def learning_recipe(cfg: TrainConfig | None = None) -> TrainConfig:
     """The settings of the measured learning run (`navi bench learn`, and `navi run` on CUDA) on top of
-    `cfg` (TrainConfig() when None): two PPO epochs per rollout at a learning rate of 3e-4 over minibatches
-    of up to 16,384 samples, and a step budget so large that the run's time limit ends it."""
+    `cfg` (TrainConfig() when None): two PPO epochs per rollout at the task's learning rate (lr 0, which
+    resolve turns into TASK_LR's) over minibatches of up to 16,384 samples, and a step budget so large
+    that the run's time limit ends it."""
     base = TrainConfig() if cfg is None else cfg
-    ppo = replace(base.ppo, lr=3e-4, ppo_epochs=2, max_minibatch=16_384)
+    ppo = replace(base.ppo, lr=0.0, ppo_epochs=2, max_minibatch=16_384)
     return replace(base, total_steps=10**12, ppo=ppo)
 
 
@@ -410,8 +426,8 @@ def obs_bytes(obs_shape: tuple[int, int, int], compact: bool) -> int:
 
 
 def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = True) -> TrainConfig:
-    """Fill the derived defaults (actor count, rollout length, the engine's view range for the task)
-    once, right after parsing.
+    """Fill the derived defaults (actor count, rollout length, the engine's view range and the learning
+    rate for the task) once, right after parsing.
 
     The rollout length defaults to ROLLOUT_DEFAULT for the device but is capped, to a multiple of the
     BPTT chunk, so that N·T stored observations (`compact` or float32, see obs_bytes) fit in
@@ -429,7 +445,8 @@ def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = T
     bptt = min(cfg.ppo.bptt_chunk, rollout)
     rollout = max(bptt, rollout // bptt * bptt)
     minibatches = max(cfg.ppo.num_minibatches, -(-n_actors * rollout // cfg.ppo.max_minibatch))
-    ppo = replace(cfg.ppo, bptt_chunk=bptt, num_minibatches=minibatches)
+    lr = cfg.ppo.lr or task_lr(cfg.task)
+    ppo = replace(cfg.ppo, bptt_chunk=bptt, num_minibatches=minibatches, lr=lr)
     engine = replace(cfg.engine, view_range=cfg.engine.view_range or TASK_VIEW_RANGE.get(cfg.task, 1.0))
     return replace(cfg, n_actors=n_actors, rollout_length=rollout, ppo=ppo, engine=engine)
 
