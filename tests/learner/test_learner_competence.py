@@ -469,6 +469,7 @@ def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:
         ("gru/actors=2", "gru", 0),
     ]
     assert [r["train_config"]["n_actors"] for r in runs] == [4, 2]
+    assert all(r["train_config"]["ppo"]["lr"] == 6e-4 for r in runs)  # the explore rate it trained at
     curves = json.loads((out / "curves.json").read_text())
     for run in runs:
         assert run["curve"] and run["curve"][-1]["step"] == run["steps"] and run["train_s"] >= 1.0
@@ -496,7 +497,7 @@ def test_bench_learn_point_goal_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     assert set(saved["baselines"]["all"]) == {"random", "greedy", "oracle"}
     assert all(b["task"] == "pointgoal" for b in saved["baselines"]["all"].values())
     (run,) = saved["runs"]
-    assert run["train_config"]["task"] == "pointgoal"
+    assert run["train_config"]["task"] == "pointgoal" and run["train_config"]["ppo"]["lr"] == 3e-4
     assert all(p["competent"] is not None and "success_rate" in p for p in run["curve"])
     assert run["final_by_split"]["procedural"]["task"] == "pointgoal"
     assert "median_final_spl" in result["summary"]["gru"]
@@ -569,9 +570,8 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
     plain = train_config(job_cfg, "mamba2", 0, torch.device("cpu"))
     tcfg = train_config(job_cfg, arm_spec, 0, torch.device("cpu"))
     assert (tcfg.ppo.mean_bound_coef, tcfg.ppo.ent_coef, tcfg.ppo.lr) == (1.0, 0.01, 6e-4)
-    assert (
-        plain.ppo.lr == 0.0
-    )  # the learning recipe's: the task's rate, chosen by resolve; the arm sets its own
+    # The learning recipe's rate is the task's, chosen by resolve; the arm sets its own.
+    assert plain.ppo.lr == 0.0
     assert replace(tcfg.ppo, mean_bound_coef=0.0, ent_coef=plain.ppo.ent_coef, lr=plain.ppo.lr) == plain.ppo
     # A run size replaces the job's (here learning_size's on a CPU: 8 actors, 32-step rollouts) in that arm alone.
     wide = "mamba2/actors=16,rollout_length=8"

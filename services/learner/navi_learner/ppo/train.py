@@ -65,6 +65,8 @@ class TrainResult:
     interrupted: bool
     promoted: str | None = None
     last_metrics: dict[str, float] = field(default_factory=dict)
+    config: TrainConfig | None = None
+    """The run's resolved settings (config.resolve: its actors, rollout length, learning rate...)."""
 
 
 def collect(
@@ -313,6 +315,7 @@ def finish(
         interrupted,
         promoted,
         row,
+        cfg,
     )
 
 
