@@ -57,7 +57,7 @@ from navi_learner.evaluation.competence import (
     evaluate_baselines,
     plot_curves,
 )
-from navi_learner.evaluation.evaluate import EvalMetrics, comparison_table, jsonable
+from navi_learner.evaluation.evaluate import EvalMetrics, comparison_table, contact_line, jsonable
 from navi_learner.ppo import dist as ddp
 from navi_learner.ppo.dist import Dist
 
@@ -624,23 +624,6 @@ LATE_METRICS = ("collisions_per_1k", "coverage_per_1k", "success_rate", "spl")
 """The curve's metrics that late_means averages (those a point carries: point-goal runs add the last two)."""
 
 
-def contact_spread(per_actor: dict[str, list[float]], busiest: int = 3) -> dict[str, int] | None:
-    """How an evaluation's contact steps spread over its actors (EvalMetrics.per_actor): the actors, those
-    with any contact, all contact steps, those of the `busiest` actors, and the most of one actor; None
-    where the evaluation kept no per-actor counts. Near the explore bar a few drones that keep touching
-    make most of the count (docs/TRAINING.md, "Learning", lessons)."""
-    counts = sorted(per_actor.get("collision", []), reverse=True)  # (N,) contact steps per actor
-    if not counts:
-        return None
-    return {
-        "actors": len(counts),
-        "actors_in_contact": sum(c > 0 for c in counts),
-        "contact_steps": round(sum(counts)),
-        "busiest_steps": round(sum(counts[:busiest])),
-        "most": round(counts[0]),
-    }
-
-
 def late_means(curve: list[dict[str, Any]], budget_s: float) -> dict[str, Any]:
     """The mean of each of a run's unseen metrics over its evaluations in the second half of the training
     budget (train_s >= budget_s / 2), and their count ("evaluations"; the metrics None where there are
@@ -762,14 +745,9 @@ def report_markdown(result: dict[str, Any], baselines: dict[str, dict[str, EvalM
                 "",
                 comparison_table(rows),
             ]
-            spread = contact_spread(metrics.get("per_actor", {}))
-            if spread and spread["contact_steps"]:
-                lines += [
-                    "",
-                    f"Contacts (trained): {spread['actors_in_contact']} of {spread['actors']} actors touched a "
-                    f"surface; the 3 busiest made {spread['busiest_steps']} of the {spread['contact_steps']} "
-                    f"contact steps (one actor {spread['most']}).",
-                ]
+            contacts = contact_line(rows[0])
+            if contacts:
+                lines += ["", contacts]
     return "\n".join(lines) + "\n"
 
 

@@ -209,11 +209,12 @@ def print_metrics(
     collisions: dict[str, dict[str, int]] | None = None,
     flights: dict[str, dict[str, float]] | None = None,
 ) -> None:
-    """One JSON object, or a markdown table (under it each trained policy's mean_outside_line); with
-    `collisions` (CollisionSites.classify rows) also the collision table, under "collisions" in the JSON,
-    and with `flights` (GoalFlights.summary rows) the point-goal episodes' table, under "goal_flights"."""
+    """One JSON object, or a markdown table (under it each trained policy's mean_outside_line and
+    contact_line); with `collisions` (CollisionSites.classify rows) also the collision table, under
+    "collisions" in the JSON, and with `flights` (GoalFlights.summary rows) the point-goal episodes'
+    table, under "goal_flights"."""
     from navi_learner.evaluation.collisions import collision_table
-    from navi_learner.evaluation.evaluate import comparison_table, jsonable, mean_outside_line
+    from navi_learner.evaluation.evaluate import comparison_table, contact_line, jsonable, mean_outside_line
     from navi_learner.evaluation.goal_flights import flight_table
 
     if as_json:
@@ -223,6 +224,8 @@ def print_metrics(
     else:
         tables = [comparison_table(rows)]
         tables += [line for line in map(mean_outside_line, rows) if line]
+        trained = [r for r in rows if r.mean_outside]  # the trained policies (baselines have no means)
+        tables += [line for line in (contact_line(r, r.policy) for r in trained) if line]
         tables += [] if collisions is None else [collision_table(collisions)]
         tables += [] if flights is None else [flight_table(flights)]
         typer.echo("\n\n".join(tables))

@@ -26,6 +26,7 @@ from navi_learner.evaluation.evaluate import (
     beats_supported,
     comparison_table,
     competent_supported,
+    contact_line,
     evaluate,
     jsonable,
     mean_outside_line,
@@ -219,7 +220,8 @@ def test_navi_infer_prints_what_the_checkpoint_does_in_process(
     assert (rand.distance_per_1k, rand.mean_clearance) != (want.distance_per_1k, want.mean_clearance)
     table = runner.invoke(build_app(), [*args, *sizes, "--deterministic"])  # without --json: a table
     assert table.exit_code == 0, table.output[-3000:]
-    assert table.stdout.strip() == comparison_table([want]) + "\n\n" + mean_outside_line(want)
+    under = [line for line in (mean_outside_line(want), contact_line(want, want.policy)) if line]
+    assert table.stdout.strip() == "\n\n".join([comparison_table([want]), *under])
 
 
 def test_navi_infer_samples_actions_from_its_seed(corpora: tuple[Path, Path], tmp_path: Path) -> None:

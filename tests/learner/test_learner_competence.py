@@ -24,7 +24,6 @@ from navi_bench.learn import (
     arm_reward,
     bench_learn,
     censored_median,
-    contact_spread,
     gpu_lanes,
     late_means,
     parse_arm,
@@ -52,6 +51,8 @@ from navi_learner.evaluation.evaluate import (
     beats_supported,
     competent,
     competent_supported,
+    contact_line,
+    contact_spread,
     evaluate,
     goal_competent,
     mean_outside_line,
@@ -443,6 +444,13 @@ def test_the_report_shows_how_few_drones_make_the_contacts() -> None:
         "Contacts (trained): 9 of 256 actors touched a surface; the 3 busiest made 491 of the 507" in section
     )
     assert "(one actor 479)" in section
+    # The same sentence under `navi run`'s and `navi evaluate`'s tables (contact_line), for any policy name.
+    drone = EvalMetrics(**next(r for r in result["runs"] if r["seed"] == 2)["final_by_split"]["openarena"])
+    assert contact_line(drone) in section
+    assert contact_line(drone, "v001").startswith("Contacts (v001): 9 of 256 actors touched a surface")
+    assert contact_line(replace(drone, per_actor={})) == ""  # no per-actor counts kept
+    untouched = replace(drone, per_actor={"collision": [0.0] * 256})
+    assert contact_line(untouched) == ""
 
 
 def test_bench_learn_end_to_end_on_a_cpu(tmp_path: Path) -> None:

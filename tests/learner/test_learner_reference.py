@@ -33,6 +33,7 @@ from navi_learner.evaluation.evaluate import (
     EvalMetrics,
     beats_supported,
     competent_supported,
+    contact_line,
     evaluate,
 )
 from navi_learner.evaluation.main_job import (
@@ -48,6 +49,7 @@ from navi_learner.evaluation.main_job import (
     judge,
     main_job,
     real_map_corpus,
+    write_evaluation,
 )
 from navi_learner.serving.checkpoint import load_checkpoint
 
@@ -290,11 +292,39 @@ def test_main_job_judges_the_drone_on_held_out_real_maps_in_a_section_of_their_o
         "## Real maps never seen: the held-out OpenArena maps" in text and f"On real maps: {verdict}" in text
     )
     assert f"[navi run] on real maps never seen ({real['corpus']}): {verdict}" in out
+    contacts = contact_line(rows[0])  # how few drones made the contacts, where the drone touched anything
+    section = text.split("## Real maps never seen", 1)[1]
+    assert (
+        (contacts in section and f"[navi run] {contacts}" in out) if contacts else "Contacts (" not in section
+    )
     # without the package the job says where to get it and judges on procedural scenes alone
     missing = replace(job, openarena=tmp_path / "absent.pk3", models_dir=tmp_path / "models2")
     report = main_job(missing)
     assert "no verdict on real maps" in capsys.readouterr().out
     assert "real_maps" not in json.loads((report.parent / "evaluation.json").read_text())
+
+
+def test_the_job_says_how_few_drones_made_the_contacts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Under each verdict the job names how the trained drone's contact steps spread over its actors: the
+    stored collision A/B's seed 2 on the held-out maps, where one drone of 256 made 479 of the 507."""
+    stored = Path(__file__).resolve().parents[2] / "benchmarks/results/learn-collision-2026-12-01-H200"
+    result = json.loads((stored / "result.json").read_text())
+    base = result["baselines"]["openarena"]
+    run = next(r for r in result["runs"] if r["seed"] == 2)
+    rows = [EvalMetrics(**m) for m in (run["final_by_split"]["openarena"], base["random"], base["reactive"])]
+    job = MainJobConfig(tmp_path / "train", tmp_path / "unseen", tmp_path / "models", "cuda")
+    protocol = EvalProtocol(actors=256, steps=1000, episode_steps=500)
+    line = "Contacts (trained): 9 of 256 actors touched a surface; the 3 busiest made 491 of the 507 contact steps"
+    report = write_evaluation(tmp_path, job, protocol, rows, None, "CUDA", (tmp_path / "held", rows))
+    text, out = report.read_text(), capsys.readouterr().out
+    unseen_part, real_part = text.split("## Real maps never seen", 1)
+    assert line in unseen_part and line in real_part
+    assert out.count(f"[navi run] {line} (one actor 479).") == 2
+    quiet = [replace(rows[0], per_actor={**rows[0].per_actor, "collision": [0.0] * 256}), *rows[1:]]
+    report = write_evaluation(tmp_path, job, protocol, quiet, None, "CUDA")
+    assert "Contacts (" not in report.read_text() and "Contacts (" not in capsys.readouterr().out
 
 
 @pytest.mark.data

@@ -537,6 +537,36 @@ def mean_outside_line(m: EvalMetrics) -> str:
     return f"Action means outside [-1, 1], forward / vertical / lateral / yaw rate ({m.policy}): {shares}"
 
 
+def contact_spread(per_actor: dict[str, list[float]], busiest: int = 3) -> dict[str, int] | None:
+    """How an evaluation's contact steps spread over its actors (EvalMetrics.per_actor): the actors, those
+    with any contact, all contact steps, those of the `busiest` actors, and the most of one actor; None
+    where the evaluation kept no per-actor counts. Near the explore bar a few drones that keep touching
+    make most of the count (docs/TRAINING.md, "Learning", lessons)."""
+    counts = sorted(per_actor.get("collision", []), reverse=True)  # (N,) contact steps per actor
+    if not counts:
+        return None
+    return {
+        "actors": len(counts),
+        "actors_in_contact": sum(c > 0 for c in counts),
+        "contact_steps": round(sum(counts)),
+        "busiest_steps": round(sum(counts[:busiest])),
+        "most": round(counts[0]),
+    }
+
+
+def contact_line(m: EvalMetrics, who: str = "trained") -> str:
+    """The line printed under an evaluation's table for a trained policy that touched anything: how few of
+    its actors made the contact steps (contact_spread); "" without per-actor counts or contacts."""
+    spread = contact_spread(m.per_actor)
+    if not spread or not spread["contact_steps"]:
+        return ""
+    return (
+        f"Contacts ({who}): {spread['actors_in_contact']} of {spread['actors']} actors touched a surface; "
+        f"the 3 busiest made {spread['busiest_steps']} of the {spread['contact_steps']} contact steps "
+        f"(one actor {spread['most']})."
+    )
+
+
 def comparison_table(rows: list[EvalMetrics]) -> str:
     """A markdown table of several evaluations: each metric with its 95% interval (the point-goal
     metrics when the evaluations have them)."""

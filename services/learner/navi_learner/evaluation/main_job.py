@@ -45,6 +45,7 @@ from navi_learner.evaluation.evaluate import (
     collision_bar,
     comparison_table,
     competent_supported,
+    contact_line,
     evaluate,
     flown_by,
     goal_competent,
@@ -378,11 +379,13 @@ def write_evaluation(
     the held-out OpenArena corpus and the same policies' rows there, reported in a section of its own."""
     verdict, beats, competence = judge(job.task, rows)
     table = comparison_table(rows)
+    contacts = contact_line(rows[0])  # "" where the drone touched nothing
     text = (
         f"# navi run: evaluation on unseen scenes ({path_taken} path, task {job.task})\n\n"
         f"{protocol.actors} actors x {protocol.steps} steps on {job.unseen} (procedural seed {UNSEEN_SEED}), "
         f"episodes of {protocol.episode_steps} steps, env seed {protocol.seed}, {flown_by(job.task)}; "
         f"95% bootstrap intervals over actors.\n\n{table}\n\n{verdict}\n"
+        + (f"\n{contacts}\n" if contacts else "")
     )
     payload: dict[str, object] = {
         "path": path_taken,
@@ -396,11 +399,13 @@ def write_evaluation(
         corpus, real_rows = real
         real_verdict, real_beats, real_competence = judge(job.task, real_rows)
         real_table = comparison_table(real_rows)
+        real_contacts = contact_line(real_rows[0])
         text += (
             f"\n## Real maps never seen: the held-out OpenArena maps\n\n"
             f"The same protocol on {corpus}: the fifth of the OpenArena maps that no training split holds "
             f"(navi_env.corpus.openarena), Quake 3 arenas unlike the procedural scenes.\n\n"
             f"{real_table}\n\nOn real maps: {real_verdict}\n"
+            + (f"\n{real_contacts}\n" if real_contacts else "")
         )
         payload["real_maps"] = {
             "corpus": str(corpus),
@@ -409,6 +414,7 @@ def write_evaluation(
             "competent": real_competence,
         }
         real_lines = [real_table, f"[navi run] on real maps never seen ({corpus}): {real_verdict}"]
+        real_lines += [f"[navi run] {real_contacts}"] if real_contacts else []
     if monitor is not None:
         payload["learning"] = monitor.to_json()
         why_not = plot_curves({"trained": monitor.curve}, monitor.baselines, reports / "learning_curves.png")
@@ -422,6 +428,8 @@ def write_evaluation(
     atomic_write(reports / "evaluation.json", lambda f: f.write(blob))
     print(table, flush=True)
     print(f"[navi run] {verdict}", flush=True)
+    if contacts:
+        print(f"[navi run] {contacts}", flush=True)
     for line in real_lines:
         print(line, flush=True)
     print(f"[navi run] evaluation: {reports / 'evaluation.md'}", flush=True)
