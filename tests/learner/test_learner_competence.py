@@ -35,7 +35,7 @@ from navi_bench.learn import (
 from navi_bench.learn import summarise as summarise_arms
 from navi_env.corpus.folder import build_default_corpus
 from navi_env.corpus.openarena import split_openarena
-from navi_learner.config import EngineConfig, PPOConfig, TrainConfig, learning_recipe
+from navi_learner.config import TASK_RATE, EngineConfig, PPOConfig, TrainConfig, learning_recipe
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.factory import make_env, parse_reward_overrides, reward_config
 from navi_learner.envs.protocol import StepLike, capabilities
@@ -579,7 +579,7 @@ def test_arms_run_seed_by_seed_and_name_their_engine_fields() -> None:
     tcfg = train_config(job_cfg, arm_spec, 0, torch.device("cpu"))
     assert (tcfg.ppo.mean_bound_coef, tcfg.ppo.ent_coef, tcfg.ppo.lr) == (1.0, 0.01, 6e-4)
     # The learning recipe's rate is the task's, chosen by resolve; the arm sets its own.
-    assert plain.ppo.lr == 0.0
+    assert plain.ppo.lr == TASK_RATE
     assert replace(tcfg.ppo, mean_bound_coef=0.0, ent_coef=plain.ppo.ent_coef, lr=plain.ppo.lr) == plain.ppo
     # A run size replaces the job's (here learning_size's on a CPU: 8 actors, 32-step rollouts) in that arm alone.
     wide = "mamba2/actors=16,rollout_length=8"

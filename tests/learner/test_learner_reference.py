@@ -162,18 +162,22 @@ def test_the_learning_run_takes_fewer_actors_on_a_gpu_too_small_for_its_size(
 
 
 def test_the_learning_recipe_trains_each_task_at_its_own_rate() -> None:
-    """The recipe leaves the rate 0 and resolve picks the task's (explore 6e-4, point-goal 3e-4); a rate
-    the run sets is kept, an unknown task is named, and `navi train` keeps PPOConfig's own default."""
+    """The recipe's rate is TASK_RATE and resolve picks the task's (explore 6e-4, point-goal 3e-4); a rate
+    the run sets is kept, 0 among them (weights that do not move), an unknown task or another negative
+    rate is named, and `navi train` keeps PPOConfig's own default."""
     recipe = config.learning_recipe()
-    assert recipe.ppo.lr == 0.0
+    assert recipe.ppo.lr == config.TASK_RATE
     obs = (3, 256, 48)
     rates = {t: config.resolve(replace(recipe, task=t), obs).ppo.lr for t in ("explore", "pointgoal")}
     assert rates == {"explore": 6e-4, "pointgoal": 3e-4} == config.TASK_LR
-    own = replace(recipe, task="pointgoal", ppo=replace(recipe.ppo, lr=1e-4))
-    assert config.resolve(own, obs).ppo.lr == 1e-4
+    for own_rate in (1e-4, 0.0):
+        own = replace(recipe, task="pointgoal", ppo=replace(recipe.ppo, lr=own_rate))
+        assert config.resolve(own, obs).ppo.lr == own_rate
     assert config.resolve(config.TrainConfig(), obs).ppo.lr == config.PPOConfig().lr == 5e-4
     with pytest.raises(ValueError, match=r"unknown task 'hover'.*explore, pointgoal"):
         config.resolve(replace(recipe, task="hover"), obs)
+    with pytest.raises(ValueError, match=r"lr must be >= 0, or -1 for the task's rate; got -0.5"):
+        config.resolve(replace(recipe, ppo=replace(recipe.ppo, lr=-0.5)), obs)
 
 
 def test_main_job_point_goal_cpu_path_fine_tunes_its_reference_and_compares_with_the_seekers(

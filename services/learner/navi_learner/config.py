@@ -178,13 +178,19 @@ def engine_overrides(items: Sequence[str]) -> dict[str, Any]:
     return out
 
 
+TASK_RATE = -1.0
+"""PPOConfig.lr of the learning recipe: no rate of its own, resolve sets the task's (TASK_LR). A rate of 0
+keeps its meaning, a run whose weights do not move."""
+
+
 @dataclass
 class PPOConfig:
     """PPO hyper-parameters and the weights of the intrinsic rewards."""
 
-    lr: Annotated[float, CliOption(min=0.0)] = 5e-4
-    """Adam learning rate (policy and RND predictor); the starting value when target_kl > 0. 0: the
-    learning recipe's rate for the run's task (TASK_LR: explore 6e-4, point-goal 3e-4)."""
+    lr: Annotated[float, CliOption(min=TASK_RATE)] = 5e-4
+    """Adam learning rate (policy and RND predictor); the starting value when target_kl > 0. -1 (TASK_RATE):
+    the learning recipe's rate for the run's task (TASK_LR: explore 6e-4, point-goal 3e-4); 0 trains
+    nothing."""
     target_kl: Annotated[float, CliOption(min=0.0)] = 0.0
     """> 0: adaptive learning rate. Before each minibatch's optimizer step the approximate KL divergence
     from the rollout's policy is compared with this target: above 2× it the rate is divided by 1.5,
@@ -342,7 +348,7 @@ def default_actors(device: torch.device) -> int:
 
 
 TASK_LR: dict[str, float] = {"explore": 6e-4, "pointgoal": 3e-4}
-"""The learning recipe's Adam rate per task, where a run leaves PPOConfig.lr 0. Explore at 6e-4: in one job
+"""The learning recipe's Adam rate per task, where a run's PPOConfig.lr is TASK_RATE. Explore at 6e-4: in one job
 of seeds 0-2 interleaved with 3e-4 (8,192 actors, 120 s, one H200) it held the bar after 60 / 41 / 41 s
 against 102 / 63 / 120 s, with fewer late collisions on every seed and about 5% less coverage
 (docs/TRAINING.md, "Levers"). Point-goal keeps 3e-4 until an A/B of its own says otherwise."""
@@ -357,11 +363,11 @@ def task_lr(task: str) -> float:
 
 def learning_recipe(cfg: TrainConfig | None = None) -> TrainConfig:
     """The settings of the measured learning run (`navi bench learn`, and `navi run` on CUDA) on top of
-    `cfg` (TrainConfig() when None): two PPO epochs per rollout at the task's learning rate (lr 0, which
-    resolve turns into TASK_LR's) over minibatches of up to 16,384 samples, and a step budget so large
-    that the run's time limit ends it."""
+    `cfg` (TrainConfig() when None): two PPO epochs per rollout at the task's learning rate (TASK_RATE,
+    which resolve turns into TASK_LR's) over minibatches of up to 16,384 samples, and a step budget so
+    large that the run's time limit ends it."""
     base = TrainConfig() if cfg is None else cfg
-    ppo = replace(base.ppo, lr=0.0, ppo_epochs=2, max_minibatch=16_384)
+    ppo = replace(base.ppo, lr=TASK_RATE, ppo_epochs=2, max_minibatch=16_384)
     return replace(base, total_steps=10**12, ppo=ppo)
 
 
@@ -445,7 +451,9 @@ def resolve(cfg: TrainConfig, obs_shape: tuple[int, int, int], compact: bool = T
     bptt = min(cfg.ppo.bptt_chunk, rollout)
     rollout = max(bptt, rollout // bptt * bptt)
     minibatches = max(cfg.ppo.num_minibatches, -(-n_actors * rollout // cfg.ppo.max_minibatch))
-    lr = cfg.ppo.lr or task_lr(cfg.task)
+    if cfg.ppo.lr < 0 and cfg.ppo.lr != TASK_RATE:
+        raise ValueError(f"lr must be >= 0, or {TASK_RATE:g} for the task's rate; got {cfg.ppo.lr:g}")
+    lr = task_lr(cfg.task) if cfg.ppo.lr == TASK_RATE else cfg.ppo.lr
     ppo = replace(cfg.ppo, bptt_chunk=bptt, num_minibatches=minibatches, lr=lr)
     engine = replace(cfg.engine, view_range=cfg.engine.view_range or TASK_VIEW_RANGE.get(cfg.task, 1.0))
     return replace(cfg, n_actors=n_actors, rollout_length=rollout, ppo=ppo, engine=engine)
