@@ -467,7 +467,7 @@ def run_one(
         "competence": monitor.competence,
         "curve": monitor.curve,
         "final_by_split": final,
-        "train_config": (result.config or tcfg).to_dict(),  # resolved: the rate and sizes it trained at
+        "train_config": result.config.to_dict(),  # resolved: the rate and sizes it trained at
         "reward_overrides": arm_reward(cfg, arm),
         "mean_outside": float(result.last_metrics.get("mean_outside", math.nan)),
         "ranks": d.world,

@@ -63,10 +63,10 @@ class TrainResult:
     sps: float
     skipped_updates: int
     interrupted: bool
+    config: TrainConfig
+    """The run's resolved settings (config.resolve: its actors, rollout length, learning rate...)."""
     promoted: str | None = None
     last_metrics: dict[str, float] = field(default_factory=dict)
-    config: TrainConfig | None = None
-    """The run's resolved settings (config.resolve: its actors, rollout length, learning rate...)."""
 
 
 def collect(
@@ -313,9 +313,9 @@ def finish(
         sps_total,
         st.skipped_updates,
         interrupted,
+        cfg,
         promoted,
         row,
-        cfg,
     )
 
 
