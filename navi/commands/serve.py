@@ -89,28 +89,26 @@ def _logging() -> None:
     )
 
 
-def run_service(
-    body: Callable[[threading.Event], Any], interrupt: bool = False, errors: tuple[type[Exception], ...] = ()
-) -> Any:
-    """Run body(stop) with SIGTERM/SIGINT setting `stop` (and raising KeyboardInterrupt when
-    `interrupt`, so a training loop saves its checkpoint); clear errors exit 2."""
+def run_service(body: Callable[[threading.Event], Any], errors: tuple[type[Exception], ...] = ()) -> Any:
+    """Run body(stop); clear errors exit 2.
+
+    The first SIGTERM or SIGINT only sets `stop`: every loop polls it at a point where stopping is safe
+    (training after the update in progress, with its checkpoint). No exception is raised into whatever
+    the main thread runs then: a KeyboardInterrupt landing inside an import, a finaliser or a string
+    `exec` is lost or corrupts the exit status. Later signals change nothing (torchrun and a terminal
+    may each pass one to a rank)."""
     from navi_mesh.session import MeshError, close_session
 
     _logging()
     stop = threading.Event()
 
     def on_signal(signum: int, frame: object) -> None:
-        first = not stop.is_set()
         stop.set()
-        if interrupt and first:
-            raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     try:
         return body(stop)
-    except KeyboardInterrupt:
-        return None
     except (MeshError, OSError, ValueError) as err:
         raise fail(str(err)) from err
     except errors as err:
@@ -396,7 +394,6 @@ def serve_learner(
     try:
         summary = run_service(
             lambda stop: serve(cfg, stop, rank),
-            interrupt=not rank.active,  # ranks stop together after an update, never mid-collective
             errors=(EnvUnavailable, CorpusBuildError, CorpusError, dist.DistError),
         )
     finally:

@@ -25,7 +25,7 @@ training and inference loops (loops.py), and `serve_learner`, the service itself
   `info["position"]` and its yaw); `FloorPlanner` publishes the floor plan of actor 0's scene
   (navi/env/floor_plan: clearance on a horizontal slice at the drone's height, 128 cells on the long
   side) when the scene changes and every 5 s, computed on its own thread.
-SIGTERM or Ctrl+C ends training through its KeyboardInterrupt path (a checkpoint is saved first).
+SIGTERM or Ctrl+C sets the stop event: training ends after the update in progress, with a checkpoint.
 
 Several GPUs (`navi serve learner --nproc N`, run through torchrun; navi_learner/ppo/dist.py): rank 0 is
 the service above (control plane, mesh, telemetry, corpus build) and trains its share; every other

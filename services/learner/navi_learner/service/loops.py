@@ -41,8 +41,9 @@ def run_training(
     dist: Dist | None = None,
     stop: threading.Event | None = None,
 ) -> dict[str, Any]:
-    """`train` with the tap and the metrics callback; returns the run summary. Rank 0 of a
-    data-parallel learner passes its Dist and the stop event (signals end training through it)."""
+    """`train` with the tap and the metrics callback; returns the run summary. A set `stop` (a signal)
+    ends training after the update in progress, with a checkpoint; rank 0 of a data-parallel learner
+    also passes its Dist, and the ranks agree on stopping."""
     from navi_learner.ppo.runs import new_run_id
     from navi_learner.ppo.train import train
 
@@ -69,7 +70,7 @@ def run_training(
         corpus_summary=corpus_summary(cfg.corpus if cfg.env_kind == "sdfdag" else None, cfg.env_kind),
         progress=False,
         dist=d if d.active else None,
-        should_stop=stop.is_set if d.active and stop is not None else None,
+        should_stop=None if stop is None else stop.is_set,
     )
     summary = {
         "run_id": result.run_id,

@@ -107,6 +107,8 @@ def serve_learner(
         if scenes is not None:
             planner = FloorPlanner(scenes, pubs, lambda: tap.run_id)
             tap.on_pose = planner.request
+        if stop.is_set():  # a signal while the environment was built: no run starts
+            return {"steps": 0, "interrupted": True}
         if cfg.mode == "train":
             summary = run_training(cfg, tap, pubs, status, d, stop)
         else:
