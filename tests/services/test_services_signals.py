@@ -78,3 +78,6 @@ def test_sigterm_mid_training_ends_the_learner_with_a_checkpoint_of_its_last_upd
     assert steps > 0 and steps % (actors * rollout) == 0  # whole updates only
     checkpoint = load_checkpoint(Path(summary["checkpoint"]))
     assert checkpoint.meta.step_id == steps  # the final checkpoint holds the last update
+    print(
+        f"FAULT learner_sigterm_mid_training {json.dumps({'exit': 0, 'steps': steps, 'interrupted': True})}"
+    )
