@@ -5,10 +5,12 @@ the learner ends training after the update in progress with a checkpoint of that
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import httpx
@@ -80,4 +82,31 @@ def test_sigterm_mid_training_ends_the_learner_with_a_checkpoint_of_its_last_upd
     assert checkpoint.meta.step_id == steps  # the final checkpoint holds the last update
     print(
         f"FAULT learner_sigterm_mid_training {json.dumps({'exit': 0, 'steps': steps, 'interrupted': True})}"
+    )
+
+
+def test_sigterm_while_the_learner_builds_its_corpus_stops_the_build_and_keeps_no_partial_corpus(
+    services: Services, tmp_path: Path
+) -> None:
+    """The local build polls the stop flag between scenes: the service exits 0 at the next scene instead
+    of compiling the rest and training, and the corpus folder gets nothing (the next start builds it)."""
+    services.start("router", "serve", "router")
+    corpus = tmp_path / "corpus"
+    scenes = 12
+    learner = services.start("learner", "serve", "learner", "--corpus", str(corpus), "--corpus-build", "local",
+                             "--corpus-scenes", str(scenes), "--corpus-resolution", "96", "--actors", "4",
+                             "--temporal-core", "gru", "--device", "cpu", "--port", "0", "--read-only",
+                             "--total-steps", "100000000")  # fmt: skip
+    learner.logged(r"corpus: \[1/\d+\]", 300.0)  # the build is under way
+    t0 = time.monotonic()
+    assert learner.stop(signal.SIGTERM, timeout_s=120.0) == 0, learner.text()[-3000:]
+    stopped_s = time.monotonic() - t0
+    log = learner.text()
+    built = len(re.findall(r"corpus: \[\d+/\d+\] \S+: (?:pass|fail)", log))
+    assert built < scenes, log[-3000:]  # the build stopped before its last scene
+    assert json.loads(log.strip().splitlines()[-1]) == {"steps": 0, "interrupted": True}
+    assert not (corpus / "manifest.json").exists()
+    assert not [p for p in corpus.parent.iterdir() if p.name.startswith(f".{corpus.name}.")]  # no work folder
+    print(
+        f"FAULT learner_sigterm_in_corpus_build {json.dumps({'stopped_s': round(stopped_s, 1), 'scenes_built': built, 'of': scenes})}"
     )

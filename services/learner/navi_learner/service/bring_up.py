@@ -97,6 +97,11 @@ class CorpusReporter:
             self.pubs.telemetry.publish(telemetry(key, float(value), 0))
 
 
+class _Stopped(Exception):
+    """Raised by a local corpus build's progress callback when a signal came (no OSError, ValueError or
+    RuntimeError: the build turns those into a scene's CorpusError)."""
+
+
 def prepare_corpus(
     cfg: LearnerServiceConfig,
     sess: zenoh.Session,
@@ -104,7 +109,8 @@ def prepare_corpus(
     stop: threading.Event,
 ) -> None:
     """Make sure the sdfdag corpus exists: read its manifest, or build the procedural default corpus
-    (over compile jobs, or in this process with corpus_build="local")."""
+    (over compile jobs, or in this process with corpus_build="local"). A set `stop` ends either build
+    with InterruptedError (a local one at the next scene; the corpus folder is left as it was)."""
     if cfg.env_kind != "sdfdag":
         return
     from navi_env.corpus.folder import MANIFEST, CorpusError, build_default_corpus, read_manifest
@@ -114,9 +120,23 @@ def prepare_corpus(
         if cfg.corpus_build == "local":
             log.info("building the procedural default corpus into %s in this process", cfg.corpus)
             reporter(BuildProgress("building", scenes_total=cfg.corpus_scenes))
-            build_default_corpus(
-                cfg.corpus, cfg.corpus_resolution, cfg.corpus_scenes, cfg.train.seed, cfg.train.device
-            )
+
+            def progress(line: str) -> None:  # between scenes: the build stops there when a signal came
+                log.info("corpus: %s", line)
+                if stop.is_set():
+                    raise _Stopped
+
+            try:
+                build_default_corpus(
+                    cfg.corpus,
+                    cfg.corpus_resolution,
+                    cfg.corpus_scenes,
+                    cfg.train.seed,
+                    cfg.train.device,
+                    progress=progress,
+                )
+            except _Stopped:
+                raise InterruptedError("stopped while the corpus was built (nothing of it is kept)") from None
         else:
             log.info(
                 "building the procedural default corpus into %s over compile jobs (%d scenes at %d^3)",
