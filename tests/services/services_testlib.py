@@ -17,6 +17,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+import httpx
+
 NAVI = (sys.executable, "-m", "navi")
 HOLDPOINT = Path(__file__).with_name("holdpoint.py")
 
@@ -275,3 +277,12 @@ def small_cpu_stack(folder: Path, mp: Any, ports: contextlib.ExitStack) -> Any:
         auditor=True,
         navi=NAVI,
     )
+
+
+def learner_health(port: int) -> dict[str, Any] | None:
+    """The learner's /healthz body, or None while it does not answer 200."""
+    try:
+        reply = httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0)
+        return reply.json() if reply.status_code == 200 else None
+    except (httpx.HTTPError, ValueError):
+        return None

@@ -30,7 +30,7 @@ import pytest
 import torch
 import zenoh
 from prometheus_client.parser import text_string_to_metric_families
-from services_testlib import HoldPoint, Service, Services, matched, wait_for
+from services_testlib import HoldPoint, Service, Services, learner_health, matched, wait_for
 
 from navi_contracts.codec import encode
 from navi_contracts.models import (
@@ -234,15 +234,6 @@ def test_learner_killed_while_writing_a_checkpoint_leaves_loadable_files(
     assert learner.stop(signal.SIGTERM) == 0
     record("learner_kill_mid_write", {"kills": len(kills), "caught_mid_write": caught, "pt_files_loaded": loaded,
                                       "registry_versions": settled["versions"]})  # fmt: skip
-
-
-def learner_health(port: int) -> dict[str, Any] | None:
-    """The learner's /healthz body, or None while it does not answer 200."""
-    try:
-        reply = httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0)
-        return reply.json() if reply.status_code == 200 else None
-    except (httpx.HTTPError, ValueError):
-        return None
 
 
 def learner_up(port: int) -> bool:

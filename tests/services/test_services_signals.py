@@ -13,9 +13,8 @@ import textwrap
 import time
 from pathlib import Path
 
-import httpx
 import pytest
-from services_testlib import Services, wait_for
+from services_testlib import Services, learner_health, wait_for
 
 from navi_learner.serving.checkpoint import load_checkpoint
 
@@ -47,14 +46,6 @@ def test_a_signal_inside_exec_code_sets_stop_and_the_service_exits_0() -> None:
     assert done.stdout.strip().splitlines()[-1] == "body finished, stop set"
 
 
-def healthz(port: int) -> dict[str, object] | None:
-    try:
-        reply = httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0)
-        return reply.json() if reply.status_code == 200 else None
-    except (httpx.HTTPError, ValueError):
-        return None
-
-
 def test_sigterm_mid_training_ends_the_learner_with_a_checkpoint_of_its_last_update(
     services: Services,
 ) -> None:
@@ -69,7 +60,7 @@ def test_sigterm_mid_training_ends_the_learner_with_a_checkpoint_of_its_last_upd
     def training() -> bool:
         if not learner.alive():
             raise AssertionError(f"the learner exited:\n{learner.text()[-3000:]}")
-        health = healthz(api)
+        health = learner_health(api)
         return health is not None and health.get("phase") == "training" and int(health.get("step", 0)) > 0
 
     wait_for(training, 180.0, "the learner to log a training step")
