@@ -117,10 +117,8 @@ def serve_learner(
         repeater.close()  # the run is over: no frame is repeated as if it were live
         log.info("run finished: %s", json.dumps(summary, default=str))
         if not cfg.exit_when_done:
-            try:
-                stop.wait()
-            except KeyboardInterrupt:
-                log.info("stopping")
+            stop.wait()  # a signal sets it
+            log.info("stopping")
     except BaseException:
         status.update(phase="failed")
         raise
