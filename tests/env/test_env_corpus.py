@@ -201,6 +201,28 @@ def test_a_failing_source_leaves_the_old_corpus_intact(sources: Path, tmp_path: 
     assert sorted(snapshot(out)) == ["manifest.json", "room_b.gmdag"]
 
 
+def test_an_exception_from_progress_stops_the_build_as_it_is(sources: Path, tmp_path: Path) -> None:
+    """A caller stops a build between scenes by raising from `progress` (the learner service does on a
+    signal): its exception comes out unchanged, not as the scene's CorpusError, and the old corpus stays."""
+    out = tmp_path / "corpus"
+    build_corpus([sources / "room_a.gmdag"], out, resolution=32)
+    before = snapshot(out)
+    lines: list[str] = []
+
+    def stop_after_the_first_scene(line: str) -> None:
+        lines.append(line)
+        if len(lines) > 2:  # "[1/2] ...: compiling", "[1/2] ...: pass", then the second scene's first line
+            raise InterruptedError("stopped")
+
+    with pytest.raises(InterruptedError, match="stopped"):
+        build_corpus([sources / "room_a.gmdag", sources / "room_b.gmdag"], out, resolution=32, workers=1,
+                     progress=stop_after_the_first_scene)  # fmt: skip
+    assert [line.split(":")[0] for line in lines] == ["[1/2] room_a", "[1/2] room_a", "[2/2] room_b"]
+    assert lines[-1].endswith("compiling " + str(sources / "room_b.gmdag"))
+    assert snapshot(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["corpus", "src"]  # no work folder left
+
+
 def test_mesh_sources_compile_into_a_corpus(tmp_path: Path) -> None:
     from navi_compiler.ingest.procedural import generate_corpus
 

@@ -370,9 +370,10 @@ def _build_into(
                 compiling.append(pool.submit(_compile_one, source, work / f"{name}.gmdag", resolution))
         for i, (source, name) in enumerate(zip(sources, names, strict=True), 1):
             path = work / f"{name}.gmdag"
+            if pool is None:  # outside the try: what the progress callback raises is not the source's fault
+                say(f"[{i}/{n}] {name}: compiling {source}")
             try:
                 if pool is None:
-                    say(f"[{i}/{n}] {name}: compiling {source}")
                     _compile_one(source, path, resolution)
                 else:
                     compiling[i - 1].result()
@@ -463,7 +464,8 @@ def build_corpus(
     workers: int = 0,
 ) -> CorpusManifest:
     """Compile, check and qualify every source into the corpus folder `out`, transactionally; `workers`
-    sources compile at once (0: compile_workers decides)."""
+    sources compile at once (0: compile_workers decides). An exception that `progress` raises ends the
+    build as it is (a caller's way to stop it between scenes), with `out` left untouched."""
     if not sources:
         raise CorpusError("no scene sources given")
     if workers < 0:

@@ -97,11 +97,6 @@ class CorpusReporter:
             self.pubs.telemetry.publish(telemetry(key, float(value), 0))
 
 
-class _Stopped(Exception):
-    """Raised by a local corpus build's progress callback when a signal came (no OSError, ValueError or
-    RuntimeError: the build turns those into a scene's CorpusError)."""
-
-
 def prepare_corpus(
     cfg: LearnerServiceConfig,
     sess: zenoh.Session,
@@ -124,19 +119,16 @@ def prepare_corpus(
             def progress(line: str) -> None:  # between scenes: the build stops there when a signal came
                 log.info("corpus: %s", line)
                 if stop.is_set():
-                    raise _Stopped
+                    raise InterruptedError("stopped while the corpus was built (nothing of it is kept)")
 
-            try:
-                build_default_corpus(
-                    cfg.corpus,
-                    cfg.corpus_resolution,
-                    cfg.corpus_scenes,
-                    cfg.train.seed,
-                    cfg.train.device,
-                    progress=progress,
-                )
-            except _Stopped:
-                raise InterruptedError("stopped while the corpus was built (nothing of it is kept)") from None
+            build_default_corpus(
+                cfg.corpus,
+                cfg.corpus_resolution,
+                cfg.corpus_scenes,
+                cfg.train.seed,
+                cfg.train.device,
+                progress=progress,
+            )
         else:
             log.info(
                 "building the procedural default corpus into %s over compile jobs (%d scenes at %d^3)",
