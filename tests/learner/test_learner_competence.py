@@ -35,7 +35,7 @@ from navi_bench.learn import (
 from navi_bench.learn import summarise as summarise_arms
 from navi_env.corpus.folder import build_default_corpus
 from navi_env.corpus.openarena import split_openarena
-from navi_learner.config import TASK_RATE, EngineConfig, PPOConfig, TrainConfig, learning_recipe
+from navi_learner.config import TASK_LR, TASK_RATE, EngineConfig, PPOConfig, TrainConfig, learning_recipe
 from navi_learner.engine.policy import CognitiveMambaPolicy
 from navi_learner.envs.factory import make_env, parse_reward_overrides, reward_config
 from navi_learner.envs.protocol import StepLike, capabilities
@@ -505,7 +505,10 @@ def test_bench_learn_point_goal_end_to_end_on_a_cpu(tmp_path: Path) -> None:
     assert set(saved["baselines"]["all"]) == {"random", "greedy", "oracle"}
     assert all(b["task"] == "pointgoal" for b in saved["baselines"]["all"].values())
     (run,) = saved["runs"]
-    assert run["train_config"]["task"] == "pointgoal" and run["train_config"]["ppo"]["lr"] == 3e-4
+    assert (
+        run["train_config"]["task"] == "pointgoal"
+        and run["train_config"]["ppo"]["lr"] == TASK_LR["pointgoal"]
+    )
     assert all(p["competent"] is not None and "success_rate" in p for p in run["curve"])
     assert run["final_by_split"]["procedural"]["task"] == "pointgoal"
     assert "median_final_spl" in result["summary"]["gru"]

@@ -161,15 +161,18 @@ def test_the_learning_run_takes_fewer_actors_on_a_gpu_too_small_for_its_size(
         assert all(n in line for n in named), (command, line)
 
 
-def test_the_learning_recipe_trains_each_task_at_its_own_rate() -> None:
-    """The recipe's rate is TASK_RATE and resolve picks the task's (explore 6e-4, point-goal 3e-4); a rate
+def test_the_learning_recipe_trains_each_task_at_its_own_rate(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The recipe's rate is TASK_RATE and resolve picks the task's (TASK_LR, looked up per run); a rate
     the run sets is kept, 0 among them (weights that do not move), an unknown task or another negative
     rate is named, and `navi train` keeps PPOConfig's own default."""
     recipe = config.learning_recipe()
     assert recipe.ppo.lr == config.TASK_RATE
     obs = (3, 256, 48)
     rates = {t: config.resolve(replace(recipe, task=t), obs).ppo.lr for t in ("explore", "pointgoal")}
-    assert rates == {"explore": 6e-4, "pointgoal": 3e-4} == config.TASK_LR
+    assert rates == {"explore": 6e-4, "pointgoal": 6e-4} == config.TASK_LR
+    monkeypatch.setitem(config.TASK_LR, "pointgoal", 2e-4)  # rates that differ tell the tasks apart
+    rates = {t: config.resolve(replace(recipe, task=t), obs).ppo.lr for t in ("explore", "pointgoal")}
+    assert rates == {"explore": 6e-4, "pointgoal": 2e-4}
     for own_rate in (1e-4, 0.0):
         own = replace(recipe, task="pointgoal", ppo=replace(recipe.ppo, lr=own_rate))
         assert config.resolve(own, obs).ppo.lr == own_rate
