@@ -1,9 +1,9 @@
 """Stock trainers learn on Navi: the examples' skrl PPO, TorchRL PPO and rsl_rl PPO (MLP and GRU), trained
 for a short CPU budget on the small procedural corpus, beat the random pilot on Navi's own evaluation
 (navi_learner.evaluation: collisions and coverage per 1,000 steps, 64 drones for 400 steps from the same
-spawns) and collide less than the scripted reactive avoider, as the median of three seeds. On a GPU, each example's documented command
-(2,048 drones, 256 x 48 rays pooled to the MLP's 16 x 4 view) beats random flight on an unseen corpus
-within a short budget.
+spawns) and collide less than the scripted reactive avoider, as the median of three seeds. On a GPU, each
+example's documented command (2,048 drones, 256 x 48 rays pooled to the MLP's 16 x 4 view) beats random
+flight on an unseen corpus within a short budget.
 """
 
 from __future__ import annotations
